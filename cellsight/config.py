@@ -1,0 +1,170 @@
+"""The cell configuration: nested pydantic models loaded from TOML with environment overrides.
+
+    [cell]                 name, scenario
+    [transport]            zenoh: mode, connect, listen, zenoh_config (TLS / ACL)
+    [[cameras]]            one per sensor (drivers.config.CameraConfig)
+    [markers]              marker front-end (drivers.config.MarkerConfig)
+    [estimator]            solver and [[estimator.anchors]] (estimator.config)
+
+Environment overrides: ``CELLSIGHT__SECTION__FIELD=value`` (value parsed as JSON when it parses,
+else taken as a string), e.g. ``CELLSIGHT__TRANSPORT__MODE=peer``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from cellsight.errors import ConfigError
+from drivers.config import CameraConfig, MarkerConfig
+from estimator.config import EstimatorConfig
+from schemas.bus import TransportConfig
+from schemas.keys import check_name
+
+ENV_PREFIX = "CELLSIGHT__"
+
+
+class CellSection(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "demo"
+    scenario: Path | None = Field(default=None, description="simulated cell scenario (TOML); None: built-in demo")
+    record: Path | None = Field(default=None, description="record every key to this MCAP file")
+
+
+class CellConfig(BaseModel):
+    """Everything one cell needs. ``CellConfig()`` alone is valid and means the simulated demo cell."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    cell: CellSection = Field(default_factory=CellSection)
+    transport: TransportConfig = Field(default_factory=TransportConfig)
+    cameras: list[CameraConfig] = Field(default_factory=list)
+    markers: MarkerConfig = Field(default_factory=MarkerConfig)
+    estimator: EstimatorConfig = Field(default_factory=EstimatorConfig)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "CellConfig":
+        check_name(self.cell.name, "cell name")
+        ids = [c.id for c in self.cameras]
+        dupes = sorted({i for i in ids if ids.count(i) > 1})
+        if dupes:
+            raise ValueError(f"duplicate camera ids: {dupes}")
+        anchors = [a.marker_id for a in self.estimator.anchors]
+        if len(set(anchors)) != len(anchors):
+            raise ValueError("an anchor marker id is listed twice")
+        return self
+
+    def to_toml(self) -> str:
+        """The configuration as TOML (what ``save_used`` writes beside a run)."""
+        return _to_toml(self.model_dump(mode="json", exclude_none=True))
+
+
+def apply_env(data: dict[str, Any], environ: Mapping[str, str]) -> dict[str, Any]:
+    """Overlay ``CELLSIGHT__A__B=value`` variables onto the nested dict ``data`` (returns a copy)."""
+    out = json.loads(json.dumps(data, default=str))
+    for name, raw in environ.items():
+        if not name.startswith(ENV_PREFIX):
+            continue
+        path = [p.lower() for p in name[len(ENV_PREFIX):].split("__") if p]
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        node = out
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"environment {name}: {part!r} is not a section")
+        node[path[-1]] = value
+    return out
+
+
+def _format_errors(source: str, exc: ValidationError) -> str:
+    lines = [f"{source}: invalid configuration"]
+    for err in exc.errors():
+        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        got = err.get("input")
+        got_s = "" if isinstance(got, dict) else f" (got {got!r})"
+        lines.append(f"  {field}: {err['msg']}{got_s}")
+    return "\n".join(lines)
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>", environ: Mapping[str, str] | None = None) -> CellConfig:
+    """Validate a dict (e.g. parsed TOML) with environment overrides; raise ``ConfigError``."""
+    data = apply_env(data, os.environ if environ is None else environ)
+    try:
+        return CellConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(source, exc)) from exc
+
+
+def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> CellConfig:
+    """Load a cell config from TOML (None: defaults). Relative paths resolve against the file's folder."""
+    if path is None:
+        return parse_config({}, "<defaults>", environ)
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such file") from exc
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    cfg = parse_config(data, str(path), environ)
+    base = path.parent
+    if cfg.cell.scenario is not None and not cfg.cell.scenario.is_absolute():
+        cfg.cell.scenario = base / cfg.cell.scenario
+    return cfg
+
+
+def save_used(cfg: CellConfig, out_dir: Path) -> Path:
+    """Write the configuration actually used to ``out_dir/config.toml``; return the path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / "config.toml"
+    target.write_text(cfg.to_toml())
+    return target
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _to_toml(data: dict[str, Any], prefix: str = "") -> str:
+    """Minimal TOML writer for our config shape (tables, arrays of tables, scalars, lists)."""
+    scalars, tables, arrays = [], [], []
+    for k, v in data.items():
+        if isinstance(v, dict) and not _is_map(k):
+            tables.append((k, v))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            arrays.append((k, v))
+        else:
+            scalars.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(scalars) + ("\n" if scalars else "")
+    for k, v in tables:
+        name = f"{prefix}{k}"
+        out += f"\n[{name}]\n" + _to_toml(v, name + ".")
+    for k, items in arrays:
+        name = f"{prefix}{k}"
+        for item in items:
+            out += f"\n[[{name}]]\n" + _to_toml(item, name + ".")
+    return out
+
+
+def _is_map(key: str) -> bool:
+    """Fields that are free-form maps (written inline), not config sections."""
+    return key in {"sides_m", "overrides"}

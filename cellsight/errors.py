@@ -1,0 +1,9 @@
+"""Exception root of the ``cellsight`` composition package."""
+
+
+class CellsightError(Exception):
+    """Root of errors raised by the composition root (config, launcher, recorder)."""
+
+
+class ConfigError(CellsightError, ValueError):
+    """A configuration file is invalid. The message names the file, the field and what was expected."""

@@ -1,0 +1,65 @@
+"""Configuration of sensors and of the marker front-end."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from schemas.keys import check_name
+
+
+class IntrinsicsConfig(BaseModel):
+    """Pinhole intrinsics; omitted in a camera section means Kinect v1 defaults for its size."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+class MarkerConfig(BaseModel):
+    """What the marker front-end looks for."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dictionary: str = Field(default="DICT_APRILTAG_36h11", description="OpenCV predefined dictionary name")
+    side_m: float = Field(default=0.15, gt=0, description="printed black-square side length")
+    sides_m: dict[int, float] = Field(default_factory=dict, description="per-id side lengths overriding side_m")
+    use_depth: bool = Field(default=True, description="refine poses with the registered depth when available")
+    pixel_sigma: float = Field(default=0.5, gt=0, description="corner noise (px) behind the covariance model")
+
+    @model_validator(mode="after")
+    def _sizes_positive(self) -> "MarkerConfig":
+        bad = {k: v for k, v in self.sides_m.items() if not v > 0}
+        if bad:
+            raise ValueError(f"marker sides must be positive, got {bad}")
+        return self
+
+    def side_for(self, marker_id: int) -> float:
+        return self.sides_m.get(marker_id, self.side_m)
+
+
+class CameraConfig(BaseModel):
+    """One sensor and the driver process that serves it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str
+    source: Literal["sim", "openni2"] = "sim"
+    uri: str = Field(default="", description="openni2: device URI, 'Dummy' or a .oni file; empty = first device")
+    width: int = Field(default=640, gt=0)
+    height: int = Field(default=480, gt=0)
+    rate_hz: float = Field(default=30.0, gt=0)
+    intrinsics: IntrinsicsConfig | None = None
+    publish_images: bool = Field(default=True, description="publish color/depth (markers are always published)")
+    openni2_path: Path | None = Field(default=None, description="folder holding libOpenNI2.so (default: system)")
+
+    @model_validator(mode="after")
+    def _id_is_a_key(self) -> "CameraConfig":
+        check_name(self.id, "camera id")
+        return self

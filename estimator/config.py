@@ -1,0 +1,39 @@
+"""Configuration of the estimator: anchors (the world frame) and solver settings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.spec import PoseSpec
+
+
+class AnchorConfig(BaseModel):
+    """A marker with a surveyed world pose; it becomes a prior factor."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    marker_id: int = Field(ge=0)
+    world_T_marker: PoseSpec
+    sigma_position_m: float = Field(default=0.001, gt=0, description="surveyed position sigma")
+    sigma_rotation_deg: float = Field(default=0.1, gt=0, description="surveyed rotation sigma")
+
+
+class EstimatorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    anchors: list[AnchorConfig] = Field(default_factory=list)
+    known_markers: list[int] | None = Field(
+        default=None, description="ids the cell uses; others are counted as unknown (None: accept all)"
+    )
+    huber_k: float = Field(default=1.345, gt=0, description="Huber threshold in whitened units")
+    relinearize_threshold: float = Field(default=0.001, gt=0)
+    refresh_s: float = Field(default=1.0, gt=0, description="how often a fused pair factor is replaced")
+    max_fused: int = Field(default=30, ge=1, description="cap on how many observations a fused factor counts")
+    update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon")
+    stale_after_s: float = Field(default=1.0, gt=0, description="a camera with no frames this long is stale")
+    bump_position_m: float = Field(default=0.01, gt=0, description="marker shift in the camera frame that signals a move")
+    bump_frames: int = Field(default=3, ge=1, description="consecutive frames above the threshold before a new segment")
+    anchor_check_m: float = Field(default=0.05, gt=0, description="anchor disagreement that flags a moved anchor")
+    state_file: Path | None = Field(default=None, description="where the daemon persists its map")

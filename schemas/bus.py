@@ -1,0 +1,275 @@
+"""One way to open a zenoh session and to publish / subscribe typed messages, for every process.
+
+- ``TransportConfig``: the ``--mode/--connect/--listen/--config`` flags every process takes
+  (zenoh-python's ``common.py`` convention), plus pass-through settings for TLS, mTLS and access
+  control. Multicast scouting is off unless asked for.
+- ``Bus``: a session bound to a cell, with typed publishers, decoding subscriptions
+  (``Inbox``) and liveliness tokens.
+
+Subscriptions decode in zenoh's callback thread and keep messages in a bounded inbox: a ring
+(newest wins) for frames, a FIFO for small messages. A payload that does not decode is counted per
+key, logged once per key and dropped; the subscription keeps running.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Generic, Literal, TypeVar
+
+import zenoh
+from google.protobuf.message import Message
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas import keys
+from schemas.codec import decode
+from schemas.errors import BusError, SchemaError
+
+log = logging.getLogger(__name__)
+
+Msg = TypeVar("Msg", bound=Message)
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+class TransportConfig(BaseModel):
+    """How a process joins the zenoh network. Defaults: client of one router on loopback."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["client", "peer", "router"] = "client"
+    connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER], description="endpoints to connect to")
+    listen: list[str] = Field(default_factory=list, description="endpoints to listen on")
+    multicast_scouting: bool = False
+    shared_memory: bool = True
+    zenoh_config: Path | None = Field(
+        default=None, description="zenoh JSON5 config file loaded first (TLS, mTLS, access control)"
+    )
+    overrides: dict[str, Any] = Field(
+        default_factory=dict, description="zenoh config paths set last, e.g. {'transport/link/tls/...': ...}"
+    )
+
+    def to_zenoh(self) -> zenoh.Config:
+        """Build the ``zenoh.Config``; raise ``BusError`` naming the setting zenoh refused."""
+        try:
+            cfg = zenoh.Config.from_file(str(self.zenoh_config)) if self.zenoh_config else zenoh.Config()
+        except (zenoh.ZError, OSError) as exc:
+            raise BusError(f"cannot load zenoh config {self.zenoh_config}: {exc}") from exc
+        settings: dict[str, Any] = {
+            "mode": self.mode,
+            "scouting/multicast/enabled": self.multicast_scouting,
+            "transport/shared_memory/enabled": self.shared_memory,
+        }
+        if self.mode != "router" or self.connect != [DEFAULT_ROUTER]:
+            settings["connect/endpoints"] = self.connect if self.mode != "router" else []
+        if self.listen:
+            settings["listen/endpoints"] = self.listen
+        settings.update(self.overrides)
+        for path, value in settings.items():
+            try:
+                cfg.insert_json5(path, json.dumps(value))
+            except zenoh.ZError as exc:
+                raise BusError(f"zenoh refused setting {path}={value!r}: {exc}") from exc
+        return cfg
+
+    @classmethod
+    def router(cls, listen: list[str]) -> "TransportConfig":
+        return cls(mode="router", connect=[], listen=listen)
+
+
+def open_session(transport: TransportConfig) -> zenoh.Session:
+    """Open a zenoh session; raise ``BusError`` with the endpoints tried when it fails."""
+    try:
+        return zenoh.open(transport.to_zenoh())
+    except zenoh.ZError as exc:
+        raise BusError(
+            f"cannot open zenoh session (mode {transport.mode}, connect {transport.connect}, "
+            f"listen {transport.listen}): {exc}. Is the router running (cellsight run / cellsight router)?"
+        ) from exc
+
+
+@dataclass(frozen=True)
+class Received(Generic[Msg]):
+    """A decoded message with its concrete key and local receive time (ns, ``time.time_ns``)."""
+
+    key: str
+    msg: Msg
+    receive_ns: int
+
+
+class Inbox(Generic[Msg]):
+    """Thread-safe bounded queue of decoded messages. ``ring=True`` drops the oldest when full."""
+
+    def __init__(self, capacity: int, ring: bool) -> None:
+        self._items: deque[Received[Msg]] = deque(maxlen=capacity if ring else None)
+        self._capacity = capacity
+        self._ring = ring
+        self._cond = threading.Condition()
+        self.dropped = 0
+
+    def put(self, item: Received[Msg]) -> None:
+        with self._cond:
+            if len(self._items) >= self._capacity:
+                self.dropped += 1
+                if not self._ring:
+                    return  # FIFO full: refuse the newest, keep what we have
+            self._items.append(item)
+            self._cond.notify()
+
+    def get(self, timeout_s: float | None = None) -> Received[Msg] | None:
+        """The oldest message, waiting up to ``timeout_s`` seconds (None: forever)."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._items, timeout=timeout_s):
+                return None
+            return self._items.popleft()
+
+    def drain(self) -> list[Received[Msg]]:
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+
+class Subscription(Generic[Msg]):
+    """A zenoh subscriber that decodes into an ``Inbox`` (or a callback) and counts bad input."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        msg_type: type[Msg] | None = None,
+        *,
+        capacity: int = 1024,
+        ring: bool = False,
+        callback: Callable[[Received[Msg]], None] | None = None,
+    ) -> None:
+        self.key_expr = key_expr
+        self._msg_type = msg_type
+        self.inbox: Inbox[Msg] = Inbox(capacity, ring)
+        self._callback = callback
+        self.received = 0
+        self.bad: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key_expr, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg_type = self._msg_type or keys.message_type(key)
+            item = Received(key, decode(sample.payload.to_bytes(), msg_type), time.time_ns())
+        except SchemaError as exc:
+            self._count_bad(key, str(exc))
+            return
+        with self._lock:
+            self.received += 1
+        if self._callback is None:
+            self.inbox.put(item)
+            return
+        try:
+            self._callback(item)
+        except Exception:  # zenoh's thread boundary: a handler bug must not kill the subscription
+            self._count_bad(key, "handler raised")
+            log.exception("handler for %s raised on a message", key)
+
+    def _count_bad(self, key: str, why: str) -> None:
+        with self._lock:
+            self.bad[key] += 1
+            first = self.bad[key] == 1
+        if first:  # once per key: a flood of garbage must not flood the log
+            log.warning("dropping malformed payload on %s: %s (further ones on this key are only counted)", key, why)
+
+    def get(self, timeout_s: float | None = None) -> Received[Msg] | None:
+        return self.inbox.get(timeout_s)
+
+    def drain(self) -> list[Received[Msg]]:
+        return self.inbox.drain()
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+class Publisher(Generic[Msg]):
+    """Publishes one message type on one concrete key; checks the type against the contract."""
+
+    def __init__(self, session: zenoh.Session, key: str, *, frames: bool = False) -> None:
+        self.key = key
+        self.msg_type = keys.message_type(key)
+        # Frames: drop under congestion (newest wins downstream); small messages: block, never lose.
+        cc = zenoh.CongestionControl.DROP if frames else zenoh.CongestionControl.BLOCK
+        prio = zenoh.Priority.DATA_LOW if frames else zenoh.Priority.DATA
+        self._pub = session.declare_publisher(key, congestion_control=cc, priority=prio)
+        self.published = 0
+
+    def put(self, msg: Msg) -> None:
+        if not isinstance(msg, self.msg_type):
+            raise SchemaError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
+        self._pub.put(msg.SerializeToString())
+        self.published += 1
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+class Bus:
+    """A zenoh session bound to one cell. Close it (or use ``with``) to leave the network."""
+
+    def __init__(self, transport: TransportConfig, cell: str) -> None:
+        self.cell = keys.check_name(cell, "cell name")
+        self.transport = transport
+        self.session = open_session(transport)
+        self._tokens: list[zenoh.LivelinessToken] = []
+
+    def __enter__(self) -> "Bus":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def publisher(self, key: str, *, frames: bool = False) -> Publisher:
+        return Publisher(self.session, key, frames=frames)
+
+    def subscribe(
+        self,
+        key_expr: str,
+        msg_type: type[Msg] | None = None,
+        *,
+        capacity: int = 1024,
+        ring: bool = False,
+        callback: Callable[[Received[Msg]], None] | None = None,
+    ) -> Subscription[Msg]:
+        """Decode messages on ``key_expr``; the type comes from the key when ``msg_type`` is None."""
+        return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback)
+
+    def declare_alive(self, component: str, ident: str) -> str:
+        """Hold a liveliness token ``cellsight/<cell>/alive/<component>/<id>`` until close."""
+        key = keys.alive(self.cell, component, ident)
+        self._tokens.append(self.session.liveliness().declare_token(key))
+        return key
+
+    def alive(self, timeout_s: float = 1.0) -> list[str]:
+        """Keys of every liveliness token currently held in this cell, sorted, without duplicates."""
+        replies = self.session.liveliness().get(keys.alive_all(self.cell), timeout=timeout_s)
+        return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
+
+    def query(self, key: str, timeout_s: float = 2.0) -> list[Received]:
+        """Query a queryable (e.g. ``estimate/map``) and decode its replies; bad replies are skipped."""
+        msg_type = keys.message_type(key)
+        out = []
+        for reply in self.session.get(key, timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            try:
+                out.append(Received(str(reply.ok.key_expr), decode(reply.ok.payload.to_bytes(), msg_type), time.time_ns()))
+            except SchemaError as exc:
+                log.warning("dropping malformed reply on %s: %s", key, exc)
+        return out
+
+    def close(self) -> None:
+        for tok in self._tokens:
+            tok.undeclare()
+        self._tokens.clear()
+        self.session.close()

@@ -1,0 +1,380 @@
+"""Conversions between messages and numpy: poses, covariances, images, camera info, transforms.
+
+Conventions (DESIGN.md section 3): poses are 4x4 float64 ``parent_T_child`` arrays; quaternions on
+the wire are (x, y, z, w); 6x6 covariances on the wire are ROS order (x, y, z, rx, ry, rz) while
+gtsam's Pose3 tangent is rotation first (rx, ry, rz, x, y, z). Every ``*_from_msg`` treats its
+input as untrusted and raises ``DecodeError`` naming what was wrong.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, TypeVar
+
+import numpy as np
+from google.protobuf import unknown_fields
+from google.protobuf.message import DecodeError as _PbDecodeError
+from google.protobuf.message import Message
+
+from schemas import messages as m
+from schemas.errors import DecodeError
+
+Msg = TypeVar("Msg", bound=Message)
+
+# Index map between ROS order (x y z rx ry rz) and gtsam order (rx ry rz x y z).
+_ROS_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
+
+
+# ---------------------------------------------------------------- rotations and poses
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * math.sqrt(t + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
+        q = np.empty(4)
+        q[i] = 0.25 * s
+        q[j] = (R[j, i] + R[i, j]) / s
+        q[k] = (R[k, i] + R[i, k]) / s
+        q[3] = (R[k, j] - R[j, k]) / s
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def matrix_from_quat(q: Iterable[float]) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion (x, y, z, w); the quaternion is normalised first."""
+    x, y, z, w = np.asarray(list(q), dtype=np.float64) / np.linalg.norm(list(q))
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def make_pose(R: np.ndarray | None = None, t: Iterable[float] | None = None) -> np.ndarray:
+    """4x4 pose from a 3x3 rotation (default identity) and a translation in metres (default 0)."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = np.asarray(list(t), dtype=np.float64)
+    return T
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 pose without a general matrix inverse."""
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def check_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarray:
+    """Return ``T`` as float64 if it is a finite rigid 4x4 transform, else raise ``DecodeError``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise DecodeError(f"{what}: expected a 4x4 array, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise DecodeError(f"{what}: contains NaN or inf")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=tol) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise DecodeError(f"{what}: not a rigid transform (rotation not orthonormal or bad last row)")
+    return T
+
+
+def pose_to_msg(T: np.ndarray, out: m.Pose | None = None) -> m.Pose:
+    """Fill (or create) a ``Pose`` message from a 4x4 ``parent_T_child``."""
+    T = check_pose(T, tol=1e-5)
+    msg = out if out is not None else m.Pose()
+    q = quat_from_matrix(T[:3, :3])
+    msg.x, msg.y, msg.z = (float(v) for v in T[:3, 3])
+    msg.qx, msg.qy, msg.qz, msg.qw = (float(v) for v in q)
+    return msg
+
+
+def pose_from_msg(msg: m.Pose, what: str = "pose") -> np.ndarray:
+    """4x4 pose from a ``Pose`` message; rejects non-finite values and non-unit quaternions."""
+    t = np.array([msg.x, msg.y, msg.z])
+    q = np.array([msg.qx, msg.qy, msg.qz, msg.qw])
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+        raise DecodeError(f"{what}: contains NaN or inf")
+    n = np.linalg.norm(q)
+    if abs(n - 1.0) > 1e-3:
+        raise DecodeError(f"{what}: quaternion norm {n:.4g} is not 1")
+    return make_pose(matrix_from_quat(q), t)
+
+
+# ---------------------------------------------------------------- covariances
+
+
+def cov_ros_to_gtsam(cov: np.ndarray) -> np.ndarray:
+    """Reorder a 6x6 covariance from ROS (x y z rx ry rz) to gtsam Pose3 tangent (rx ry rz x y z)."""
+    cov = np.asarray(cov, dtype=np.float64).reshape(6, 6)
+    return cov[np.ix_(_ROS_TO_GTSAM, _ROS_TO_GTSAM)]
+
+
+def cov_gtsam_to_ros(cov: np.ndarray) -> np.ndarray:
+    """Inverse of ``cov_ros_to_gtsam`` (the permutation is its own inverse)."""
+    return cov_ros_to_gtsam(cov)
+
+
+def check_covariance(cov: np.ndarray, what: str = "covariance") -> np.ndarray:
+    """Return a 6x6 symmetric positive-definite covariance, else raise ``DecodeError``."""
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.size != 36:
+        raise DecodeError(f"{what}: expected 36 values, got {cov.size}")
+    cov = cov.reshape(6, 6)
+    if not np.all(np.isfinite(cov)):
+        raise DecodeError(f"{what}: contains NaN or inf")
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
+        raise DecodeError(f"{what}: not symmetric")
+    if np.linalg.eigvalsh(cov).min() <= 0:
+        raise DecodeError(f"{what}: not positive definite")
+    return cov
+
+
+def covariance_to_list(cov: np.ndarray) -> list[float]:
+    """Row-major 36 floats of a 6x6 covariance (ROS order expected)."""
+    return [float(v) for v in np.asarray(cov, dtype=np.float64).reshape(36)]
+
+
+# ---------------------------------------------------------------- images
+
+# encoding -> (dtype, channels)
+IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "mono8": (np.dtype(np.uint8), 1),
+    "16UC1": (np.dtype("<u2"), 1),
+    "mono16": (np.dtype("<u2"), 1),
+}
+
+
+def stamp_to_timestamp(stamp_ns: int, ts) -> None:
+    """Write integer nanoseconds into a ``google.protobuf.Timestamp``."""
+    ts.seconds, ts.nanos = divmod(int(stamp_ns), 1_000_000_000)
+
+
+def timestamp_to_stamp(ts) -> int:
+    """Integer nanoseconds of a ``google.protobuf.Timestamp``."""
+    return int(ts.seconds) * 1_000_000_000 + int(ts.nanos)
+
+
+def image_to_msg(image: np.ndarray, stamp_ns: int, frame_id: str, encoding: str) -> m.RawImage:
+    """``RawImage`` from an (H, W, 3) uint8 colour or (H, W) uint16 depth (millimetres) array."""
+    if encoding not in IMAGE_ENCODINGS:
+        raise DecodeError(f"unsupported image encoding {encoding!r}; use one of {sorted(IMAGE_ENCODINGS)}")
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    image = np.ascontiguousarray(image, dtype=dtype)
+    if image.ndim != (2 if channels == 1 else 3) or (channels > 1 and image.shape[2] != channels):
+        raise DecodeError(f"image of shape {image.shape} does not match encoding {encoding!r}")
+    h, w = image.shape[:2]
+    msg = m.RawImage(frame_id=frame_id, width=w, height=h, encoding=encoding, step=w * channels * dtype.itemsize)
+    stamp_to_timestamp(stamp_ns, msg.timestamp)
+    msg.data = image.tobytes()
+    return msg
+
+
+def image_from_msg(msg: m.RawImage) -> np.ndarray:
+    """Array view of a ``RawImage``: (H, W, C) for colour, (H, W) for single-channel encodings."""
+    if msg.encoding not in IMAGE_ENCODINGS:
+        raise DecodeError(f"unsupported image encoding {msg.encoding!r}")
+    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
+    row = msg.width * channels * dtype.itemsize
+    if msg.width == 0 or msg.height == 0:
+        raise DecodeError(f"empty image {msg.width}x{msg.height}")
+    if msg.step != row or len(msg.data) != row * msg.height:
+        raise DecodeError(
+            f"image {msg.width}x{msg.height} {msg.encoding}: step {msg.step} and {len(msg.data)} bytes "
+            f"do not match the expected {row} and {row * msg.height}"
+        )
+    arr = np.frombuffer(msg.data, dtype=dtype)
+    return arr.reshape(msg.height, msg.width) if channels == 1 else arr.reshape(msg.height, msg.width, channels)
+
+
+# ---------------------------------------------------------------- camera info
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """Pinhole intrinsics in CameraInfo form. K (3, 3), D plumb_bob (5,), R (3, 3), P (3, 4)."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    D: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    distortion_model: str = "plumb_bob"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "K", np.asarray(self.K, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "D", np.asarray(self.D, dtype=np.float64).reshape(-1))
+        if self.width <= 0 or self.height <= 0:
+            raise DecodeError(f"camera info: image size {self.width}x{self.height} must be positive")
+        if not np.all(np.isfinite(self.K)) or self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
+            raise DecodeError("camera info: K must be finite with positive focal lengths")
+        if not np.all(np.isfinite(self.D)):
+            raise DecodeError("camera info: D contains NaN or inf")
+
+    @classmethod
+    def kinect_v1(cls, width: int = 640, height: int = 480) -> "CameraInfo":
+        """Kinect v1 defaults (fx = fy = 525, cx = 319.5, cy = 239.5 at 640x480), scaled to size."""
+        s = width / 640.0
+        K = [[525.0 * s, 0, (319.5 + 0.5) * s - 0.5], [0, 525.0 * s, (239.5 + 0.5) * s - 0.5], [0, 0, 1]]
+        return cls(width, height, np.array(K))
+
+    @property
+    def P(self) -> np.ndarray:
+        return np.hstack([self.K, np.zeros((3, 1))])
+
+    def to_msg(self, stamp_ns: int, frame_id: str) -> m.CameraCalibration:
+        msg = m.CameraCalibration(
+            frame_id=frame_id, width=self.width, height=self.height, distortion_model=self.distortion_model
+        )
+        stamp_to_timestamp(stamp_ns, msg.timestamp)
+        msg.K.extend(self.K.reshape(9).tolist())
+        msg.D.extend(self.D.tolist())
+        msg.R.extend(np.eye(3).reshape(9).tolist())
+        msg.P.extend(self.P.reshape(12).tolist())
+        return msg
+
+    @classmethod
+    def from_msg(cls, msg: m.CameraCalibration) -> "CameraInfo":
+        if len(msg.K) != 9:
+            raise DecodeError(f"camera info: K has {len(msg.K)} values, expected 9")
+        return cls(int(msg.width), int(msg.height), np.array(msg.K), np.array(msg.D), msg.distortion_model or "plumb_bob")
+
+
+# ---------------------------------------------------------------- transforms and pose lists
+
+
+def transforms_to_msg(stamp_ns: int, transforms: Iterable[tuple[str, str, np.ndarray]]) -> m.FrameTransforms:
+    """``FrameTransforms`` from (parent_frame, child_frame, parent_T_child) triples."""
+    msg = m.FrameTransforms()
+    for parent, child, T in transforms:
+        tr = msg.transforms.add(parent_frame_id=parent, child_frame_id=child)
+        stamp_to_timestamp(stamp_ns, tr.timestamp)
+        p = pose_to_msg(T)
+        tr.translation.x, tr.translation.y, tr.translation.z = p.x, p.y, p.z
+        tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = p.qx, p.qy, p.qz, p.qw
+    return msg
+
+
+def transforms_from_msg(msg: m.FrameTransforms) -> dict[tuple[str, str], np.ndarray]:
+    """{(parent, child): parent_T_child} of a ``FrameTransforms``."""
+    out = {}
+    for tr in msg.transforms:
+        p = m.Pose(
+            x=tr.translation.x, y=tr.translation.y, z=tr.translation.z,
+            qx=tr.rotation.x, qy=tr.rotation.y, qz=tr.rotation.z, qw=tr.rotation.w,
+        )  # fmt: skip
+        out[(tr.parent_frame_id, tr.child_frame_id)] = pose_from_msg(p, f"transform {tr.child_frame_id}")
+    return out
+
+
+@dataclass(frozen=True)
+class StampedPose:
+    """``parent_T_child`` (4x4) with its 6x6 ROS-order covariance (None when unknown)."""
+
+    parent: str
+    child: str
+    stamp_ns: int
+    T: np.ndarray
+    covariance: np.ndarray | None = None
+
+
+def poses_to_msg(stamp_ns: int, poses: Iterable[StampedPose]) -> m.PosesWithCovariance:
+    msg = m.PosesWithCovariance(stamp_ns=int(stamp_ns))
+    for p in poses:
+        item = msg.poses.add(parent_frame_id=p.parent, child_frame_id=p.child, stamp_ns=int(p.stamp_ns))
+        pose_to_msg(p.T, item.pose)
+        if p.covariance is not None:
+            item.covariance.extend(covariance_to_list(p.covariance))
+    return msg
+
+
+def poses_from_msg(msg: m.PosesWithCovariance) -> dict[str, StampedPose]:
+    """{child_frame: StampedPose}; raises ``DecodeError`` on any bad pose or covariance."""
+    out = {}
+    for item in msg.poses:
+        what = f"pose of {item.child_frame_id!r}"
+        T = pose_from_msg(item.pose, what)
+        cov = check_covariance(np.array(item.covariance), what) if len(item.covariance) else None
+        out[item.child_frame_id] = StampedPose(item.parent_frame_id, item.child_frame_id, item.stamp_ns, T, cov)
+    return out
+
+
+# ---------------------------------------------------------------- untrusted payloads
+
+
+def _has_unknown_fields(msg: Message) -> bool:
+    """True if ``msg`` or any sub-message carries fields our schema does not define."""
+    if len(unknown_fields.UnknownFieldSet(msg)):
+        return True
+    for fd, value in msg.ListFields():
+        if fd.message_type is None:
+            continue
+        items = value if fd.is_repeated else [value]
+        if any(isinstance(v, Message) and _has_unknown_fields(v) for v in items):
+            return True
+    return False
+
+
+def _check_id(value: str, what: str) -> None:
+    if not value or len(value) > 128 or not value.replace("_", "").replace("-", "").replace(".", "").isalnum():
+        raise DecodeError(f"{what} {value[:40]!r} is not a valid id")
+
+
+def _validate(msg: Message) -> None:
+    """Semantic checks beyond protobuf's wire format, per message type."""
+    # Fields our schema does not know mean garbage or a producer on another schema version.
+    if _has_unknown_fields(msg):
+        raise DecodeError(f"{msg.DESCRIPTOR.full_name} carries fields this schema does not define")
+    if isinstance(msg, m.DriverStatus):
+        _check_id(msg.camera_id, "driver status camera_id")
+    elif isinstance(msg, m.EstimatorStatus):
+        for cam in msg.cameras:
+            _check_id(cam.camera_id, "estimator status camera_id")
+    elif isinstance(msg, m.RawImage):
+        image_from_msg(msg)
+    elif isinstance(msg, m.CameraCalibration):
+        CameraInfo.from_msg(msg)
+    elif isinstance(msg, m.MarkerObservations):
+        _check_id(msg.camera_id, "marker observations camera_id")
+        for obs in msg.markers:
+            if len(obs.corners_px) != 8:
+                raise DecodeError(f"marker {obs.marker_id}: {len(obs.corners_px)} corner values, expected 8")
+            if not (obs.side_m > 0 and math.isfinite(obs.side_m)):
+                raise DecodeError(f"marker {obs.marker_id}: side length {obs.side_m} must be positive")
+            pose_from_msg(obs.camera_T_marker, f"marker {obs.marker_id} camera_T_marker")
+            check_covariance(np.array(obs.covariance), f"marker {obs.marker_id} covariance")
+    elif isinstance(msg, m.PosesWithCovariance):
+        poses_from_msg(msg)
+    elif isinstance(msg, m.FrameTransforms):
+        transforms_from_msg(msg)
+    elif isinstance(msg, m.ObjectDetections):
+        for det in msg.objects:
+            pose_from_msg(det.world_T_object, f"object {det.object_id!r}")
+    elif isinstance(msg, m.Map):
+        poses_from_msg(msg.cameras)
+        poses_from_msg(msg.markers)
+
+
+def decode(payload: bytes, msg_type: type[Msg]) -> Msg:
+    """Parse and validate an untrusted payload; raise ``DecodeError`` saying what was wrong."""
+    msg = msg_type()
+    try:
+        msg.ParseFromString(bytes(payload))
+    except (_PbDecodeError, RuntimeError, ValueError) as exc:
+        raise DecodeError(f"not a valid {msg_type.DESCRIPTOR.full_name}: {exc}") from exc
+    _validate(msg)
+    return msg

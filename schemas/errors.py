@@ -1,0 +1,17 @@
+"""Exception root of the ``schemas`` package."""
+
+
+class SchemaError(Exception):
+    """Root of every error raised by ``schemas`` (bad keys, undecodable payloads, bad arrays)."""
+
+
+class KeyError_(SchemaError, ValueError):
+    """A key expression or one of its parts (cell, camera id) is not valid."""
+
+
+class DecodeError(SchemaError, ValueError):
+    """A payload could not be decoded, or decoded into something inconsistent."""
+
+
+class BusError(SchemaError, RuntimeError):
+    """A zenoh session could not be opened or used."""

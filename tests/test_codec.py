@@ -1,0 +1,138 @@
+"""Round trips of every message type through ``schemas.codec``, and rejection of bad payloads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from schemas import codec, keys
+from schemas import messages as m
+from schemas.errors import DecodeError, KeyError_
+from tests.helpers import assert_pose_close
+
+finite = st.floats(-100, 100, allow_nan=False, allow_infinity=False)
+quats = hnp.arrays(np.float64, 4, elements=st.floats(-1, 1)).filter(lambda q: np.linalg.norm(q) > 0.1)
+
+
+def random_pose(q: np.ndarray, t: list[float]) -> np.ndarray:
+    return codec.make_pose(codec.matrix_from_quat(q), t)
+
+
+def random_covariance(seed: int) -> np.ndarray:
+    A = np.random.default_rng(seed).normal(size=(6, 6))
+    return A @ A.T + 1e-6 * np.eye(6)
+
+
+@given(quats, st.lists(finite, min_size=3, max_size=3))
+def test_pose_round_trip(q: np.ndarray, t: list[float]) -> None:
+    T = random_pose(q, t)
+    back = codec.pose_from_msg(m.Pose.FromString(codec.pose_to_msg(T).SerializeToString()))
+    assert_pose_close(back, T, 1e-9, 1e-6)
+
+
+@given(quats)
+def test_quaternion_is_unit_with_nonnegative_w(q: np.ndarray) -> None:
+    out = codec.quat_from_matrix(codec.matrix_from_quat(q))
+    assert np.isclose(np.linalg.norm(out), 1.0) and out[3] >= 0
+    # Same rotation up to sign.
+    qn = q / np.linalg.norm(q)
+    assert min(np.linalg.norm(out - qn), np.linalg.norm(out + qn)) < 1e-9
+
+
+@given(st.integers(0, 2**31))
+def test_covariance_reorder_is_a_permutation(seed: int) -> None:
+    cov = random_covariance(seed)
+    g = codec.cov_ros_to_gtsam(cov)
+    # Translation block (ROS 0..2) becomes gtsam 3..5; rotation block (ROS 3..5) becomes gtsam 0..2.
+    np.testing.assert_array_equal(g[3:, 3:], cov[:3, :3])
+    np.testing.assert_array_equal(g[:3, :3], cov[3:, 3:])
+    np.testing.assert_array_equal(g[:3, 3:], cov[3:, :3])
+    np.testing.assert_array_equal(codec.cov_gtsam_to_ros(g), cov)
+
+
+@settings(max_examples=30)
+@given(
+    hnp.arrays(np.uint8, st.tuples(st.integers(1, 20), st.integers(1, 20), st.just(3))),
+    st.integers(0, 2**62),
+)
+def test_color_image_round_trip(img: np.ndarray, stamp: int) -> None:
+    msg = codec.decode(codec.image_to_msg(img, stamp, "cam1", "rgb8").SerializeToString(), m.RawImage)
+    np.testing.assert_array_equal(codec.image_from_msg(msg), img)
+    assert codec.timestamp_to_stamp(msg.timestamp) == stamp
+
+
+@settings(max_examples=30)
+@given(hnp.arrays(np.uint16, st.tuples(st.integers(1, 20), st.integers(1, 20))))
+def test_depth_image_round_trip(depth: np.ndarray) -> None:
+    msg = codec.decode(codec.image_to_msg(depth, 1, "cam1", "16UC1").SerializeToString(), m.RawImage)
+    np.testing.assert_array_equal(codec.image_from_msg(msg), depth)
+
+
+def test_camera_info_round_trip_and_kinect_defaults() -> None:
+    info = codec.CameraInfo.kinect_v1()
+    assert (info.K[0, 0], info.K[1, 1], info.K[0, 2], info.K[1, 2]) == (525.0, 525.0, 319.5, 239.5)
+    back = codec.CameraInfo.from_msg(codec.decode(info.to_msg(7, "cam1").SerializeToString(), m.CameraCalibration))
+    np.testing.assert_array_equal(back.K, info.K)
+    assert (back.width, back.height) == (640, 480)
+
+
+@given(st.lists(st.tuples(quats, st.lists(finite, min_size=3, max_size=3)), min_size=1, max_size=5))
+def test_transforms_and_pose_lists_round_trip(items) -> None:
+    poses = [random_pose(q, t) for q, t in items]
+    tf = codec.decode(codec.transforms_to_msg(5, [("world", f"c{i}", T) for i, T in enumerate(poses)]).SerializeToString(), m.FrameTransforms)
+    got = codec.transforms_from_msg(tf)
+    plist = codec.poses_to_msg(5, [codec.StampedPose("world", f"c{i}", 5, T, random_covariance(i)) for i, T in enumerate(poses)])
+    back = codec.poses_from_msg(codec.decode(plist.SerializeToString(), m.PosesWithCovariance))
+    for i, T in enumerate(poses):
+        assert_pose_close(got[("world", f"c{i}")], T, 1e-9, 1e-6)
+        assert_pose_close(back[f"c{i}"].T, T, 1e-9, 1e-6)
+        np.testing.assert_allclose(back[f"c{i}"].covariance, random_covariance(i))
+
+
+def good_marker_observations() -> m.MarkerObservations:
+    msg = m.MarkerObservations(camera_id="cam1", stamp_ns=1, image_width=640, image_height=480)
+    obs = msg.markers.add(marker_id=3, dictionary="DICT_APRILTAG_36h11", side_m=0.1)
+    obs.corners_px.extend([0.0] * 8)
+    codec.pose_to_msg(codec.make_pose(t=[0, 0, 1]), obs.camera_T_marker)
+    obs.covariance.extend(codec.covariance_to_list(np.eye(6) * 1e-4))
+    return msg
+
+
+@pytest.mark.parametrize(
+    "mutate, why",
+    [
+        (lambda o: o.covariance.__delitem__(slice(0, 6)), "36 values"),
+        (lambda o: setattr(o, "side_m", -0.1), "side length"),
+        (lambda o: setattr(o.camera_T_marker, "qw", float("nan")), "NaN"),
+        (lambda o: setattr(o.camera_T_marker, "qw", 3.0), "quaternion norm"),
+        (lambda o: o.corners_px.append(1.0), "corner values"),
+    ],
+)
+def test_bad_marker_observations_are_rejected_with_a_reason(mutate, why: str) -> None:
+    msg = good_marker_observations()
+    codec.decode(msg.SerializeToString(), m.MarkerObservations)  # the unmutated one is fine
+    mutate(msg.markers[0])
+    with pytest.raises(DecodeError, match=why):
+        codec.decode(msg.SerializeToString(), m.MarkerObservations)
+
+
+def test_image_with_wrong_size_is_rejected() -> None:
+    msg = codec.image_to_msg(np.zeros((4, 4, 3), np.uint8), 1, "c", "rgb8")
+    msg.data = msg.data[:-1]
+    with pytest.raises(DecodeError, match="do not match"):
+        codec.decode(msg.SerializeToString(), m.RawImage)
+
+
+def test_keys_build_parse_and_reject() -> None:
+    assert keys.markers("demo", "cam1") == "cellsight/demo/cam1/markers"
+    assert keys.parse(keys.depth("demo", "cam1")).message_type is m.RawImage
+    assert keys.parse(keys.estimate_status("demo")).camera is None
+    assert keys.message_type(keys.truth("demo", "cameras")) is m.PosesWithCovariance
+    for bad in ("cam/1", "*", "", "tf"):
+        with pytest.raises(KeyError_):
+            keys.markers("demo", bad)
+    with pytest.raises(KeyError_):
+        keys.parse("cellsight/demo/cam1/nonsense")
