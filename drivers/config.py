@@ -31,6 +31,10 @@ class MarkerConfig(BaseModel):
     side_m: float = Field(default=0.15, gt=0, description="printed black-square side length")
     sides_m: dict[int, float] = Field(default_factory=dict, description="per-id side lengths overriding side_m")
     use_depth: bool = Field(default=True, description="refine poses with the registered depth when available")
+    corner_refinement: Literal["none", "subpix", "contour", "apriltag"] = Field(
+        default="subpix", description="OpenCV corner refinement; subpix for pose accuracy"
+    )
+    detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML read first")
     pixel_sigma: float = Field(default=0.5, gt=0, description="corner noise (px) behind the covariance model")
 
     @model_validator(mode="after")

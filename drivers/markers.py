@@ -1,0 +1,324 @@
+"""Marker front-end (pure core): detect fiducials, solve both IPPE poses, refine with depth, covariance.
+
+    detections = MarkerDetector(MarkerConfig()).detect(rgb, camera_info, depth_mm)
+
+Each ``MarkerDetection`` carries both planar-PnP (IPPE) solutions with their reprojection errors,
+the chosen ``camera_T_marker`` and a 6x6 covariance in ROS order (x y z rx ry rz) expressed in
+the marker frame, which is gtsam's Pose3 tangent convention (after reordering).
+
+Covariance model (why each term): lateral position error is the corner noise back-projected,
+sigma ~ z sigma_px / (f sqrt(4)); depth along the ray comes from the apparent size,
+sigma ~ z^2 sigma_px / (f s); in-plane rotation from the edge directions, sigma ~ sigma_px / w_px;
+out-of-plane tilt is planar PnP's weak direction, sigma ~ sigma_px z / (f s) / sin(view angle),
+floored because near-frontal views carry almost no perspective. A depth-refined pose replaces the
+depth and tilt terms by those of the plane fit (Kinect sigma_z ~ 1.4 mm z^2 averaged over the quad,
+floored by the sensor's bias).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drivers.config import MarkerConfig
+from drivers.errors import DriverError
+from schemas.codec import CameraInfo, make_pose
+
+# Kinect v1: depth noise sigma_z = K z^2 (Khoshelham & Elberink 2012) plus 1/8 px disparity
+# quantisation over a 7.5 cm baseline; and a bias floor per fitted plane.
+KINECT_SIGMA_Z_1M = 0.0014
+KINECT_BASELINE_M = 0.075
+KINECT_DISPARITY_STEP_PX = 0.125
+PLANE_BIAS_FLOOR_M = 0.0004
+PLANE_TILT_FLOOR_RAD = math.radians(0.4)
+# Depth errors inside one quad are correlated (quantisation steps are spatially structured), so a
+# plane fit averages over fewer independent pixels than it has: n_eff = n / PLANE_CORRELATION.
+PLANE_CORRELATION = 6.0
+# Scale factors on the first-order PnP terms, measured once on the simulated demo cell
+# (python -m benchmarks.markers reports the coverage they give); 1.0 would be the bare formula.
+PNP_POSITION_FACTOR = 1.2
+PNP_TILT_FACTOR = 0.45
+PNP_INPLANE_FACTOR = 1.3
+
+
+@dataclass(frozen=True)
+class MarkerDetection:
+    """One marker in one image. Poses are 4x4 camera_T_marker; covariance 6x6 ROS order, marker frame."""
+
+    marker_id: int
+    side_m: float
+    corners_px: np.ndarray  # (4, 2) TL, TR, BR, BL
+    candidate_a: np.ndarray  # best IPPE solution
+    error_a_px: float
+    candidate_b: np.ndarray
+    error_b_px: float
+    camera_T_marker: np.ndarray
+    covariance: np.ndarray
+    depth_refined: bool
+    ambiguous: bool
+
+
+def load_dictionary(name_or_path: str) -> cv2.aruco.Dictionary:
+    """A predefined dictionary by OpenCV name, or a custom one from an OpenCV YAML file."""
+    code = getattr(cv2.aruco, name_or_path, None)
+    if isinstance(code, int):
+        return cv2.aruco.getPredefinedDictionary(code)
+    path = Path(name_or_path)
+    if path.suffix in (".yml", ".yaml") and path.is_file():
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        d = cv2.aruco.Dictionary()
+        ok = d.readDictionary(fs.root())
+        fs.release()
+        if ok:
+            return d
+        raise DriverError(f"{path}: not an OpenCV aruco dictionary file")
+    raise DriverError(f"unknown marker dictionary {name_or_path!r}: give an OpenCV name (DICT_APRILTAG_36h11, DICT_6X6_250, ...) or a .yml file")
+
+
+def marker_object_points(side_m: float) -> np.ndarray:
+    """Corners of a marker in its own frame (OpenCV order TL, TR, BR, BL; z out of the face)."""
+    h = side_m / 2.0
+    return np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]], dtype=np.float64)
+
+
+def kinect_sigma_z(z: float, f_px: float) -> float:
+    """Per-pixel depth sigma (m) at range z: Gaussian disparity noise and uniform quantisation."""
+    step = z * z * KINECT_DISPARITY_STEP_PX / (f_px * KINECT_BASELINE_M)
+    return math.hypot(KINECT_SIGMA_Z_1M * z * z, step / math.sqrt(12.0))
+
+
+def _rt_to_pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    return make_pose(cv2.Rodrigues(np.asarray(rvec, float))[0], np.asarray(tvec, float).ravel())
+
+
+def _diagonal_intersection(c: np.ndarray) -> np.ndarray:
+    """Image of the marker centre: where the quad's diagonals cross (exact under perspective)."""
+    p, r = c[0], c[2] - c[0]
+    q, s = c[1], c[3] - c[1]
+    denom = r[0] * s[1] - r[1] * s[0]
+    if abs(denom) < 1e-9:
+        return c.mean(0)
+    t = ((q[0] - p[0]) * s[1] - (q[1] - p[1]) * s[0]) / denom
+    return p + t * r
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """Plane n.x = d in the camera frame (n toward the camera), from N depth points with RMS residual."""
+
+    normal: np.ndarray
+    d: float
+    n_points: int
+    rms_m: float
+    extent_m: float
+
+
+def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrink: float = 0.8) -> PlaneFit | None:
+    """Least-squares plane through the depth pixels inside the (shrunken) marker quad, 2 trimming passes."""
+    centre = corners.mean(0)
+    quad = (centre + shrink * (corners - centre)).astype(np.int32)
+    x0, y0 = np.maximum(quad.min(0), 0)
+    x1, y1 = np.minimum(quad.max(0) + 1, [depth_mm.shape[1], depth_mm.shape[0]])
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return None
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(mask, quad - [x0, y0], 1)
+    z = depth_mm[y0:y1, x0:x1].astype(np.float64) * 1e-3
+    sel = (mask > 0) & (z > 0)
+    if sel.sum() < 12:
+        return None
+    v, u = np.nonzero(sel)
+    zz = z[sel]
+    pts = np.column_stack([((u + x0) - info.K[0, 2]) * zz / info.K[0, 0], ((v + y0) - info.K[1, 2]) * zz / info.K[1, 1], zz])
+    keep = np.ones(len(pts), bool)
+    for _ in range(2):  # trim outliers (flying pixels at the quad's edge)
+        c = pts[keep].mean(0)
+        _, _, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
+        n = vt[2]
+        res = (pts - c) @ n
+        sigma = max(1.4826 * np.median(np.abs(res[keep])), 1e-4)
+        keep = np.abs(res) < 3 * sigma
+        if keep.sum() < 12:
+            return None
+    c = pts[keep].mean(0)
+    _, s, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
+    n = vt[2] if vt[2] @ c < 0 else -vt[2]
+    extent = float(np.sqrt(s[0] ** 2 / keep.sum()) * 2 * math.sqrt(3))
+    return PlaneFit(n, float(n @ c), int(keep.sum()), float(np.sqrt(np.mean(((pts[keep] - c) @ n) ** 2))), extent)
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking unit vector a onto unit vector b."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    s = np.linalg.norm(v)
+    if s < 1e-12:
+        return np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx * ((1 - c) / s**2)
+
+
+@dataclass(frozen=True)
+class Sigmas:
+    """Standard deviations of one observation: lateral and along-ray position (m), tilt and in-plane rotation (rad)."""
+
+    lateral: float
+    ray: float
+    tilt: float
+    inplane: float
+
+
+def pnp_sigmas(camera_T_marker: np.ndarray, side_m: float, f_px: float, pixel_sigma: float) -> Sigmas:
+    """Uncertainty of a planar-PnP pose from corner noise alone; see the module docstring."""
+    t = camera_T_marker[:3, 3]
+    z = max(float(np.linalg.norm(t)), 0.05)
+    cos_view = abs(float(camera_T_marker[:3, 2] @ t)) / z
+    sin_view = math.sqrt(max(1.0 - cos_view**2, 0.0))
+    w_px = f_px * side_m / z
+    return Sigmas(
+        lateral=PNP_POSITION_FACTOR * z * pixel_sigma / (f_px * 2.0),
+        ray=PNP_POSITION_FACTOR * z * z * pixel_sigma / (f_px * side_m),
+        tilt=PNP_TILT_FACTOR * 2.0 * pixel_sigma * z / (f_px * side_m) / max(sin_view, 0.25),
+        inplane=PNP_INPLANE_FACTOR * pixel_sigma / w_px,
+    )
+
+
+def plane_sigmas(z: float, f_px: float, plane: PlaneFit) -> tuple[float, float]:
+    """(range sigma m, normal sigma rad) of a depth-plane fit over ``plane.n_points`` pixels."""
+    n = max(plane.n_points / PLANE_CORRELATION, 1.0)
+    sig = kinect_sigma_z(z, f_px)
+    ray = math.hypot(sig / math.sqrt(n), PLANE_BIAS_FLOOR_M * z * z)
+    tilt = math.hypot(sig / (max(plane.extent_m, 0.01) * math.sqrt(n)) * 4.0, PLANE_TILT_FLOOR_RAD)
+    return ray, tilt
+
+
+def covariance_from_sigmas(camera_T_marker: np.ndarray, s: Sigmas) -> np.ndarray:
+    """6x6 covariance, ROS order (x y z rx ry rz), in the marker frame (gtsam's body convention)."""
+    t = camera_T_marker[:3, 3]
+    R = camera_T_marker[:3, :3]
+    ray = t / max(float(np.linalg.norm(t)), 1e-9)
+    P = np.outer(ray, ray)
+    cov_t_cam = s.lateral**2 * (np.eye(3) - P) + s.ray**2 * P
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = R.T @ cov_t_cam @ R
+    cov[3:, 3:] = np.diag([s.tilt**2, s.tilt**2, s.inplane**2])
+    return cov
+
+
+def covariance_model(
+    camera_T_marker: np.ndarray, side_m: float, info: CameraInfo, pixel_sigma: float, plane: PlaneFit | None
+) -> np.ndarray:
+    """Covariance of one observation, PnP alone or fused with a depth plane fit."""
+    f = 0.5 * (info.K[0, 0] + info.K[1, 1])
+    s = pnp_sigmas(camera_T_marker, side_m, f, pixel_sigma)
+    if plane is not None:
+        ray, tilt = plane_sigmas(float(np.linalg.norm(camera_T_marker[:3, 3])), f, plane)
+        s = Sigmas(s.lateral, ray, 1.0 / math.sqrt(1.0 / s.tilt**2 + 1.0 / tilt**2), s.inplane)
+    return covariance_from_sigmas(camera_T_marker, s)
+
+
+_REFINEMENT = {
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+    "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+}
+
+
+def detector_parameters(config: MarkerConfig) -> cv2.aruco.DetectorParameters:
+    """OpenCV detector parameters: the YAML file if given, then the configured corner refinement."""
+    params = cv2.aruco.DetectorParameters()
+    if config.detector_params is not None:
+        fs = cv2.FileStorage(str(config.detector_params), cv2.FILE_STORAGE_READ)
+        ok = fs.isOpened() and params.readDetectorParameters(fs.root())
+        fs.release()
+        if not ok:
+            raise DriverError(f"{config.detector_params}: not a readable OpenCV DetectorParameters YAML file")
+    params.cornerRefinementMethod = _REFINEMENT[config.corner_refinement]
+    return params
+
+
+class MarkerDetector:
+    """Detects markers of one dictionary and estimates their poses. No I/O; reusable across frames."""
+
+    def __init__(self, config: MarkerConfig) -> None:
+        self.config = config
+        self.dictionary = load_dictionary(config.dictionary)
+        self._detector = cv2.aruco.ArucoDetector(self.dictionary, detector_parameters(config))
+
+    def find(self, image: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Ids (N,) and corners [(4, 2)] of every marker in an RGB or grey image."""
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        corners, ids, _ = self._detector.detectMarkers(image)
+        if ids is None:
+            return np.zeros(0, int), []
+        return ids.ravel().astype(int), [c.reshape(4, 2).astype(np.float64) for c in corners]
+
+    def detect(self, image: np.ndarray, info: CameraInfo, depth_mm: np.ndarray | None = None) -> list[MarkerDetection]:
+        """Every marker in the image with both IPPE poses, the chosen pose and its covariance.
+
+        ``depth_mm`` (H, W) uint16 registered to the image refines the pose when
+        ``config.use_depth``; images must match ``info``'s size.
+        """
+        if image.shape[:2] != (info.height, info.width):
+            raise DriverError(f"image is {image.shape[1]}x{image.shape[0]} but camera info says {info.width}x{info.height}")
+        if depth_mm is not None and depth_mm.shape[:2] != image.shape[:2]:
+            raise DriverError(f"depth {depth_mm.shape[1]}x{depth_mm.shape[0]} does not match the image {image.shape[1]}x{image.shape[0]}")
+        ids, corners = self.find(image)
+        out = []
+        for marker_id, c in zip(ids, corners):
+            det = self._pose(int(marker_id), c, info, depth_mm if self.config.use_depth else None)
+            if det is not None:
+                out.append(det)
+        return out
+
+    def _pose(self, marker_id: int, corners: np.ndarray, info: CameraInfo, depth_mm: np.ndarray | None) -> MarkerDetection | None:
+        side = self.config.side_for(marker_id)
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+            marker_object_points(side), corners, info.K, info.D, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
+        if n == 0:
+            return None
+        sols = sorted(
+            ((_rt_to_pose(r, t), float(e)) for r, t, e in zip(rvecs, tvecs, np.asarray(errs).ravel())), key=lambda s: s[1]
+        )
+        if len(sols) == 1:
+            sols.append(sols[0])
+        (Ta, ea), (Tb, eb) = sols[0], sols[1]
+        plane = fit_plane(depth_mm, corners, info) if depth_mm is not None else None
+        f = 0.5 * (info.K[0, 0] + info.K[1, 1])
+        if plane is not None and plane.rms_m > 2.0 * kinect_sigma_z(-plane.d, f) + 0.003:
+            plane = None  # rougher than sensor noise: occluded, or straddling a depth edge
+        chosen = Ta
+        if plane is not None:
+            chosen = self._refine(Ta, Tb, corners, side, info, plane)
+        ambiguous = plane is None and eb < max(2.0 * ea, ea + self.config.pixel_sigma)
+        cov = covariance_model(chosen, side, info, self.config.pixel_sigma, plane)
+        return MarkerDetection(marker_id, side, corners, Ta, ea, Tb, eb, chosen, cov, plane is not None, ambiguous)
+
+    def _refine(
+        self, Ta: np.ndarray, Tb: np.ndarray, corners: np.ndarray, side: float, info: CameraInfo, plane: PlaneFit
+    ) -> np.ndarray:
+        """Pick the IPPE solution the depth plane agrees with, fuse its tilt, take range from the plane."""
+        chosen = Ta if Ta[:3, 2] @ plane.normal >= Tb[:3, 2] @ plane.normal else Tb
+        f = 0.5 * (info.K[0, 0] + info.K[1, 1])
+        z = float(np.linalg.norm(chosen[:3, 3]))
+        pnp = pnp_sigmas(chosen, side, f, self.config.pixel_sigma)
+        _, plane_tilt = plane_sigmas(z, f, plane)
+        # Rotate the face normal toward the plane's by the inverse-variance weight of the plane.
+        weight = pnp.tilt**2 / (pnp.tilt**2 + plane_tilt**2)
+        full = _rotation_between(chosen[:3, 2], plane.normal)
+        rvec = cv2.Rodrigues(full)[0] * weight
+        R = cv2.Rodrigues(rvec)[0] @ chosen[:3, :3]
+        # Range: intersect the ray through the marker centre's image with the plane.
+        uv = _diagonal_intersection(corners)
+        undist = cv2.undistortPoints(uv.reshape(1, 1, 2), info.K, info.D).ravel()
+        ray = np.array([undist[0], undist[1], 1.0])
+        denom = plane.normal @ ray
+        t = ray * (plane.d / denom) if abs(denom) > 1e-6 else chosen[:3, 3]
+        return make_pose(R, t)

@@ -1,0 +1,238 @@
+"""Scenario files: the geometry, markers, cameras and motions of a simulated cell (TOML).
+
+See the README's "Scenario files" section for a complete example; ``demo_cell.toml`` beside this
+module is the built-in demo. Poses use ``schemas.spec.PoseSpec`` (position + one orientation).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.config import IntrinsicsConfig
+from drivers.errors import ScenarioError
+from schemas.codec import CameraInfo, make_pose
+from schemas.keys import check_name
+from schemas.spec import PoseSpec, rpy_matrix
+
+DEMO_CELL = Path(__file__).with_name("demo_cell.toml")
+Vec3 = tuple[float, float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class BoxSpec(_Strict):
+    """An axis-aligned (in its own frame) box: a table, a shelf, a wall panel."""
+
+    size: Vec3
+    pose: PoseSpec = Field(default_factory=PoseSpec)
+    color: Vec3 = (0.6, 0.6, 0.6)
+
+    @model_validator(mode="after")
+    def _positive(self) -> "BoxSpec":
+        if min(self.size) <= 0:
+            raise ValueError(f"box size must be positive, got {self.size}")
+        return self
+
+
+class ObjectMotion(_Strict):
+    """Back-and-forth slide between the object's pose and ``to`` (world offset, m), ``period_s`` long."""
+
+    kind: Literal["static", "slide"] = "static"
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    period_s: float = Field(default=10.0, gt=0)
+
+
+class ObjectSpec(_Strict):
+    id: str
+    shape: Literal["box", "cylinder", "sphere", "mesh"] = "box"
+    size: Vec3 = (0.1, 0.1, 0.1)  # box: x y z; cylinder: radius, radius, height; sphere: radius
+    mesh: Path | None = None  # .ply / .obj / .stl, metres, for shape = "mesh"
+    pose: PoseSpec = Field(default_factory=PoseSpec)  # world_T_object; object origin at its base centre
+    color: Vec3 = (0.8, 0.3, 0.2)
+    motion: ObjectMotion = Field(default_factory=ObjectMotion)
+
+    @model_validator(mode="after")
+    def _valid(self) -> "ObjectSpec":
+        check_name(self.id, "object id")
+        if self.shape == "mesh" and self.mesh is None:
+            raise ValueError(f"object {self.id}: shape 'mesh' needs a mesh file")
+        if min(self.size) <= 0:
+            raise ValueError(f"object {self.id}: size must be positive")
+        return self
+
+    def world_T_object(self, t_s: float) -> np.ndarray:
+        T = self.pose.matrix()
+        if self.motion.kind == "slide":
+            phase = 0.5 - 0.5 * math.cos(2 * math.pi * t_s / self.motion.period_s)
+            T[:3, 3] += phase * np.asarray(self.motion.offset)
+        return T
+
+
+class MarkerSpec(_Strict):
+    """A printed fiducial. ``pose`` is world_T_marker, or object_T_marker when ``object`` is set."""
+
+    id: int = Field(ge=0)
+    role: Literal["anchor", "static", "object"] = "static"
+    side_m: float | None = Field(default=None, gt=0, description="default: the scenario's marker_side_m")
+    pose: PoseSpec
+    object: str | None = None
+    sigma_position_m: float = Field(default=0.001, gt=0, description="anchors: surveyed position sigma")
+    sigma_rotation_deg: float = Field(default=0.1, gt=0, description="anchors: surveyed rotation sigma")
+
+    @model_validator(mode="after")
+    def _role(self) -> "MarkerSpec":
+        if (self.role == "object") != (self.object is not None):
+            raise ValueError(f"marker {self.id}: role 'object' and an 'object' id go together")
+        return self
+
+
+class CameraMotion(_Strict):
+    """One motion of a camera mount. Several may be listed; they compose in order.
+
+    - ``tilt``: Kinect motor move: pitch about the optical x axis to ``amplitude_deg`` (|a| <= 27),
+      ramping linearly between ``start_s`` and ``end_s``.
+    - ``sweep``: the motor sweeping: pitch ``amplitude_deg`` x sin(2 pi (t - start_s) / period_s).
+    - ``slide``: translate by ``offset`` (world, m) linearly between ``start_s`` and ``end_s``.
+    - ``bump``: at ``start_s`` the mount jumps by ``rotation_deg`` (rpy, camera frame) and ``offset`` (world, m).
+    """
+
+    kind: Literal["tilt", "sweep", "slide", "bump"]
+    amplitude_deg: float = Field(default=10.0, ge=-27, le=27)
+    period_s: float = Field(default=8.0, gt=0)
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    start_s: float = Field(default=0.0, ge=0)
+    end_s: float = Field(default=1.0, ge=0)
+
+    def apply(self, world_T_mount: np.ndarray, t_s: float) -> np.ndarray:
+        T = world_T_mount.copy()
+        span = max(self.end_s - self.start_s, 1e-9)
+        frac = min(max((t_s - self.start_s) / span, 0.0), 1.0)
+        if self.kind == "tilt":
+            T = T @ make_pose(rpy_matrix(math.radians(self.amplitude_deg) * frac, 0.0, 0.0))
+        elif self.kind == "sweep" and t_s >= self.start_s:
+            a = math.radians(self.amplitude_deg) * math.sin(2 * math.pi * (t_s - self.start_s) / self.period_s)
+            T = T @ make_pose(rpy_matrix(a, 0.0, 0.0))
+        elif self.kind == "slide":
+            T[:3, 3] += frac * np.asarray(self.offset)
+        elif self.kind == "bump" and t_s >= self.start_s:
+            T = T @ make_pose(rpy_matrix(*np.radians(self.rotation_deg)))
+            T[:3, 3] += np.asarray(self.offset)
+        return T
+
+
+class CameraSpec(_Strict):
+    id: str
+    width: int = Field(default=640, gt=0)
+    height: int = Field(default=480, gt=0)
+    rate_hz: float = Field(default=30.0, gt=0)
+    intrinsics: IntrinsicsConfig | None = None
+    pose: PoseSpec  # world_T_camera of the mount (optical frame)
+    motion: list[CameraMotion] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _id(self) -> "CameraSpec":
+        check_name(self.id, "camera id")
+        return self
+
+    def camera_info(self) -> CameraInfo:
+        if self.intrinsics is None:
+            return CameraInfo.kinect_v1(self.width, self.height)
+        i = self.intrinsics
+        return CameraInfo(self.width, self.height, np.array([[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1.0]]), np.array(i.distortion))
+
+    def world_T_camera(self, t_s: float) -> np.ndarray:
+        T = self.pose.matrix()
+        for motion in self.motion:
+            T = motion.apply(T, t_s)
+        return T
+
+    def moving_at(self, t_s: float, dt_s: float) -> bool:
+        """Whether the camera moves between ``t_s - dt_s`` and ``t_s`` (for render caching)."""
+        return not np.allclose(self.world_T_camera(t_s), self.world_T_camera(max(t_s - dt_s, 0.0)), atol=1e-9)
+
+
+class NoiseSpec(_Strict):
+    """Kinect v1 noise model and RGB degradations. Set ``enabled = false`` for noise-free renders."""
+
+    enabled: bool = True
+    baseline_m: float = Field(default=0.075, gt=0, description="IR projector-camera baseline")
+    disparity_step_px: float = Field(default=0.125, ge=0, description="disparity quantisation (1/8 px)")
+    sigma_z_at_1m_m: float = Field(default=0.0014, ge=0, description="depth sigma at 1 m; grows with z^2")
+    min_range_m: float = Field(default=0.5, gt=0)
+    max_range_m: float = Field(default=4.5, gt=0)
+    grazing_cos: float = Field(default=0.12, ge=0, lt=1, description="drop depth where cos(incidence) is below")
+    edge_jump_m: float = Field(default=0.04, gt=0, description="drop depth next to jumps larger than this x z")
+    rgb_sigma: float = Field(default=2.0, ge=0, description="RGB noise, 8-bit levels")
+    blur_sigma_px: float = Field(default=0.6, ge=0)
+
+
+class Scenario(_Strict):
+    name: str = "cell"
+    seed: int = 0
+    duration_s: float = Field(default=30.0, gt=0)
+    dictionary: str = "DICT_APRILTAG_36h11"
+    marker_side_m: float = Field(default=0.15, gt=0)
+    floor_size: tuple[float, float] = (3.0, 3.0)
+    floor_color: Vec3 = (0.45, 0.45, 0.42)
+    boxes: list[BoxSpec] = Field(default_factory=list)
+    objects: list[ObjectSpec] = Field(default_factory=list)
+    markers: list[MarkerSpec] = Field(default_factory=list)
+    cameras: list[CameraSpec] = Field(default_factory=list)
+    noise: NoiseSpec = Field(default_factory=NoiseSpec)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Scenario":
+        for what, ids in (("camera", [c.id for c in self.cameras]), ("marker", [m.id for m in self.markers]), ("object", [o.id for o in self.objects])):
+            dupes = sorted({i for i in ids if ids.count(i) > 1})
+            if dupes:
+                raise ValueError(f"duplicate {what} ids: {dupes}")
+        objects = {o.id for o in self.objects}
+        for mk in self.markers:
+            if mk.object is not None and mk.object not in objects:
+                raise ValueError(f"marker {mk.id} is attached to unknown object {mk.object!r}")
+        return self
+
+    def side_of(self, marker: MarkerSpec) -> float:
+        return marker.side_m or self.marker_side_m
+
+    def camera(self, camera_id: str) -> CameraSpec:
+        for c in self.cameras:
+            if c.id == camera_id:
+                return c
+        raise ScenarioError(f"scenario {self.name!r} has no camera {camera_id!r}; it has {[c.id for c in self.cameras]}")
+
+    def world_T_marker(self, marker: MarkerSpec, t_s: float) -> np.ndarray:
+        T = marker.pose.matrix()
+        if marker.object is None:
+            return T
+        obj = next(o for o in self.objects if o.id == marker.object)
+        return obj.world_T_object(t_s) @ T
+
+
+def load_scenario(path: Path | None = None) -> Scenario:
+    """Load a scenario TOML (None: the built-in demo cell); raise ``ScenarioError`` naming the field."""
+    path = DEMO_CELL if path is None else Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise ScenarioError(f"{path}: no such scenario file") from exc
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path}: not valid TOML: {exc}") from exc
+    try:
+        scenario = Scenario.model_validate(data)
+    except ValidationError as exc:
+        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ScenarioError(f"{path}: invalid scenario: {details}") from exc
+    for obj in scenario.objects:
+        if obj.mesh is not None and not obj.mesh.is_absolute():
+            obj.mesh = path.parent / obj.mesh
+    return scenario

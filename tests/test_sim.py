@@ -1,0 +1,114 @@
+"""The simulated cell: scenario validation, determinism, geometry and the Kinect noise model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.errors import ScenarioError
+from drivers.sim.render import SimCell, kinect_depth
+from drivers.sim.scenario import NoiseSpec, Scenario, load_scenario
+from schemas.codec import CameraInfo, invert_pose
+
+MINIMAL = """
+name = "mini"
+[[markers]]
+id = 0
+role = "anchor"
+pose = { position = [0.0, 0.0, 0.0005], normal = [0.0, 0.0, 1.0] }
+[[cameras]]
+id = "c"
+pose = { position = [0.0, -1.0, 1.5], look_at = [0.0, 0.0, 0.0] }
+"""
+
+
+def test_demo_cell_meets_its_brief() -> None:
+    s = load_scenario()
+    roles = [m.role for m in s.markers]
+    assert len(s.cameras) == 4 and roles.count("anchor") == 4 and roles.count("static") >= 12
+    assert len(s.objects) == 3 and all(any(m.object == o.id for m in s.markers) for o in s.objects)
+    kinds = {m.kind for c in s.cameras for m in c.motion}
+    assert {"tilt", "bump"} <= kinds
+
+
+def test_scenario_errors_name_the_field(tmp_path: Path) -> None:
+    bad = tmp_path / "s.toml"
+    bad.write_text(MINIMAL.replace('id = "c"', 'id = "c"\nrate_hz = -1'))
+    with pytest.raises(ScenarioError, match=r"cameras\.0\.rate_hz"):
+        load_scenario(bad)
+    bad.write_text(MINIMAL + '[[markers]]\nid = 0\npose = { position = [1.0, 0.0, 0.0] }\n')
+    with pytest.raises(ScenarioError, match="duplicate marker ids"):
+        load_scenario(bad)
+    with pytest.raises(ScenarioError, match="no such scenario"):
+        load_scenario(tmp_path / "missing.toml")
+
+
+def test_rendering_is_deterministic_and_frames_differ_by_noise(tmp_path: Path) -> None:
+    f = tmp_path / "s.toml"
+    f.write_text(MINIMAL)
+    s = load_scenario(f)
+    a, b = SimCell(s).render("c", 0.5, 3), SimCell(s).render("c", 0.5, 3)
+    np.testing.assert_array_equal(a.rgb, b.rgb)
+    np.testing.assert_array_equal(a.depth_mm, b.depth_mm)
+    c = SimCell(s).render("c", 0.5, 4)
+    assert not np.array_equal(a.depth_mm, c.depth_mm)
+
+
+def test_noise_free_depth_matches_geometry(tmp_path: Path) -> None:
+    """Camera 1.5 m above a floor, looking straight down: noise-free depth is 1500 mm everywhere."""
+    f = tmp_path / "s.toml"
+    f.write_text(MINIMAL.replace("[0.0, -1.0, 1.5]", "[0.0, 0.0, 1.5]").replace('name = "mini"', 'name = "mini"\nfloor_size = [5.0, 5.0]') + "[noise]\nenabled = false\n")
+    frame = SimCell(load_scenario(f)).render("c", 0.0, 0)
+    centre = frame.depth_mm[200:280, 280:360]
+    assert np.all(np.abs(centre.astype(int) - 1500) <= 1)
+
+
+@pytest.mark.parametrize("z", [1.0, 2.0, 3.0])
+def test_kinect_noise_grows_with_z_squared(z: float) -> None:
+    """Error statistics on a slanted surface (depth varies across pixels, as on real surfaces:
+    a constant depth would quantise to one or two disparity levels)."""
+    info = CameraInfo.kinect_v1()
+    noise = NoiseSpec(grazing_cos=0.0, edge_jump_m=1.0)
+    truth = np.linspace(0.95 * z, 1.05 * z, info.width * info.height).astype(np.float32)
+    depth = kinect_depth(truth, np.ones_like(truth), info, noise, np.random.default_rng(0)).astype(float) / 1000
+    err = (depth - truth.reshape(info.height, info.width))[2:-2, 2:-2]
+    fb = info.K[0, 0] * noise.baseline_m
+    step = z * z * noise.disparity_step_px / fb  # quantisation step in depth at z
+    total = np.sqrt((0.0014 * z * z) ** 2 + step**2 / 12)  # Gaussian part + uniform quantisation
+    assert abs(err.mean()) < 0.1 * total + 0.0005  # unbiased up to mm rounding
+    assert 0.8 * total < err.std() < 1.25 * total
+
+
+def test_true_marker_corners_project_onto_detections() -> None:
+    """Ground truth and the renderer agree: true corners land on the detected ones (< 1.5 px)."""
+    from drivers.config import MarkerConfig
+    from drivers.markers import MarkerDetector, marker_object_points
+
+    s = load_scenario()
+    frame = SimCell(s).render("cam3", 1.0, 0)
+    det = MarkerDetector(MarkerConfig(dictionary=s.dictionary, sides_m={m.id: s.side_of(m) for m in s.markers}))
+    ids, corners = det.find(frame.rgb)
+    assert len(ids) >= 8
+    K = frame.info.K
+    for i, c in zip(ids, corners):
+        mk = next(m for m in s.markers if m.id == i)
+        cam_T_m = invert_pose(frame.world_T_camera) @ s.world_T_marker(mk, 1.0)
+        p = marker_object_points(s.side_of(mk)) @ cam_T_m[:3, :3].T + cam_T_m[:3, 3]
+        uv = (p[:, :2] / p[:, 2:]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        assert np.abs(uv - c).max() < 1.5, f"marker {i}"
+
+
+def test_bumped_camera_moves_by_the_scripted_amount() -> None:
+    s = load_scenario()
+    cam = s.camera("cam2")
+    before, after = cam.world_T_camera(13.9), cam.world_T_camera(14.1)
+    assert np.linalg.norm(after[:3, 3] - before[:3, 3]) == pytest.approx(0.03, abs=1e-9)
+    R = before[:3, :3].T @ after[:3, :3]
+    assert np.degrees(np.arccos((np.trace(R) - 1) / 2)) == pytest.approx(2.0, abs=1e-6)
+
+
+def test_unknown_camera_is_named() -> None:
+    with pytest.raises(ScenarioError, match="no camera 'nope'"):
+        Scenario().camera("nope")
