@@ -1,0 +1,113 @@
+"""Synthetic marker observations with known answers, for estimator tests and benchmarks.
+
+Poses come from a scenario's ground truth; noise is drawn from the marker front-end's own
+covariance model (depth-refined or PnP-only), so accuracy claims are about the estimator, not the
+renderer. Visibility: in the field of view, facing the camera, in range (no occlusion test).
+Flips: with probability ``flip_rate`` the chosen pose is the mirrored IPPE solution (the tilt
+reflected about the line of sight) and the true one is offered as the alternative.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from drivers.markers import covariance_model, PlaneFit
+from drivers.sim.scenario import Scenario, load_scenario
+from estimator.config import AnchorConfig, EstimatorConfig
+from estimator.observation import Observation
+from schemas.codec import CameraInfo, cov_ros_to_gtsam, invert_pose
+from schemas.spec import PoseSpec
+
+
+@dataclass(frozen=True)
+class NoiseSettings:
+    depth: bool = True  # depth-refined covariance (else PnP-only)
+    flip_rate: float = 0.0
+    pixel_sigma: float = 0.5
+    max_range_m: float = 4.5
+
+
+def visible(cam_T_marker: np.ndarray, info: CameraInfo, side: float, max_range: float) -> bool:
+    p = cam_T_marker[:3, 3]
+    if not 0.4 < p[2] < max_range:
+        return False
+    u = info.K[0, 0] * p[0] / p[2] + info.K[0, 2]
+    v = info.K[1, 1] * p[1] / p[2] + info.K[1, 2]
+    margin = 20
+    if not (margin < u < info.width - margin and margin < v < info.height - margin):
+        return False
+    facing = -cam_T_marker[:3, 2] @ (p / np.linalg.norm(p))
+    return facing > 0.25 and info.K[0, 0] * side / p[2] > 18  # at least 18 px across
+
+
+def flip(cam_T_marker: np.ndarray) -> np.ndarray:
+    """The mirrored planar-PnP solution: marker normal reflected about the line of sight."""
+    p = cam_T_marker[:3, 3]
+    ray = p / np.linalg.norm(p)
+    n = cam_T_marker[:3, 2]
+    axis = np.cross(n, -ray)
+    s = np.linalg.norm(axis)
+    if s < 1e-6:
+        return cam_T_marker.copy()
+    angle = np.arcsin(min(s, 1.0))
+    R = gtsam.Rot3.AxisAngle(axis / s, float(-2 * angle)).matrix()
+    T = cam_T_marker.copy()
+    T[:3, :3] = R @ cam_T_marker[:3, :3]
+    return T
+
+
+def perturb(T: np.ndarray, cov_ros: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    xi = rng.multivariate_normal(np.zeros(6), cov_ros_to_gtsam(cov_ros))
+    return (gtsam.Pose3(T) * gtsam.Pose3.Expmap(xi)).matrix()
+
+
+def frame_observations(
+    scenario: Scenario, camera_id: str, t_s: float, stamp_ns: int, rng: np.random.Generator, noise: NoiseSettings,
+    world_T_camera: np.ndarray | None = None,
+) -> list[Observation]:
+    """Noisy observations of every visible marker by one camera at scenario time ``t_s``."""
+    cam = scenario.camera(camera_id)
+    info = cam.camera_info()
+    wTc = cam.world_T_camera(t_s) if world_T_camera is None else world_T_camera
+    cTw = invert_pose(wTc)
+    out = []
+    for mk in scenario.markers:
+        side = scenario.side_of(mk)
+        T = cTw @ scenario.world_T_marker(mk, t_s)
+        if not visible(T, info, side, noise.max_range_m):
+            continue
+        z = float(np.linalg.norm(T[:3, 3]))
+        n_px = (info.K[0, 0] * side / z) ** 2 * 0.6
+        plane = PlaneFit(T[:3, 2], 0.0, int(n_px), 0.0, side * 0.8) if noise.depth else None
+        cov = covariance_model(T, side, info, noise.pixel_sigma, plane)
+        meas = perturb(T, cov, rng)
+        alt = flip(meas)
+        if rng.random() < noise.flip_rate:
+            meas, alt = alt, meas
+        out.append(Observation(camera_id, stamp_ns, mk.id, meas, cov, alt, False))
+    return out
+
+
+def estimator_config(scenario: Scenario, **overrides) -> EstimatorConfig:
+    """Anchors and object markers of a scenario as the estimator's configuration."""
+    anchors = [
+        AnchorConfig(marker_id=m.id, world_T_marker=PoseSpec(position=tuple(m.pose.matrix()[:3, 3]), quaternion=_quat(m.pose.matrix())),
+                     sigma_position_m=m.sigma_position_m, sigma_rotation_deg=m.sigma_rotation_deg)
+        for m in scenario.markers if m.role == "anchor"
+    ]  # fmt: skip
+    objects = [m.id for m in scenario.markers if m.role == "object"]
+    known = [m.id for m in scenario.markers]
+    return EstimatorConfig(anchors=anchors, object_markers=objects, known_markers=known, **overrides)
+
+
+def _quat(T: np.ndarray) -> tuple[float, float, float, float]:
+    from schemas.codec import quat_from_matrix
+
+    return tuple(float(v) for v in quat_from_matrix(T[:3, :3]))
+
+
+def demo() -> Scenario:
+    return load_scenario()

@@ -1,0 +1,428 @@
+"""The estimator's pure core: cameras, markers and anchors in one gtsam iSAM2 graph.
+
+    est = Estimator(config)
+    est.add_frame("cam1", stamp_ns, observations)   # every frame of every camera
+    est.update()                                    # a few times per second
+    result = est.estimate(now_ns)                   # poses, covariances, per-camera state
+
+Variables: ``c`` one pose per static segment of a camera (world_T_camera), ``m`` one pose per
+static marker (world_T_marker). Factors: a prior per anchor (its surveyed sigma) and, per
+(camera segment, marker) pair, ONE robust ``BetweenFactorPose3`` holding the running mean of all
+its observations. That factor is replaced about once a second (``removeFactorIndices``, slots
+reused), so a static cell's graph stops growing: cost per update and memory stay flat over days.
+A camera whose marker positions jump (bumped, tilted) leaves the graph while it moves and comes
+back as a new segment once it is still again. Markers on objects are posed per frame through the
+cameras' current poses and never enter the map.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+
+import gtsam
+import numpy as np
+
+from estimator.config import EstimatorConfig
+from estimator.init import CameraKey, kabsch, place
+from estimator.observation import Observation
+from schemas.codec import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose
+
+log = logging.getLogger(__name__)
+
+FLIP_GATE_RAD = math.radians(15.0)  # a candidate further than this from the pair mean is a flip
+POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, caught separately)
+MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
+MIN_PAIR_FOR_MOTION = 5  # observations a pair needs before it can witness a move
+
+
+class CameraState(Enum):
+    LOCALIZED = 1
+    UNANCHORED = 2
+    MOVING = 3
+    STALE = 4
+
+
+def camera_symbol(index: int) -> int:
+    return gtsam.symbol("c", index)
+
+
+def marker_symbol(marker_id: int) -> int:
+    return gtsam.symbol("m", marker_id)
+
+
+def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (rad) of R_a^T R_b."""
+    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
+def project_rotation(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (chordal L2 mean of a sum of rotations)."""
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+@dataclass
+class Pair:
+    """Running mean of one camera-segment/marker relation, and the factor that carries it."""
+
+    n: int = 0
+    pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    cov_sum: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    rejected: int = 0
+    slot: int | None = None  # iSAM2 factor index, None until the factor is in the graph
+    refreshed_ns: int = 0
+    dirty: bool = False
+
+    def mean(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = project_rotation(self.rot_sum)
+        T[:3, 3] = self.pos_sum / self.n
+        return T
+
+    def mean_covariance(self) -> np.ndarray:
+        """Mean single-observation covariance (ROS order, marker frame)."""
+        return self.cov_sum / self.n
+
+    def _take(self, T: np.ndarray, cov: np.ndarray) -> None:
+        self.n += 1
+        self.pos_sum += T[:3, 3]
+        self.rot_sum += T[:3, :3]
+        self.cov_sum += cov
+        self.dirty = True
+
+    def add(self, obs: Observation) -> bool:
+        """Fold an observation in; a flip is replaced by its alternative. False if rejected."""
+        if self.n == 0:
+            self._take(obs.camera_T_marker, obs.covariance)
+            return True
+        mean = self.mean()
+        for T in (obs.camera_T_marker, obs.alternative):
+            if T is None:
+                continue
+            if rotation_angle(mean[:3, :3], T[:3, :3]) < FLIP_GATE_RAD and np.linalg.norm(T[:3, 3] - mean[:3, 3]) < POSITION_GATE_M:
+                self._take(T, obs.covariance)
+                return True
+        self.rejected += 1
+        if self.rejected > self.n:  # the majority disagrees with the mean: it was built on flips
+            self.__init__()
+            self._take(obs.camera_T_marker, obs.covariance)
+        return False
+
+
+@dataclass
+class CameraTrack:
+    """Per-camera bookkeeping: current segment, motion detection, freshness."""
+
+    camera_id: str
+    segment: int = 0
+    last_stamp_ns: int = 0
+    moving: bool = False
+    suspect: int = 0  # consecutive frames whose markers moved
+    still: int = 0  # consecutive still frames while moving
+    last_positions: dict[int, np.ndarray] = field(default_factory=dict)
+    latest: dict[int, Observation] = field(default_factory=dict)  # newest frame's observations
+    markers_seen: int = 0
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """world_T_child (4x4) and its 6x6 covariance (ROS order, body frame; None if not computed)."""
+
+    T: np.ndarray
+    covariance: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class CameraEstimate:
+    camera_id: str
+    state: CameraState
+    segment: int
+    last_stamp_ns: int
+    markers_seen: int
+    pose: PoseEstimate | None  # None for unanchored cameras: they have no world pose
+
+
+@dataclass(frozen=True)
+class Estimate:
+    cameras: dict[str, CameraEstimate]
+    markers: dict[int, PoseEstimate]  # static markers and anchors
+    object_markers: dict[int, PoseEstimate]  # markers on objects, newest frame
+    flagged_anchors: list[int]
+
+
+@dataclass
+class Counters:
+    observations: int = 0
+    rejected: int = 0
+    unknown_markers: int = 0
+    updates: int = 0
+    last_update_ms: float = 0.0
+
+
+class Estimator:
+    """Incremental joint estimate of camera and marker poses. Pure: no I/O, no clocks but stamps."""
+
+    def __init__(self, config: EstimatorConfig) -> None:
+        self.config = config
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(config.relinearize_threshold)
+        params.relinearizeSkip = 1
+        params.findUnusedFactorSlots = True  # refreshed pair factors reuse their slots
+        self.isam = gtsam.ISAM2(params)
+        self.anchors = {a.marker_id: a.world_T_marker.matrix() for a in config.anchors}
+        self.object_markers = set(config.object_markers)
+        known = config.known_markers
+        self.known = None if known is None else set(known) | set(self.anchors) | self.object_markers
+        self.tracks: dict[str, CameraTrack] = {}
+        self.pairs: dict[tuple[CameraKey, int], Pair] = {}
+        self.camera_index: dict[CameraKey, int] = {}
+        self.in_graph: set[int] = set()  # gtsam keys with values in iSAM2
+        self.values = gtsam.Values()
+        self.counters = Counters()
+        self.unknown_ids: set[int] = set()
+        self._robust = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
+        self._pending_priors = self._anchor_priors()
+
+    # ------------------------------------------------------------ input
+
+    def _anchor_priors(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for a in self.config.anchors:
+            sig = [math.radians(a.sigma_rotation_deg)] * 3 + [a.sigma_position_m] * 3
+            key = marker_symbol(a.marker_id)
+            graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(self.anchors[a.marker_id]), gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
+            values.insert(key, gtsam.Pose3(self.anchors[a.marker_id]))
+        return graph, values
+
+    def add_frame(self, camera_id: str, stamp_ns: int, observations: list[Observation]) -> None:
+        """All observations of one camera frame (possibly none: the camera is alive)."""
+        track = self.tracks.setdefault(camera_id, CameraTrack(camera_id))
+        if stamp_ns < track.last_stamp_ns:
+            self.counters.rejected += len(observations)
+            log.warning("%s: frame stamp went backwards (%d < %d); frame ignored", camera_id, stamp_ns, track.last_stamp_ns)
+            return
+        track.last_stamp_ns = stamp_ns
+        static: list[Observation] = []
+        track.latest = {}
+        for obs in observations:
+            if self.known is not None and obs.marker_id not in self.known:
+                self.counters.unknown_markers += 1
+                if obs.marker_id not in self.unknown_ids:
+                    self.unknown_ids.add(obs.marker_id)
+                    log.warning("marker %d seen by %s is not in the configuration; ignored", obs.marker_id, camera_id)
+                continue
+            track.latest[obs.marker_id] = obs
+            if obs.marker_id not in self.object_markers:
+                static.append(obs)
+        track.markers_seen = len(track.latest)
+        if not self._camera_is_still(track, static):
+            return
+        seg = (camera_id, track.segment)
+        for obs in static:
+            pair = self.pairs.setdefault((seg, obs.marker_id), Pair())
+            if pair.add(obs):
+                self.counters.observations += 1
+            else:
+                self.counters.rejected += 1
+
+    def _camera_is_still(self, track: CameraTrack, static: list[Observation]) -> bool:
+        """Residual test on marker positions in the camera frame (rotation flips cannot fool it).
+
+        Returns True if this frame's observations may join the camera's current segment.
+        """
+        positions = {o.marker_id: o.camera_T_marker[:3, 3] for o in static}
+        if track.moving:
+            common = [k for k in positions if k in track.last_positions]
+            shift = max((np.linalg.norm(positions[k] - track.last_positions[k]) for k in common), default=np.inf)
+            track.still = track.still + 1 if shift < self.config.bump_position_m / 2 else 0
+            track.last_positions = positions
+            if track.still < self.config.settle_frames:
+                return False
+            track.moving, track.suspect = False, 0
+            track.segment += 1  # a new static segment: a fresh variable, placed from scratch
+            log.info("%s is still again: segment %d", track.camera_id, track.segment)
+            return True
+        track.last_positions = positions
+        d2, shifts = [], []
+        for obs in static:
+            pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
+            if pair is None or pair.n < MIN_PAIR_FOR_MOTION:
+                continue
+            mean = pair.mean()
+            delta = obs.camera_T_marker[:3, 3] - mean[:3, 3]
+            R = obs.camera_T_marker[:3, :3]
+            cov = R @ obs.covariance[:3, :3] @ R.T  # marker-frame position covariance into the camera frame
+            d2.append(float(delta @ np.linalg.solve(cov + 1e-8 * np.eye(3), delta)))
+            shifts.append(float(np.linalg.norm(delta)))
+        moved = bool(d2) and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
+        track.suspect = track.suspect + 1 if moved else 0
+        if track.suspect >= self.config.bump_frames:
+            track.moving, track.still = True, 0
+            log.info("%s moved (marker shift %.1f mm): leaving the graph until it is still", track.camera_id, 1000 * np.median(shifts))
+            return False
+        return track.suspect == 0  # hold back suspicious frames
+
+    # ------------------------------------------------------------ solving
+
+    def _camera_key(self, cam: CameraKey) -> int:
+        if cam not in self.camera_index:
+            self.camera_index[cam] = len(self.camera_index)
+        return camera_symbol(self.camera_index[cam])
+
+    def update(self, now_ns: int) -> None:
+        """Place new variables and refresh due pair factors in one iSAM2 update."""
+        t0 = time.perf_counter()
+        graph, values = self._pending_priors
+        self._pending_priors = (gtsam.NonlinearFactorGraph(), gtsam.Values())
+        new_values = gtsam.Values(values)
+        self._place_new(new_values)
+        remove: list[int] = []
+        refreshed: list[Pair] = []
+        refresh_ns = int(self.config.refresh_s * 1e9)
+        for ((cam, marker_id), pair) in self.pairs.items():
+            if not pair.dirty or (pair.slot is not None and now_ns - pair.refreshed_ns < refresh_ns):
+                continue
+            ck, mk = self._camera_key(cam), marker_symbol(marker_id)
+            if not (self._has(ck, new_values) and self._has(mk, new_values)):
+                continue
+            n_eff = min(pair.n, self.config.max_fused)
+            cov = cov_ros_to_gtsam(pair.mean_covariance()) / n_eff
+            noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov))
+            graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.mean()), noise))
+            if pair.slot is not None:
+                remove.append(pair.slot)
+            refreshed.append(pair)
+            pair.refreshed_ns, pair.dirty = now_ns, False
+        if graph.size() == 0 and not remove:
+            return
+        result = self.isam.update(graph, new_values, remove)
+        slots = list(result.getNewFactorsIndices())
+        # Anchor priors come first in the graph; pair factors follow in order.
+        for pair, slot in zip(refreshed, slots[len(slots) - len(refreshed):]):
+            pair.slot = slot
+        for key in new_values.keys():
+            self.in_graph.add(key)
+        self.values = self.isam.calculateEstimate()
+        self.counters.updates += 1
+        self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _has(self, key: int, new_values: gtsam.Values) -> bool:
+        return key in self.in_graph or new_values.exists(key)
+
+    def _place_new(self, new_values: gtsam.Values) -> None:
+        """Initial values for cameras and markers that just got a path to an anchor."""
+        unplaced = [
+            (cam, mk) for (cam, mk) in self.pairs
+            if self._camera_key(cam) not in self.in_graph or marker_symbol(mk) not in self.in_graph
+        ]  # fmt: skip
+        if not unplaced:
+            return
+        placed_cams = {cam: self._pose(self._camera_key(cam)) for cam in self.camera_index if self._camera_key(cam) in self.in_graph}
+        placed_marks = {mk: self._pose(marker_symbol(mk)) for mk in {m for (_, m) in self.pairs} if marker_symbol(mk) in self.in_graph}
+        means = {k: p.mean() for k, p in self.pairs.items() if p.n > 0}
+        cams, marks = place(self.anchors, means, placed_cams, placed_marks)
+        for cam, T in cams.items():
+            key = self._camera_key(cam)
+            if key not in self.in_graph and not new_values.exists(key):
+                new_values.insert(key, gtsam.Pose3(T))
+        for mk, T in marks.items():
+            key = marker_symbol(mk)
+            if key not in self.in_graph and not new_values.exists(key):
+                new_values.insert(key, gtsam.Pose3(T))
+
+    def _pose(self, key: int) -> np.ndarray:
+        return self.values.atPose3(key).matrix()
+
+    def _covariance(self, key: int) -> np.ndarray:
+        return cov_gtsam_to_ros(self.isam.marginalCovariance(key))
+
+    # ------------------------------------------------------------ output
+
+    def estimate(self, now_ns: int, with_covariance: bool = True) -> Estimate:
+        """Current poses and states. ``now_ns`` decides staleness (same clock as the stamps)."""
+        stale_ns = int(self.config.stale_after_s * 1e9)
+        cams: dict[str, CameraEstimate] = {}
+        for cid, track in self.tracks.items():
+            key = self._camera_key((cid, track.segment)) if (cid, track.segment) in self.camera_index else None
+            pose = None
+            if track.moving:
+                state = CameraState.MOVING
+                T = self._track_pose(track)
+                pose = None if T is None else PoseEstimate(T, None)
+            elif key is not None and key in self.in_graph:
+                state = CameraState.LOCALIZED
+                pose = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)
+            else:
+                state = CameraState.UNANCHORED
+            if now_ns - track.last_stamp_ns > stale_ns:
+                state = CameraState.STALE
+            cams[cid] = CameraEstimate(cid, state, track.segment, track.last_stamp_ns, track.markers_seen, pose)
+        markers = {}
+        for mk in {m for (_, m) in self.pairs} | set(self.anchors):
+            key = marker_symbol(mk)
+            if key in self.in_graph:
+                markers[mk] = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)
+        return Estimate(cams, markers, self._object_markers(cams), self._flagged_anchors())
+
+    def _track_pose(self, track: CameraTrack) -> np.ndarray | None:
+        """Pose of a moving camera from its newest frame against the mapped markers (not in the graph)."""
+        mapped = {k: o for k, o in track.latest.items() if marker_symbol(k) in self.in_graph}
+        if not mapped:
+            return None
+        world = np.array([self._pose(marker_symbol(k))[:3, 3] for k in mapped])
+        cam = np.array([o.camera_T_marker[:3, 3] for o in mapped.values()])
+        T = kabsch(world, cam)
+        if T is None:
+            k, o = next(iter(mapped.items()))
+            T = self._pose(marker_symbol(k)) @ invert_pose(o.camera_T_marker)
+        return T
+
+    def _object_markers(self, cams: dict[str, CameraEstimate]) -> dict[int, PoseEstimate]:
+        """Newest pose of each object marker, through the camera that sees it best (smallest sigma)."""
+        best: dict[int, tuple[float, PoseEstimate]] = {}
+        for cid, track in self.tracks.items():
+            cam = cams.get(cid)
+            if cam is None or cam.state is not CameraState.LOCALIZED or cam.pose is None:
+                continue
+            for mk, obs in track.latest.items():
+                if mk not in self.object_markers:
+                    continue
+                cov = obs.covariance + (cam.pose.covariance if cam.pose.covariance is not None else 0.0)
+                score = float(np.trace(cov[:3, :3]))
+                if mk not in best or score < best[mk][0]:
+                    best[mk] = (score, PoseEstimate(cam.pose.T @ obs.camera_T_marker, cov))
+        return {mk: pe for mk, (_, pe) in best.items()}
+
+    def _flagged_anchors(self) -> list[int]:
+        """Anchors whose observations, through cameras placed by other markers too, disagree with the prior."""
+        flagged = []
+        for a, prior in self.anchors.items():
+            devs = []
+            for ((cam, mk), pair) in self.pairs.items():
+                if mk != a or pair.n == 0:
+                    continue
+                key = self._camera_key(cam)
+                others = sum(1 for (c2, m2) in self.pairs if c2 == cam and m2 != a and marker_symbol(m2) in self.in_graph)
+                if key in self.in_graph and others >= 2:
+                    devs.append(np.linalg.norm((self._pose(key) @ pair.mean())[:3, 3] - prior[:3, 3]))
+            if devs and np.median(devs) > self.config.anchor_check_m:
+                flagged.append(a)
+        return flagged
+
+    # ------------------------------------------------------------ for tests and the offline solver
+
+    def factor_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The current factors (removed slots skipped), e.g. for a batch solve of the same graph."""
+        g = gtsam.NonlinearFactorGraph()
+        factors = self.isam.getFactorsUnsafe()
+        for i in range(factors.size()):
+            f = factors.at(i)
+            if f is not None:
+                g.add(f)
+        return g
