@@ -68,12 +68,20 @@ def project_rotation(M: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Pair:
-    """Running mean of one camera-segment/marker relation, and the factor that carries it."""
+    """Running mean of one camera-segment/marker relation, and the factor that carries it.
+
+    Both IPPE branches are accumulated: every observation adds its candidate closest to the mean
+    to the main branch and the other to the alternative branch. If the front-end's own choice
+    landed in the alternative branch for most observations, the pair started on a flip and the
+    branches swap; since each observation fed both, the swap is exact.
+    """
 
     n: int = 0
     pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    alt_rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     cov_sum: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    primary_in_alt: int = 0  # observations whose chosen pose fell in the alternative branch
     rejected: int = 0
     slot: int | None = None  # iSAM2 factor index, None until the factor is in the graph
     refreshed_ns: int = 0
@@ -89,29 +97,34 @@ class Pair:
         """Mean single-observation covariance (ROS order, marker frame)."""
         return self.cov_sum / self.n
 
-    def _take(self, T: np.ndarray, cov: np.ndarray) -> None:
+    def _take(self, T: np.ndarray, other: np.ndarray | None, cov: np.ndarray, primary_in_alt: bool) -> None:
         self.n += 1
         self.pos_sum += T[:3, 3]
         self.rot_sum += T[:3, :3]
+        self.alt_rot_sum += (other if other is not None else T)[:3, :3]
         self.cov_sum += cov
+        self.primary_in_alt += int(primary_in_alt)
         self.dirty = True
+        if self.n >= 3 and 2 * self.primary_in_alt > self.n:  # the majority says we are on the flip
+            self.rot_sum, self.alt_rot_sum = self.alt_rot_sum, self.rot_sum
+            self.primary_in_alt = self.n - self.primary_in_alt
 
     def add(self, obs: Observation) -> bool:
-        """Fold an observation in; a flip is replaced by its alternative. False if rejected."""
+        """Fold an observation in, choosing the IPPE branch consistent with the mean. False if rejected."""
         if self.n == 0:
-            self._take(obs.camera_T_marker, obs.covariance)
+            self._take(obs.camera_T_marker, obs.alternative, obs.covariance, False)
             return True
         mean = self.mean()
-        for T in (obs.camera_T_marker, obs.alternative):
-            if T is None:
-                continue
-            if rotation_angle(mean[:3, :3], T[:3, :3]) < FLIP_GATE_RAD and np.linalg.norm(T[:3, 3] - mean[:3, 3]) < POSITION_GATE_M:
-                self._take(T, obs.covariance)
-                return True
+        T, other, swapped = obs.camera_T_marker, obs.alternative, False
+        if other is not None and rotation_angle(mean[:3, :3], other[:3, :3]) < rotation_angle(mean[:3, :3], T[:3, :3]):
+            T, other, swapped = other, T, True
+        if rotation_angle(mean[:3, :3], T[:3, :3]) < FLIP_GATE_RAD and np.linalg.norm(T[:3, 3] - mean[:3, 3]) < POSITION_GATE_M:
+            self._take(T, other, obs.covariance, swapped)
+            return True
         self.rejected += 1
-        if self.rejected > self.n:  # the majority disagrees with the mean: it was built on flips
+        if self.rejected > self.n:  # the majority disagrees with the mean in position too: restart
             self.__init__()
-            self._take(obs.camera_T_marker, obs.covariance)
+            self._take(obs.camera_T_marker, obs.alternative, obs.covariance, False)
         return False
 
 
@@ -250,12 +263,18 @@ class Estimator:
             return True
         track.last_positions = positions
         d2, shifts = [], []
+        cam_key = self._camera_key((track.camera_id, track.segment))
         for obs in static:
             pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
-            if pair is None or pair.n < MIN_PAIR_FOR_MOTION:
+            if pair is not None and pair.n >= MIN_PAIR_FOR_MOTION:
+                expected = pair.mean()[:3, 3]
+            elif cam_key in self.in_graph and marker_symbol(obs.marker_id) in self.in_graph:
+                # A marker this segment has not paired with yet, but the map knows: it must appear
+                # where the map predicts, or the camera has moved to a new view.
+                expected = (invert_pose(self._pose(cam_key)) @ self._pose(marker_symbol(obs.marker_id)))[:3, 3]
+            else:
                 continue
-            mean = pair.mean()
-            delta = obs.camera_T_marker[:3, 3] - mean[:3, 3]
+            delta = obs.camera_T_marker[:3, 3] - expected
             R = obs.camera_T_marker[:3, :3]
             cov = R @ obs.covariance[:3, :3] @ R.T  # marker-frame position covariance into the camera frame
             d2.append(float(delta @ np.linalg.solve(cov + 1e-8 * np.eye(3), delta)))
@@ -302,6 +321,8 @@ class Estimator:
         if graph.size() == 0 and not remove:
             return
         result = self.isam.update(graph, new_values, remove)
+        if new_values.size() > 0:
+            self.relax(2)  # new variables start from BFS guesses: let them settle like a batch solve
         slots = list(result.getNewFactorsIndices())
         # Anchor priors come first in the graph; pair factors follow in order.
         for pair, slot in zip(refreshed, slots[len(slots) - len(refreshed):]):
@@ -311,6 +332,12 @@ class Estimator:
         self.values = self.isam.calculateEstimate()
         self.counters.updates += 1
         self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def relax(self, iterations: int) -> None:
+        """Extra iSAM2 iterations without new factors (relinearise and re-solve)."""
+        for _ in range(iterations):
+            self.isam.update()
+        self.values = self.isam.calculateEstimate()
 
     def _has(self, key: int, new_values: gtsam.Values) -> bool:
         return key in self.in_graph or new_values.exists(key)

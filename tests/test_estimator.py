@@ -1,0 +1,200 @@
+"""The estimator core on small synthetic scenes with known answers (gtsam test style).
+
+Observations come from ``benchmarks.scenes``: true poses plus noise drawn from the marker
+front-end's covariance model. Tolerances are a few sigma of the expected accuracy.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations
+from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
+from estimator.graph import CameraState, Estimator
+from estimator.observation import Observation
+from schemas.spec import PoseSpec
+from tests.helpers import assert_pose_close
+
+RATE = 30.0
+
+
+SIDE_M = 0.25  # the demo cell's wall markers
+
+
+def wall(mid: int, x: float, role: str = "static") -> MarkerSpec:
+    """A marker on the far wall (y = 2), facing the cameras at y = 0."""
+    return MarkerSpec(id=mid, role=role, side_m=SIDE_M, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))
+
+
+def camera(cid: str, x: float, look_x: float, motion: list[CameraMotion] | None = None) -> CameraSpec:
+    return CameraSpec(id=cid, pose=PoseSpec(position=(x, 0.0, 1.2), look_at=(look_x, 2.0, 1.0)), motion=motion or [])
+
+
+def run(scenario: Scenario, seconds: float, est: Estimator | None = None, start_s: float = 0.0, seed: int = 0, noise: NoiseSettings = NoiseSettings(), update_every: int = 3) -> Estimator:
+    """Feed every camera at 30 Hz for ``seconds`` and update every few frames."""
+    est = est or Estimator(estimator_config(scenario))
+    rng = np.random.default_rng(seed)
+    n0, n1 = int(round(start_s * RATE)), int(round((start_s + seconds) * RATE))
+    for k in range(n0, n1):
+        t = k / RATE
+        stamp = int(round(t * 1e9))
+        for cam in scenario.cameras:
+            est.add_frame(cam.id, stamp, frame_observations(scenario, cam.id, t, stamp, rng, noise))
+        if k % update_every == 0:
+            est.update(stamp)
+    est.update(stamp + 1)
+    return est
+
+
+def check_camera(est: Estimator, scenario: Scenario, cid: str, t: float, pos_mm: float, rot_deg: float) -> None:
+    """Within the absolute bounds, and consistent with the estimator's own covariance (chi2 6 dof, 99.9 %)."""
+    ce = est.estimate(int(t * 1e9)).cameras[cid]
+    assert ce.state is CameraState.LOCALIZED, f"{cid} is {ce.state}"
+    truth = scenario.camera(cid).world_T_camera(t)
+    assert_pose_close(ce.pose.T, truth, pos_mm / 1000, rot_deg, cid)
+    xi = gtsam.Pose3.Logmap(gtsam.Pose3(ce.pose.T).between(gtsam.Pose3(truth)))  # (rot, trans), body frame
+    err = np.concatenate([xi[3:], xi[:3]])  # ROS order
+    nees = float(err @ np.linalg.solve(ce.pose.covariance, err))
+    assert nees < 22.5, f"{cid}: error is {np.sqrt(nees):.1f} sigma of the reported covariance"
+
+
+def test_isam2_matches_batch_on_the_same_graph() -> None:
+    """With relinearisation on every step, the incremental machinery (fused pair factors replaced
+    in their slots) must give the batch optimum of the same graph. The production threshold
+    (0.001) trades a little accuracy for speed: benchmarks.estimator_accuracy measures that."""
+    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.4), camera("b", 1.2, 0.8)])
+    est = run(s, 2.0, Estimator(estimator_config(s, relinearize_threshold=1e-9)))
+    est.relax(5)
+    graph = est.factor_graph()
+    initial = gtsam.Values()
+    for key in est.values.keys():  # start the batch solve far from the answer
+        initial.insert(key, est.values.atPose3(key) * gtsam.Pose3(gtsam.Rot3.Rz(0.05), np.array([0.05, -0.03, 0.02])))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    batch = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    for key in est.values.keys():
+        assert_pose_close(est.values.atPose3(key).matrix(), batch.atPose3(key).matrix(), 1e-5, 1e-4, gtsam.DefaultKeyFormatter(key))
+
+
+def test_case1_common_anchor() -> None:
+    s = Scenario(markers=[wall(0, 0.6, "anchor")], cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)])
+    est = run(s, 2.0)
+    for cid in ("a", "b"):
+        check_camera(est, s, cid, 2.0, pos_mm=10.0, rot_deg=0.3)
+
+
+def test_case2_shared_non_anchor_marker() -> None:
+    """a sees the anchor and marker 1; b sees only marker 1."""
+    s = Scenario(markers=[wall(0, -1.4, "anchor"), wall(1, 0.3)], cameras=[camera("a", -0.6, -0.5), camera("b", 1.4, 1.6)])
+    s.cameras[1].pose = PoseSpec(position=(1.0, 1.0, 1.2), look_at=(0.3, 2.0, 1.0))
+    obs_b = {o.marker_id for o in frame_observations(s, "b", 0.0, 0, np.random.default_rng(0), NoiseSettings())}
+    assert obs_b == {1}, f"scene set-up: b should only see marker 1, sees {obs_b}"
+    est = run(s, 2.0)
+    check_camera(est, s, "a", 2.0, pos_mm=10.0, rot_deg=0.3)
+    check_camera(est, s, "b", 2.0, pos_mm=15.0, rot_deg=0.5)
+
+
+def test_case3a_chained_through_other_cameras() -> None:
+    """c0 sees the anchor and m1; c1 sees m1 and m2; c2 sees only m2: placed through two links."""
+    markers = [wall(0, -2.0, "anchor"), wall(1, -0.5), wall(2, 1.0)]
+    cams = [
+        CameraSpec(id="c0", pose=PoseSpec(position=(-1.25, 0.5, 1.2), look_at=(-1.25, 2.0, 1.0))),
+        CameraSpec(id="c1", pose=PoseSpec(position=(0.25, 0.5, 1.2), look_at=(0.25, 2.0, 1.0))),
+        CameraSpec(id="c2", pose=PoseSpec(position=(1.4, 0.5, 1.2), look_at=(1.4, 2.0, 1.0))),
+    ]
+    s = Scenario(markers=markers, cameras=cams)
+    seen = {c.id: {o.marker_id for o in frame_observations(s, c.id, 0.0, 0, np.random.default_rng(0), NoiseSettings())} for c in cams}
+    assert seen == {"c0": {0, 1}, "c1": {1, 2}, "c2": {2}}, f"scene set-up: {seen}"
+    est = run(s, 2.0)
+    for cid in ("c0", "c1", "c2"):
+        check_camera(est, s, cid, 2.0, pos_mm=15.0, rot_deg=0.5)
+
+
+def test_case3b_no_anchor_is_unanchored_then_joins() -> None:
+    """b sees only marker 2, which nobody else sees: unanchored, no world pose. Then a path appears:
+    camera a slides 0.8 m along the wall (at t = 1 s) and sees the anchor and marker 2 together."""
+    slide = CameraMotion(kind="slide", offset=(0.8, 0.0, 0.0), start_s=1.0, end_s=1.3)
+    markers = [wall(0, -1.0, "anchor"), wall(2, 0.6)]
+    cams = [
+        CameraSpec(id="a", pose=PoseSpec(position=(-1.0, 0.5, 1.2), look_at=(-1.0, 2.0, 1.0)), motion=[slide]),
+        CameraSpec(id="b", pose=PoseSpec(position=(1.4, 0.5, 1.2), look_at=(1.4, 2.0, 1.0))),
+    ]
+    s = Scenario(markers=markers, cameras=cams)
+    seen = {(c, t): {o.marker_id for o in frame_observations(s, c, t, 0, np.random.default_rng(0), NoiseSettings())} for c in ("a", "b") for t in (0.0, 2.0)}
+    assert seen == {("a", 0.0): {0}, ("a", 2.0): {0, 2}, ("b", 0.0): {2}, ("b", 2.0): {2}}, f"scene set-up: {seen}"
+    est = run(s, 1.0)
+    e = est.estimate(int(1e9))
+    assert e.cameras["b"].state is CameraState.UNANCHORED and e.cameras["b"].pose is None
+    assert 2 not in e.markers  # the unanchored component never entered the solver
+    assert e.cameras["a"].state is CameraState.LOCALIZED
+    est = run(s, 3.0, est, start_s=1.0)
+    assert est.estimate(int(4e9)).cameras["a"].segment == 1
+    check_camera(est, s, "a", 4.0, pos_mm=30.0, rot_deg=0.6)
+    check_camera(est, s, "b", 4.0, pos_mm=30.0, rot_deg=0.6)
+
+
+def test_bumped_camera_is_detected_and_reconverges_without_dragging_others() -> None:
+    bump = CameraMotion(kind="bump", start_s=2.0, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))
+    markers = [wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")]
+    s = Scenario(markers=markers, cameras=[camera("a", 0.0, 0.3, [bump]), camera("b", 0.6, 0.3)])
+    est = run(s, 2.0)
+    before_b = est.estimate(int(2e9)).cameras["b"].pose.T
+    est = run(s, 1.0, est, start_s=2.0)  # one second of data after the bump
+    e = est.estimate(int(3e9))
+    assert e.cameras["a"].segment == 1, "the bump did not start a new segment"
+    check_camera(est, s, "a", 3.0, pos_mm=10.0, rot_deg=0.3)
+    check_camera(est, s, "b", 3.0, pos_mm=10.0, rot_deg=0.3)
+    assert_pose_close(e.cameras["b"].pose.T, before_b, 0.002, 0.05, "b moved when a was bumped")
+
+
+def test_flips_are_absorbed() -> None:
+    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)])
+    est = run(s, 3.0, noise=NoiseSettings(depth=False, flip_rate=0.2))
+    for cid in ("a", "b"):
+        check_camera(est, s, cid, 3.0, pos_mm=30.0, rot_deg=0.5)
+
+
+def test_unknown_marker_is_counted_not_used() -> None:
+    s = Scenario(markers=[wall(0, 0.6, "anchor")], cameras=[camera("a", 0.0, 0.6)])
+    est = Estimator(estimator_config(s))
+    T = s.camera("a").world_T_camera(0.0)
+    bogus = Observation("a", 1, 99, np.linalg.inv(T) @ np.eye(4) @ np.diag([1, 1, 1, 1.0]), np.eye(6) * 1e-4)
+    est.add_frame("a", 1, [bogus])
+    est.update(1)
+    assert est.counters.unknown_markers == 1 and 99 not in est.estimate(1).markers
+
+
+def test_moved_anchor_is_flagged() -> None:
+    markers = [wall(0, -0.6, "anchor"), wall(1, 0.0, "anchor"), wall(2, 0.6, "anchor"), wall(3, 1.2)]
+    s = Scenario(markers=markers, cameras=[camera("a", 0.0, 0.3), camera("b", 0.6, 0.3)])
+    cfg = estimator_config(s)
+    s.markers[0].pose = PoseSpec(position=(-0.6, 2.0, 1.2), normal=(0.0, -1.0, 0.0))  # moved 20 cm up
+    est = run(s, 2.0, Estimator(cfg))
+    assert est.estimate(int(2e9)).flagged_anchors == [0]
+
+
+def test_stale_camera() -> None:
+    s = Scenario(markers=[wall(0, 0.6, "anchor")], cameras=[camera("a", 0.0, 0.6)])
+    est = run(s, 1.0)
+    assert est.estimate(int(1.0e9)).cameras["a"].state is CameraState.LOCALIZED
+    assert est.estimate(int(3.0e9)).cameras["a"].state is CameraState.STALE
+
+
+def test_time_going_backwards_is_ignored() -> None:
+    s = Scenario(markers=[wall(0, 0.6, "anchor")], cameras=[camera("a", 0.0, 0.6)])
+    est = run(s, 1.0)
+    n = est.counters.observations
+    est.add_frame("a", 1, frame_observations(s, "a", 0.0, 1, np.random.default_rng(1), NoiseSettings()))
+    assert est.counters.observations == n and est.counters.rejected >= 1
+
+
+@pytest.mark.parametrize("seconds", [2.0, 6.0])
+def test_graph_stops_growing_for_static_cameras(seconds: float) -> None:
+    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)])
+    est = run(s, seconds)
+    live = est.factor_graph().size()
+    # One prior per anchor plus one factor per camera-marker pair, however long it runs.
+    assert live == 1 + len(est.pairs)
