@@ -16,10 +16,9 @@ import numpy as np
 
 from drivers.markers import covariance_model, PlaneFit
 from drivers.sim.scenario import Scenario, load_scenario
-from estimator.config import AnchorConfig, EstimatorConfig
+from estimator.config import EstimatorConfig
 from estimator.observation import Observation
 from schemas.codec import CameraInfo, cov_ros_to_gtsam, invert_pose
-from schemas.spec import PoseSpec
 
 
 @dataclass(frozen=True)
@@ -93,20 +92,9 @@ def frame_observations(
 
 def estimator_config(scenario: Scenario, **overrides) -> EstimatorConfig:
     """Anchors and object markers of a scenario as the estimator's configuration."""
-    anchors = [
-        AnchorConfig(marker_id=m.id, world_T_marker=PoseSpec(position=tuple(m.pose.matrix()[:3, 3]), quaternion=_quat(m.pose.matrix())),
-                     sigma_position_m=m.sigma_position_m, sigma_rotation_deg=m.sigma_rotation_deg)
-        for m in scenario.markers if m.role == "anchor"
-    ]  # fmt: skip
-    objects = [m.id for m in scenario.markers if m.role == "object"]
-    known = [m.id for m in scenario.markers]
-    return EstimatorConfig(anchors=anchors, object_markers=objects, known_markers=known, **overrides)
+    from cellsight.scenario_config import estimator_config_of
 
-
-def _quat(T: np.ndarray) -> tuple[float, float, float, float]:
-    from schemas.codec import quat_from_matrix
-
-    return tuple(float(v) for v in quat_from_matrix(T[:3, :3]))
+    return estimator_config_of(scenario, **overrides)
 
 
 def demo() -> Scenario:

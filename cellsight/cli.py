@@ -58,6 +58,32 @@ def _load(config_file: Path | None):
         raise _fail(str(exc), 2) from None
 
 
+def _load_cell(cell_config: Path | None, scenario: Path | None = None):
+    """The cell config, completed from the scenario (built-in demo when neither is given)."""
+    from cellsight.errors import ConfigError
+    from cellsight.scenario_config import complete
+    from drivers.errors import DriverError
+
+    cfg = _load(cell_config)
+    if scenario is not None:
+        cfg = cfg.model_copy(update={"cell": cfg.cell.model_copy(update={"scenario": scenario}), "cameras": []})
+    try:
+        return complete(cfg)
+    except (ConfigError, DriverError) as exc:
+        raise _fail(str(exc), 2) from None
+
+
+def _stop_event():
+    """An event set by Ctrl-C or SIGTERM, so long-running commands shut down cleanly."""
+    import signal
+    import threading
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
 def _bus(cell_cfg, cell: str | None, mode, connect, listen, zenoh_config):
     from schemas.bus import Bus
     from schemas.errors import SchemaError
@@ -153,11 +179,12 @@ def bus_list(
         rates, bad = sample_rates(bus, duration)
         alive = bus.alive()
     table = Table(title=f"cell {bus.cell}: keys seen in {duration:g} s")
-    for col in ("key", "type", "messages", "rate (Hz)", "malformed"):
-        table.add_column(col)
+    table.add_column("key", no_wrap=True)
+    for col in ("type", "messages", "rate (Hz)", "malformed"):
+        table.add_column(col, no_wrap=True)
     for key, (type_name, count) in sorted(rates.items()):
         table.add_row(key, type_name, str(count), f"{count / duration:.1f}", str(bad.get(key, 0)))
-    console = Console()
+    console = Console(width=max(Console().width, 140))
     console.print(table)
     console.print("alive: " + (", ".join(alive) if alive else "(no liveliness tokens)"))
 
@@ -188,6 +215,251 @@ def router(
         pass
     finally:
         session.close()
+
+
+CellConfigOpt = Annotated[Optional[Path], typer.Option("--cell-config", help="cell config TOML (default: the simulated demo cell)")]
+ScenarioOpt = Annotated[Optional[Path], typer.Option("--scenario", help="simulated cell scenario TOML (default: built-in demo cell)")]
+driver_app = typer.Typer(help="Sensor driver processes.", no_args_is_help=True)
+sim_app = typer.Typer(help="The simulated work cell.", no_args_is_help=True)
+markers_app = typer.Typer(help="The marker front-end on single images.", no_args_is_help=True)
+app.add_typer(driver_app, name="driver")
+app.add_typer(sim_app, name="sim")
+app.add_typer(markers_app, name="markers")
+
+
+@driver_app.command("sim")
+def driver_sim(
+    camera: Annotated[str, typer.Option("--camera", help="camera id in the scenario")],
+    scenario: ScenarioOpt = None,
+    cell_config: CellConfigOpt = None,
+    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    epoch_ns: Annotated[Optional[int], typer.Option(help="Unix time (ns) of scenario time 0; share it between cameras")] = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run one simulated camera: render, detect markers, publish every camera key (plus truth/)."""
+    from drivers.errors import DriverError
+    from drivers.service import DriverService
+    from drivers.sim.scenario import load_scenario
+    from drivers.sim.source import SimSource
+
+    _setup_logging(verbose)
+    cfg = _load_cell(cell_config, scenario)
+    cam = next((c for c in cfg.cameras if c.id == camera), None)
+    if cam is None:
+        raise _fail(f"camera {camera!r} is not in the cell; cameras: {[c.id for c in cfg.cameras]}", 2)
+    try:
+        source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns)
+    except DriverError as exc:
+        raise _fail(str(exc), 2) from None
+    stop = _stop_event()
+    with _bus(cfg, None, mode, connect, listen, config) as bus:
+        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+
+
+@app.command("estimator")
+def estimator_cmd(
+    cell_config: CellConfigOpt = None,
+    scenario: ScenarioOpt = None,
+    state_file: Annotated[Optional[Path], typer.Option(help="persist the map here and restore it on start")] = None,
+    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run the estimator daemon: marker observations in, camera and marker poses out."""
+    from estimator.service import EstimatorService
+
+    _setup_logging(verbose)
+    cfg = _load_cell(cell_config, scenario)
+    est_cfg = cfg.estimator if state_file is None else cfg.estimator.model_copy(update={"state_file": state_file})
+    stop = _stop_event()
+    with _bus(cfg, None, mode, connect, listen, config) as bus:
+        EstimatorService(bus, est_cfg).run(stop, duration)
+
+
+@sim_app.command("snapshot")
+def sim_snapshot(
+    out: Annotated[Path, typer.Option("--out", help="folder for <camera>_rgb.png and <camera>_depth.png")],
+    scenario: ScenarioOpt = None,
+    time_s: Annotated[float, typer.Option("--time", help="scenario time in seconds")] = 1.0,
+) -> None:
+    """Render every camera once and write RGB and false-colour depth PNGs to look at."""
+    from cellsight.pictures import write_snapshot
+    from drivers.errors import DriverError
+    from drivers.sim.scenario import load_scenario
+
+    try:
+        written = write_snapshot(load_scenario(scenario), out, time_s)
+    except DriverError as exc:
+        raise _fail(str(exc), 2) from None
+    for p in written:
+        typer.echo(str(p))
+
+
+@markers_app.command("detect")
+def markers_detect(
+    image: Annotated[Path, typer.Argument(help="image file (PNG, JPEG)")],
+    dictionary: Annotated[str, typer.Option("--dict", help="OpenCV dictionary name or a .yml file")] = "DICT_APRILTAG_36h11",
+    camera_info: Annotated[Optional[Path], typer.Option("--camera-info", help="OpenCV YAML with camera_matrix and distortion_coefficients (default: Kinect v1)")] = None,
+    size: Annotated[float, typer.Option("--size", help="marker side length in metres")] = 0.15,
+    depth: Annotated[Optional[Path], typer.Option("--depth", help="registered 16-bit depth PNG in millimetres")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
+    annotate: Annotated[Optional[Path], typer.Option("--annotate", help="write the image with markers and axes drawn")] = None,
+) -> None:
+    """Detect markers in one image and print ids, corners and poses."""
+    from cellsight.detect import detect_file
+    from drivers.errors import DriverError
+
+    try:
+        result = detect_file(image, dictionary, camera_info, size, depth, annotate)
+    except DriverError as exc:
+        raise _fail(str(exc), 2) from None
+    typer.echo(result.to_json() if as_json else result.to_text())
+
+
+@app.command("record")
+def record(
+    out: Annotated[Path, typer.Option("--out", help="MCAP file to write")],
+    keys_: Annotated[Optional[list[str]], typer.Option("--keys", help="key expressions to record (default: the whole cell)")] = None,
+    max_image_hz: Annotated[Optional[float], typer.Option(help="record images at most this often per camera")] = None,
+    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    cell: CellOpt = None,
+    cell_config: CellConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Record bus traffic to MCAP (lz4 chunks, Foxglove schemas embedded) until Ctrl-C / SIGTERM."""
+    from cellsight.record import Recorder
+
+    _setup_logging(verbose)
+    cfg = _load(cell_config)
+    stop = _stop_event()
+    with _bus(cfg, cell, mode, connect, listen, config) as bus:
+        rec = Recorder(bus, out, keys_, max_image_hz, {"config": cfg.to_toml()})
+        stop.wait(duration)
+        rec.close()
+    _stderr().print(f"{out}: {rec.messages} messages ({rec.thinned} images thinned, {sum(rec.bad.values())} malformed skipped)")
+    if rec.failed:
+        raise _fail(f"recording stopped early: {rec.failed}", 1)
+
+
+def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_image_hz: float | None, live: bool) -> None:
+    """Start the cell under the launcher with an optional live status table."""
+    from rich.live import Live
+
+    from cellsight.errors import CellsightError
+    from cellsight.launch import run_cell
+    from cellsight.status import StatusBoard
+    from schemas.bus import Bus
+    from schemas.errors import SchemaError
+
+    stop = _stop_event()
+    board_bus = board = live_view = None
+
+    def tick(sup) -> None:
+        nonlocal board_bus, board
+        if board is None:
+            try:  # the router comes up with the cell; join it once it is there
+                board_bus = Bus(cfg.transport, cfg.cell.name)
+                board = StatusBoard(board_bus)
+            except SchemaError:
+                return
+        if live_view is not None:
+            live_view.update(board.table())
+
+    try:
+        if live:
+            with Live(refresh_per_second=2, console=_stderr()) as live_view:
+                run_cell(cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick)
+        else:
+            run_cell(cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick)
+    except CellsightError as exc:
+        raise _fail(str(exc), 3) from None
+    finally:
+        if board is not None:
+            board.close()
+            board_bus.close()
+
+
+@app.command("run")
+def run_cmd(
+    cell_config: Annotated[Optional[Path], typer.Argument(help="cell config TOML (default: the simulated demo cell)")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="run folder: config used, logs, state, recording")] = None,
+    record: Annotated[bool, typer.Option("--record/--no-record", help="record the cell to OUT/log.mcap")] = False,
+    max_image_hz: Annotated[Optional[float], typer.Option(help="when recording: images per camera per second")] = 2.0,
+    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run a cell: router, one driver per camera, estimator (and recorder), supervised."""
+    _setup_logging(verbose)
+    cfg = _load_cell(cell_config)
+    run_dir = out or Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")
+    _run(cfg, run_dir, duration, run_dir / "log.mcap" if record else None, max_image_hz, sys.stderr.isatty())
+    _stderr().print(f"run folder: {run_dir}")
+
+
+@app.command("demo")
+def demo(
+    duration: Annotated[float, typer.Option(help="seconds of the demo cell's scenario to run")] = 30.0,
+    out: Annotated[Path, typer.Option("--out", help="folder for the log, config, summary and pictures")] = Path("runs/demo"),
+    max_image_hz: Annotated[float, typer.Option(help="images per camera per second in the log")] = 1.0,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run the built-in simulated cell for a while, then report its accuracy against ground truth."""
+    from cellsight.report import write_report
+    from cellsight.scenario_config import demo_config
+
+    _setup_logging(verbose)
+    cfg = demo_config()
+    if duration > 0:
+        from drivers.sim.scenario import load_scenario
+
+        scenario_len = load_scenario(cfg.cell.scenario).duration_s
+        if duration > scenario_len:
+            raise _fail(f"--duration {duration:g} is longer than the demo scenario ({scenario_len:g} s)", 2)
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "log.mcap"
+    _run(cfg, out, duration, log_path, max_image_hz, sys.stderr.isatty())
+    summary = write_report(log_path, cfg.cell.name, out)
+    from rich.console import Console
+    from rich.markdown import Markdown
+
+    Console().print(Markdown((out / "summary.md").read_text()))
+    typer.echo(f"wrote {out}/: log.mcap, config.toml, summary.json, summary.md, top_view.png, errors.png")
+    if not summary["log_complete"]:
+        _stderr().print("[yellow]warning:[/] the log was not complete; the summary covers what was readable")
+
+
+@app.command("status")
+def status(
+    duration: Annotated[float, typer.Option(help="seconds to listen before printing")] = 2.0,
+    cell: CellOpt = None,
+    cell_config: CellConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    config: ZenohConfigOpt = None,
+) -> None:
+    """Who is alive, driver rates and each camera's estimator state."""
+    from rich.console import Console
+
+    from cellsight.status import StatusBoard
+
+    cfg = _load(cell_config)
+    with _bus(cfg, cell, mode, connect, listen, config) as bus:
+        board = StatusBoard(bus)
+        time.sleep(duration)
+        Console(width=140).print(board.table(bus.alive()))
+        board.close()
 
 
 def main() -> None:

@@ -31,7 +31,7 @@ def format_message(key: str, msg: Message, as_json: bool) -> str:
         body = json_format.MessageToDict(slim, preserving_proto_field_name=True)
         body.update({f"{n}_bytes": v for n, v in bulk.items()})
         return json.dumps({"key": key, "type": msg.DESCRIPTOR.full_name, "message": body})
-    text = text_format.MessageToString(slim, as_one_line=False, float_format=".6g")
+    text = text_format.MessageToString(slim, as_one_line=False)
     extra = "".join(f"{n}: <{v} bytes>\n" for n, v in bulk.items())
     return f"--- {key} ({msg.DESCRIPTOR.full_name})\n{text}{extra}"
 

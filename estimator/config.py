@@ -37,7 +37,7 @@ class EstimatorConfig(BaseModel):
     update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon")
     stale_after_s: float = Field(default=1.0, gt=0, description="a camera with no frames this long is stale")
     bump_position_m: float = Field(default=0.01, gt=0, description="marker shift in the camera frame that signals a move")
-    bump_frames: int = Field(default=3, ge=1, description="consecutive frames above the threshold before a camera counts as moved")
+    bump_frames: int = Field(default=2, ge=1, description="consecutive frames above the threshold before a camera counts as moved")
     settle_frames: int = Field(default=5, ge=1, description="consecutive still frames before a moved camera gets a new segment")
     anchor_check_m: float = Field(default=0.05, gt=0, description="anchor disagreement that flags a moved anchor")
     state_file: Path | None = Field(default=None, description="where the daemon persists its map")

@@ -138,7 +138,7 @@ class CameraTrack:
     moving: bool = False
     suspect: int = 0  # consecutive frames whose markers moved
     still: int = 0  # consecutive still frames while moving
-    last_positions: dict[int, np.ndarray] = field(default_factory=dict)
+    last_positions: dict[int, Observation] = field(default_factory=dict)
     latest: dict[int, Observation] = field(default_factory=dict)  # newest frame's observations
     markers_seen: int = 0
 
@@ -201,6 +201,23 @@ class Estimator:
         self.unknown_ids: set[int] = set()
         self._robust = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
         self._pending_priors = self._anchor_priors()
+        self.seeded: set[int] = set()
+
+    def seed_map(self, markers: dict[int, tuple[np.ndarray, np.ndarray]], inflate: float = 4.0) -> None:
+        """Start from a saved map: each static marker gets a prior (its saved covariance x ``inflate``).
+
+        Cameras then localise on their first frames instead of converging from nothing. Anchors
+        keep their surveyed priors; markers on objects are never part of the map.
+        """
+        graph, values = self._pending_priors
+        for mk, (T, cov) in markers.items():
+            if mk in self.anchors or mk in self.object_markers:
+                continue
+            key = marker_symbol(mk)
+            noise = gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov) * inflate)
+            graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(T), noise))
+            values.insert(key, gtsam.Pose3(T))
+            self.seeded.add(mk)
 
     # ------------------------------------------------------------ input
 
@@ -249,11 +266,19 @@ class Estimator:
 
         Returns True if this frame's observations may join the camera's current segment.
         """
-        positions = {o.marker_id: o.camera_T_marker[:3, 3] for o in static}
+        positions = {o.marker_id: o for o in static}
         if track.moving:
+            # Still = consecutive frames agree within their noise (chi2) or within half the move threshold.
             common = [k for k in positions if k in track.last_positions]
-            shift = max((np.linalg.norm(positions[k] - track.last_positions[k]) for k in common), default=np.inf)
-            track.still = track.still + 1 if shift < self.config.bump_position_m / 2 else 0
+            still = bool(common)
+            for k in common:
+                a, b = positions[k], track.last_positions[k]
+                d = a.camera_T_marker[:3, 3] - b.camera_T_marker[:3, 3]
+                R = a.camera_T_marker[:3, :3]
+                cov = R @ (a.covariance[:3, :3] + b.covariance[:3, :3]) @ R.T
+                if np.linalg.norm(d) > self.config.bump_position_m / 2 and d @ np.linalg.solve(cov, d) > MOVE_CHI2:
+                    still = False
+            track.still = track.still + 1 if still else 0
             track.last_positions = positions
             if track.still < self.config.settle_frames:
                 return False
@@ -266,17 +291,21 @@ class Estimator:
         cam_key = self._camera_key((track.camera_id, track.segment))
         for obs in static:
             pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
+            map_margin = 0.0
             if pair is not None and pair.n >= MIN_PAIR_FOR_MOTION:
-                expected = pair.mean()[:3, 3]
-            elif cam_key in self.in_graph and marker_symbol(obs.marker_id) in self.in_graph:
-                # A marker this segment has not paired with yet, but the map knows: it must appear
-                # where the map predicts, or the camera has moved to a new view.
-                expected = (invert_pose(self._pose(cam_key)) @ self._pose(marker_symbol(obs.marker_id)))[:3, 3]
+                expected = pair.mean()
+            elif pair is None and cam_key in self.in_graph and marker_symbol(obs.marker_id) in self.in_graph:
+                # A marker this segment never paired with, but the map knows: it must appear where
+                # the map predicts (within the map's own uncertainty), or the camera has moved.
+                expected = invert_pose(self._pose(cam_key)) @ self._pose(marker_symbol(obs.marker_id))
+                map_margin = (2.0 * self.config.bump_position_m) ** 2
             else:
                 continue
-            delta = obs.camera_T_marker[:3, 3] - expected
-            R = obs.camera_T_marker[:3, :3]
-            cov = R @ obs.covariance[:3, :3] @ R.T  # marker-frame position covariance into the camera frame
+            delta = obs.camera_T_marker[:3, 3] - expected[:3, 3]
+            # Marker-frame covariance into the camera frame with the expected rotation: the
+            # observation's own may be a flip, which would point its long (depth) axis astray.
+            R = expected[:3, :3]
+            cov = R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3)
             d2.append(float(delta @ np.linalg.solve(cov + 1e-8 * np.eye(3), delta)))
             shifts.append(float(np.linalg.norm(delta)))
         moved = bool(d2) and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
@@ -353,7 +382,7 @@ class Estimator:
         placed_cams = {cam: self._pose(self._camera_key(cam)) for cam in self.camera_index if self._camera_key(cam) in self.in_graph}
         placed_marks = {mk: self._pose(marker_symbol(mk)) for mk in {m for (_, m) in self.pairs} if marker_symbol(mk) in self.in_graph}
         means = {k: p.mean() for k, p in self.pairs.items() if p.n > 0}
-        cams, marks = place(self.anchors, means, placed_cams, placed_marks)
+        cams, marks = place(self.anchors, means, placed_cams, placed_marks | self._pending_seed_poses(new_values))
         for cam, T in cams.items():
             key = self._camera_key(cam)
             if key not in self.in_graph and not new_values.exists(key):
@@ -362,6 +391,10 @@ class Estimator:
             key = marker_symbol(mk)
             if key not in self.in_graph and not new_values.exists(key):
                 new_values.insert(key, gtsam.Pose3(T))
+
+    def _pending_seed_poses(self, new_values: gtsam.Values) -> dict[int, np.ndarray]:
+        """Seeded markers entering the graph in this update (their priors are in ``new_values``)."""
+        return {mk: new_values.atPose3(marker_symbol(mk)).matrix() for mk in self.seeded if new_values.exists(marker_symbol(mk))}
 
     def _pose(self, key: int) -> np.ndarray:
         return self.values.atPose3(key).matrix()
@@ -378,7 +411,7 @@ class Estimator:
         for cid, track in self.tracks.items():
             key = self._camera_key((cid, track.segment)) if (cid, track.segment) in self.camera_index else None
             pose = None
-            if track.moving:
+            if track.moving or track.suspect > 0:  # suspect frames are held back: report it at once
                 state = CameraState.MOVING
                 T = self._track_pose(track)
                 pose = None if T is None else PoseEstimate(T, None)
@@ -391,7 +424,7 @@ class Estimator:
                 state = CameraState.STALE
             cams[cid] = CameraEstimate(cid, state, track.segment, track.last_stamp_ns, track.markers_seen, pose)
         markers = {}
-        for mk in {m for (_, m) in self.pairs} | set(self.anchors):
+        for mk in {m for (_, m) in self.pairs} | set(self.anchors) | self.seeded:
             key = marker_symbol(mk)
             if key in self.in_graph:
                 markers[mk] = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)

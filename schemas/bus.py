@@ -159,8 +159,11 @@ class Subscription(Generic[Msg]):
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
-            msg_type = self._msg_type or keys.message_type(key)
-            item = Received(key, decode(sample.payload.to_bytes(), msg_type), time.time_ns())
+            contract = keys.message_type(key)
+            if self._msg_type is not None and contract is not self._msg_type:
+                # "cellsight/c/*/status" also matches "cellsight/c/estimate/status": not ours, not bad.
+                return
+            item = Received(key, decode(sample.payload.to_bytes(), contract), time.time_ns())
         except SchemaError as exc:
             self._count_bad(key, str(exc))
             return
@@ -243,6 +246,18 @@ class Bus:
     ) -> Subscription[Msg]:
         """Decode messages on ``key_expr``; the type comes from the key when ``msg_type`` is None."""
         return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback)
+
+    def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes, int], None]) -> zenoh.Subscriber:
+        """Undecoded payloads: ``callback(key, payload, receive_ns)`` in zenoh's thread (recorder)."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            try:
+                callback(key, sample.payload.to_bytes(), time.time_ns())
+            except Exception:  # zenoh's thread boundary: one bad sample must not end the subscription
+                log.exception("raw handler for %s raised", key)
+
+        return self.session.declare_subscriber(key_expr, on_sample)
 
     def declare_alive(self, component: str, ident: str) -> str:
         """Hold a liveliness token ``cellsight/<cell>/alive/<component>/<id>`` until close."""

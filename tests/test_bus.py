@@ -140,3 +140,20 @@ def test_unreachable_router_is_a_clear_error() -> None:
     bad = TransportConfig(mode="client", connect=["tcp/127.0.0.1:9"], overrides={"connect/timeout_ms": 300})
     with pytest.raises(BusError, match="tcp/127.0.0.1:9"):
         Bus(bad, CELL)
+
+
+def test_typed_wildcard_ignores_other_topics_that_match(client_transport: TransportConfig) -> None:
+    """cellsight/t/*/status also matches estimate/status: a typed subscription skips it silently."""
+    with Bus(client_transport, CELL) as pub_bus, Bus(client_transport, CELL) as sub_bus:
+        sub = sub_bus.subscribe(keys.all_cameras(CELL, "status"), m.DriverStatus)
+        driver = pub_bus.publisher(keys.status(CELL, "cam1"))
+        estimator = pub_bus.publisher(keys.estimate_status(CELL))
+        wait_until(lambda: _probe({keys.status(CELL, "cam1"): driver}, sub), 5.0, "route")
+        sub.drain()
+        for _ in range(3):
+            estimator.put(m.EstimatorStatus(stamp_ns=1))
+            driver.put(m.DriverStatus(camera_id="cam1", stamp_ns=2))
+        wait_until(lambda: len(sub.inbox._items) >= 3, 5.0, "driver statuses")
+        got = sub.drain()
+    assert [i.key for i in got] == [keys.status(CELL, "cam1")] * 3
+    assert sum(sub.bad.values()) == 0

@@ -1,0 +1,263 @@
+"""The demo's summary: estimates against simulator ground truth, read back from the run's log.
+
+This is evaluation code (it reads ``truth/`` keys on purpose); nothing in the estimator or
+recognition reads them.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+from collections import defaultdict
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schemas import codec, keys
+from schemas.codec import StampedPose
+from schemas.log import ReadReport, read_log
+
+STATE_NAMES = {1: "localized", 2: "unanchored", 3: "moving", 4: "stale"}
+
+
+@dataclass
+class CameraSummary:
+    camera_id: str
+    final_state: str
+    first_localized_s: float | None  # scenario seconds from the first frame
+    position_error_mm_final: float | None
+    rotation_error_deg_final: float | None
+    position_error_mm_p50_last5s: float | None
+    rotation_error_deg_p50_last5s: float | None
+    position_sigma_mm_final: float | None
+
+
+@dataclass
+class MarkerSummary:
+    frame: str
+    position_error_mm: float
+    rotation_error_deg: float
+
+
+@dataclass
+class Timeline:
+    """Per child frame: sorted stamps and poses."""
+
+    stamps: dict[str, list[int]]
+    poses: dict[str, list[StampedPose]]
+
+    @classmethod
+    def empty(cls) -> "Timeline":
+        return cls(defaultdict(list), defaultdict(list))
+
+    def add(self, msg) -> None:
+        for child, p in codec.poses_from_msg(msg).items():
+            self.stamps[child].append(p.stamp_ns)
+            self.poses[child].append(p)
+
+    def at(self, child: str, stamp_ns: int) -> StampedPose | None:
+        """The pose with the nearest stamp (truth is published every frame)."""
+        stamps = self.stamps.get(child)
+        if not stamps:
+            return None
+        i = bisect.bisect_left(stamps, stamp_ns)
+        best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
+        return self.poses[child][best]
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(position error mm, rotation error deg)."""
+    dR = T_est[:3, :3].T @ T_true[:3, :3]
+    ang = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2))))
+    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000), ang
+
+
+@dataclass
+class RunData:
+    est_cameras: Timeline
+    est_markers: Timeline
+    truth_cameras: Timeline
+    truth_markers: Timeline
+    truth_objects: Timeline
+    states: dict[str, list[tuple[int, int]]]  # camera -> (stamp, state)
+    read: ReadReport
+
+
+def load_run(log_path: Path, cell: str) -> RunData:
+    d = RunData(Timeline.empty(), Timeline.empty(), Timeline.empty(), Timeline.empty(), Timeline.empty(), defaultdict(list), ReadReport())
+    routes = {
+        keys.estimate_cameras(cell): d.est_cameras, keys.estimate_markers(cell): d.est_markers,
+        keys.truth(cell, "cameras"): d.truth_cameras, keys.truth(cell, "markers"): d.truth_markers,
+        keys.truth(cell, "objects"): d.truth_objects,
+    }  # fmt: skip
+    wanted = set(routes) | {keys.estimate_status(cell)}
+    for lm in read_log(log_path, wanted, d.read):
+        if lm.key in routes:
+            routes[lm.key].add(lm.msg)
+        else:
+            for cam in lm.msg.cameras:
+                d.states[cam.camera_id].append((lm.msg.stamp_ns, cam.state))
+    for tl in (d.est_cameras, d.est_markers, d.truth_cameras, d.truth_markers, d.truth_objects):
+        for child in list(tl.stamps):
+            order = np.argsort(tl.stamps[child], kind="stable")
+            tl.stamps[child] = [tl.stamps[child][i] for i in order]
+            tl.poses[child] = [tl.poses[child][i] for i in order]
+    return d
+
+
+def camera_errors(d: RunData, cam: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps ns, position errors mm, rotation errors deg) of every published pose of ``cam``."""
+    rows = []
+    for p in d.est_cameras.poses.get(cam, []):
+        t = d.truth_cameras.at(cam, p.stamp_ns)
+        if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
+            rows.append((p.stamp_ns, *pose_error(p.T, t.T)))
+    a = np.array(rows) if rows else np.zeros((0, 3))
+    return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
+
+
+def summarize(d: RunData) -> tuple[list[CameraSummary], list[MarkerSummary]]:
+    t0 = min((s[0] for s in d.truth_cameras.stamps.values() if s), default=0)
+    cams = []
+    for cam in sorted(d.truth_cameras.stamps):
+        stamps, pe, re = camera_errors(d, cam)
+        states = d.states.get(cam, [])
+        final_state = STATE_NAMES.get(states[-1][1], "unknown") if states else "never seen"
+        first = next((s for s, st in states if st == 1), None)
+        last5 = stamps >= (stamps[-1] - 5_000_000_000) if len(stamps) else np.zeros(0, bool)
+        final = d.est_cameras.poses[cam][-1] if d.est_cameras.poses.get(cam) else None
+        sigma = None
+        if final is not None and final.covariance is not None:
+            sigma = float(np.sqrt(np.linalg.eigvalsh(final.covariance[:3, :3]).max()) * 1000)
+        cams.append(CameraSummary(
+            cam, final_state, None if first is None else (first - t0) / 1e9,
+            float(pe[-1]) if len(pe) else None, float(re[-1]) if len(re) else None,
+            float(np.median(pe[last5])) if last5.any() else None, float(np.median(re[last5])) if last5.any() else None, sigma,
+        ))  # fmt: skip
+    markers = []
+    for child, poses in sorted(d.est_markers.poses.items()):
+        t = d.truth_markers.at(child, poses[-1].stamp_ns)
+        if t is not None:
+            markers.append(MarkerSummary(child, *pose_error(poses[-1].T, t.T)))
+    return cams, markers
+
+
+def write_report(log_path: Path, cell: str, out_dir: Path) -> dict:
+    """summary.json, summary.md, top_view.png and errors.png in ``out_dir``; returns the summary dict."""
+    d = load_run(log_path, cell)
+    cams, markers = summarize(d)
+    summary = {
+        "log": str(log_path),
+        "messages_read": d.read.messages,
+        "log_complete": d.read.stopped_early is None,
+        "cameras": [asdict(c) for c in cams],
+        "markers": [asdict(m) for m in markers],
+    }
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    (out_dir / "summary.md").write_text(markdown(cams, markers))
+    plot_top_view(d, out_dir / "top_view.png")
+    plot_errors(d, out_dir / "errors.png")
+    return summary
+
+
+def _fmt(v: float | None, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def markdown(cams: list[CameraSummary], markers: list[MarkerSummary]) -> str:
+    lines = [
+        "| camera | final state | localized after (s) | final pos err (mm) | final rot err (deg) | p50 last 5 s (mm / deg) | reported sigma (mm) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in cams:
+        lines.append(
+            f"| {c.camera_id} | {c.final_state} | {_fmt(c.first_localized_s, '.1f')} | {_fmt(c.position_error_mm_final, '.1f')} | "
+            f"{_fmt(c.rotation_error_deg_final, '.2f')} | {_fmt(c.position_error_mm_p50_last5s, '.1f')} / {_fmt(c.rotation_error_deg_p50_last5s, '.2f')} | "
+            f"{_fmt(c.position_sigma_mm_final, '.1f')} |"
+        )
+    if markers:
+        pe = np.array([m.position_error_mm for m in markers])
+        lines += ["", f"Markers ({len(markers)}): position error median {np.median(pe):.1f} mm, max {pe.max():.1f} mm."]
+    return "\n".join(lines) + "\n"
+
+
+def plot_top_view(d: RunData, path: Path) -> None:
+    """Cameras, markers and objects seen from above, with 2-sigma ellipses (x 10) of the estimates."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    fig, ax = plt.subplots(figsize=(7, 7))
+    for child, poses in d.truth_markers.poses.items():
+        T = poses[-1].T
+        ax.plot(T[0, 3], T[1, 3], "s", ms=5, mfc="none", mec="0.5", label="marker (truth)" if child == next(iter(d.truth_markers.poses)) else None)
+    for child, poses in d.est_markers.poses.items():
+        T, cov = poses[-1].T, poses[-1].covariance
+        ax.plot(T[0, 3], T[1, 3], "s", ms=3, color="tab:blue")
+        _ellipse(ax, T, cov, "tab:blue", Ellipse)
+    for child, poses in d.truth_objects.poses.items():
+        T = poses[-1].T
+        ax.plot(T[0, 3], T[1, 3], "o", ms=9, mfc="none", mec="tab:orange")
+        ax.annotate(child.replace("object_", ""), (T[0, 3], T[1, 3]), textcoords="offset points", xytext=(6, -10), fontsize=8, color="tab:orange")
+    for cam, poses in d.truth_cameras.poses.items():
+        T = poses[-1].T
+        ax.plot(T[0, 3], T[1, 3], "^", ms=10, mfc="none", mec="k")
+        fwd = T[:3, 2] * 0.4
+        ax.arrow(T[0, 3], T[1, 3], fwd[0], fwd[1], head_width=0.05, color="k", alpha=0.5)
+        ax.annotate(cam, (T[0, 3], T[1, 3]), textcoords="offset points", xytext=(8, 4))
+    for cam, poses in d.est_cameras.poses.items():
+        T, cov = poses[-1].T, poses[-1].covariance
+        ax.plot(T[0, 3], T[1, 3], "^", ms=6, color="tab:red")
+        _ellipse(ax, T, cov, "tab:red", Ellipse)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("Top view: truth (hollow) and estimates (filled), 2-sigma ellipses x10")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _ellipse(ax, T: np.ndarray, cov: np.ndarray | None, color: str, Ellipse) -> None:
+    if cov is None:
+        return
+    # Body-frame position covariance into the world frame, x-y block.
+    C = (T[:3, :3] @ cov[:3, :3] @ T[:3, :3].T)[:2, :2]
+    vals, vecs = np.linalg.eigh(C)
+    vals = np.maximum(vals, 0)
+    angle = math.degrees(math.atan2(vecs[1, 1], vecs[0, 1]))
+    w, h = 2 * 2 * np.sqrt(vals[::-1]) * 10  # 2 sigma, x10
+    ax.add_patch(Ellipse((T[0, 3], T[1, 3]), w, h, angle=angle, fill=False, color=color, lw=1))
+
+
+def plot_errors(d: RunData, path: Path) -> None:
+    """Position and rotation error of each camera's published pose over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = min((s[0] for s in d.truth_cameras.stamps.values() if s), default=0)
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for cam in sorted(d.truth_cameras.stamps):
+        stamps, pe, re = camera_errors(d, cam)
+        t = (stamps - t0) / 1e9
+        a1.plot(t, pe, ".-", ms=2, lw=0.8, label=cam)
+        a2.plot(t, re, ".-", ms=2, lw=0.8, label=cam)
+    a1.set_yscale("log")
+    a2.set_yscale("log")
+    a1.set_ylabel("position error (mm)")
+    a2.set_ylabel("rotation error (deg)")
+    a2.set_xlabel("scenario time (s)")
+    a1.legend(ncol=4, fontsize=8)
+    a1.grid(alpha=0.3, which="both")
+    a2.grid(alpha=0.3, which="both")
+    a1.set_title("Camera pose error against ground truth")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

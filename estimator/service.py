@@ -1,0 +1,196 @@
+"""The estimator daemon: marker observations from every camera in, poses and states out.
+
+Owns the zenoh session, the update loop (``update_hz``), publishing, the ``estimate/map``
+queryable, the liveliness token and the persisted map. The estimation itself is
+``estimator.graph.Estimator``; nothing here changes its answer.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from estimator.config import EstimatorConfig
+from estimator.errors import StateFileError
+from estimator.graph import CameraState, Estimate, Estimator
+from estimator.observation import Observation
+from estimator.state import SavedMarker, load_state, save_state, set_aside
+from schemas import codec, keys
+from schemas import messages as m
+from schemas.bus import Bus, Received
+
+log = logging.getLogger(__name__)
+SAVE_PERIOD_S = 5.0
+_STATE = {
+    CameraState.LOCALIZED: m.CameraState.LOCALIZED,
+    CameraState.UNANCHORED: m.CameraState.UNANCHORED,
+    CameraState.MOVING: m.CameraState.MOVING,
+    CameraState.STALE: m.CameraState.STALE,
+}
+
+
+def observations_from_msg(msg: m.MarkerObservations) -> list[Observation]:
+    """Decoded (already validated) wire observations as estimator input."""
+    out = []
+    for o in msg.markers:
+        alt = codec.pose_from_msg(o.candidate_b) if o.HasField("candidate_b") else None
+        out.append(
+            Observation(
+                msg.camera_id, msg.stamp_ns, int(o.marker_id), codec.pose_from_msg(o.camera_T_marker),
+                codec.check_covariance(np.array(o.covariance)), alt, o.ambiguous,
+            )
+        )  # fmt: skip
+    return out
+
+
+def marker_frame(marker_id: int) -> str:
+    return f"marker_{marker_id}"
+
+
+class Clock:
+    """The sensors' clock as seen from here: newest stamp plus wall time since it arrived (ns).
+
+    Works for live sensors and for replayed logs whose stamps are hours old.
+    """
+
+    def __init__(self) -> None:
+        self.stamp_ns = 0
+        self.received_ns = 0
+
+    def observe(self, stamp_ns: int, received_ns: int) -> None:
+        if stamp_ns >= self.stamp_ns:
+            self.stamp_ns, self.received_ns = stamp_ns, received_ns
+
+    def now(self) -> int:
+        return self.stamp_ns + (time.time_ns() - self.received_ns) if self.stamp_ns else 0
+
+
+class EstimatorService:
+    def __init__(self, bus: Bus, config: EstimatorConfig) -> None:
+        self.bus = bus
+        self.config = config
+        self.estimator = Estimator(config)
+        self.clock = Clock()
+        self._lock = threading.Lock()  # the queryable answers from zenoh's thread
+        self._map: m.Map | None = None
+        self._last_save = time.monotonic()
+        self.restored = self._restore()
+        cell = bus.cell
+        self._sub = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192)
+        self._pub = {
+            "tf": bus.publisher(keys.tf(cell)),
+            "cameras": bus.publisher(keys.estimate_cameras(cell)),
+            "markers": bus.publisher(keys.estimate_markers(cell)),
+            "status": bus.publisher(keys.estimate_status(cell)),
+        }
+        self._queryable = bus.session.declare_queryable(keys.estimate_map(cell), self._answer_map)
+        bus.declare_alive("estimator", "main")
+
+    # ------------------------------------------------------------ state
+
+    def _restore(self) -> int:
+        path = self.config.state_file
+        if path is None or not path.exists():
+            return 0
+        try:
+            saved = load_state(path, self.bus.cell)
+        except StateFileError as exc:
+            where = set_aside(path)
+            log.error("%s; moved to %s and starting from the anchors alone", exc, where)
+            return 0
+        self.estimator.seed_map({k: (v.T, v.covariance) for k, v in saved.items()})
+        log.info("restored %d markers from %s", len(saved), path)
+        return len(saved)
+
+    def save(self, est: Estimate) -> None:
+        path = self.config.state_file
+        if path is None:
+            return
+        markers = {k: SavedMarker(p.T, p.covariance) for k, p in est.markers.items() if p.covariance is not None}
+        try:
+            save_state(path, markers, self.bus.cell)
+        except OSError as exc:  # a full disk must not stop the estimator; the old file stays intact
+            log.error("cannot save state to %s: %s (previous state kept)", path, exc)
+
+    # ------------------------------------------------------------ loop
+
+    def ingest(self, items: list[Received[m.MarkerObservations]]) -> None:
+        for item in items:
+            try:
+                obs = observations_from_msg(item.msg)
+            except codec.DecodeError as exc:  # validated on receipt, but never trust twice-parsed input
+                log.warning("dropping observations of %s: %s", item.msg.camera_id, exc)
+                continue
+            self.clock.observe(item.msg.stamp_ns, item.receive_ns)
+            self.estimator.add_frame(item.msg.camera_id, item.msg.stamp_ns, obs)
+
+    def step(self) -> Estimate:
+        """Ingest what arrived, update, publish. One call per update period."""
+        self.ingest(self._sub.drain())
+        now = self.clock.now()
+        self.estimator.update(now)
+        est = self.estimator.estimate(now)
+        self.publish(est, now)
+        if time.monotonic() - self._last_save > SAVE_PERIOD_S:
+            self.save(est)
+            self._last_save = time.monotonic()
+        return est
+
+    def publish(self, est: Estimate, stamp_ns: int) -> None:
+        cams = [
+            codec.StampedPose("world", c.camera_id, stamp_ns, c.pose.T, c.pose.covariance)
+            for c in est.cameras.values()
+            if c.pose is not None and c.state in (CameraState.LOCALIZED, CameraState.MOVING, CameraState.STALE)
+        ]
+        marks = [codec.StampedPose("world", marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.markers.items()]
+        marks += [codec.StampedPose("world", marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.object_markers.items()]
+        cams_msg, marks_msg = codec.poses_to_msg(stamp_ns, cams), codec.poses_to_msg(stamp_ns, marks)
+        status = self.status_msg(est, stamp_ns)
+        self._pub["tf"].put(codec.transforms_to_msg(stamp_ns, [(p.parent, p.child, p.T) for p in cams + marks]))
+        self._pub["cameras"].put(cams_msg)
+        self._pub["markers"].put(marks_msg)
+        self._pub["status"].put(status)
+        with self._lock:
+            self._map = m.Map(cameras=cams_msg, markers=marks_msg, status=status)
+
+    def status_msg(self, est: Estimate, stamp_ns: int) -> m.EstimatorStatus:
+        c = self.estimator.counters
+        msg = m.EstimatorStatus(
+            stamp_ns=stamp_ns, observations=c.observations, rejected=c.rejected + sum(self._sub.bad.values()),
+            unknown_markers=c.unknown_markers, update_ms=c.last_update_ms, factors=len(self.estimator.pairs) + len(self.estimator.anchors),
+        )  # fmt: skip
+        msg.flagged_anchors.extend(est.flagged_anchors)
+        for cam in sorted(est.cameras.values(), key=lambda x: x.camera_id):
+            sigma = 0.0
+            if cam.pose is not None and cam.pose.covariance is not None:
+                sigma = float(np.sqrt(np.linalg.eigvalsh(cam.pose.covariance[:3, :3]).max()))
+            msg.cameras.add(
+                camera_id=cam.camera_id, state=_STATE[cam.state], segment=cam.segment,
+                last_stamp_ns=cam.last_stamp_ns, markers_seen=cam.markers_seen, position_sigma_m=sigma,
+            )  # fmt: skip
+        return msg
+
+    def _answer_map(self, query: zenoh.Query) -> None:
+        with self._lock:
+            snapshot = self._map
+        if snapshot is not None:
+            query.reply(keys.estimate_map(self.bus.cell), snapshot.SerializeToString())
+
+    def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
+        stop = stop or threading.Event()
+        period = 1.0 / self.config.update_hz
+        start = time.monotonic()
+        est = None
+        try:
+            while not stop.is_set() and (duration_s is None or time.monotonic() - start < duration_s):
+                t0 = time.monotonic()
+                est = self.step()
+                stop.wait(max(period - (time.monotonic() - t0), 0.0))
+        finally:
+            if est is not None:
+                self.save(est)
+            self._queryable.undeclare()

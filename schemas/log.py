@@ -1,0 +1,159 @@
+"""MCAP logs of bus traffic: one writer (recorder, resolve) and one tolerant reader.
+
+Every channel is a key expression; its schema is the protobuf ``FileDescriptorSet`` of the type
+the key carries (Foxglove's schemas for images, calibration, tf and scenes), so a log opens in
+Foxglove and decodes with the plain ``mcap`` + ``mcap-protobuf-support`` readers. log_time is the
+receive time, publish_time the sensor stamp (both integer ns).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+from google.protobuf.message import Message
+from mcap.exceptions import McapError
+from mcap.records import Channel, Footer, Message as McapMessage, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import build_file_descriptor_set
+
+from schemas import codec, keys
+from schemas.errors import SchemaError
+
+log = logging.getLogger(__name__)
+
+
+def stamp_of(msg: Message, default_ns: int) -> int:
+    """The sensor stamp (ns) a message carries, or ``default_ns`` if it has none."""
+    fields = msg.DESCRIPTOR.fields_by_name
+    if "stamp_ns" in fields and msg.stamp_ns:
+        return int(msg.stamp_ns)
+    if "timestamp" in fields and msg.HasField("timestamp"):
+        return codec.timestamp_to_stamp(msg.timestamp)
+    if "transforms" in fields and len(msg.transforms):
+        return codec.timestamp_to_stamp(msg.transforms[0].timestamp)
+    return default_ns
+
+
+class _UnbufferedFile:
+    """A file whose every write reaches the OS completely and at once (raw writes may be partial)."""
+
+    def __init__(self, path: Path) -> None:
+        self._f = open(path, "wb", buffering=0)
+        self._pos = 0
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        while view:
+            n = self._f.write(view)
+            view = view[n:]
+        self._pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._f.close()
+
+
+class LogWriter:
+    """Append bus messages to an MCAP file, registering schemas and channels on first use.
+
+    lz4 chunks (zstd cannot keep up with four cameras on two cores). The file is opened
+    unbuffered so every finished chunk reaches the OS at once: a writer killed with SIGKILL
+    leaves a file readable up to its last complete chunk.
+    """
+
+    def __init__(self, path: Path, chunk_size: int = 4 * 1024 * 1024, metadata: dict[str, str] | None = None) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._file = _UnbufferedFile(path)
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
+        self._writer.start(profile="", library="cellsight")
+        if metadata:
+            self._writer.add_metadata("cellsight", metadata)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.messages = 0
+
+    def _channel(self, key: str, msg_type: type[Message]) -> int:
+        if key not in self._channels:
+            name = msg_type.DESCRIPTOR.full_name
+            if name not in self._schemas:
+                fds = build_file_descriptor_set(msg_type)
+                self._schemas[name] = self._writer.register_schema(name, "protobuf", fds.SerializeToString())
+            self._channels[key] = self._writer.register_channel(key, "protobuf", self._schemas[name])
+        return self._channels[key]
+
+    def write(self, key: str, msg: Message, log_time_ns: int, publish_time_ns: int | None = None) -> None:
+        self.write_raw(key, type(msg), msg.SerializeToString(), log_time_ns, publish_time_ns or stamp_of(msg, log_time_ns))
+
+    def write_raw(self, key: str, msg_type: type[Message], payload: bytes, log_time_ns: int, publish_time_ns: int) -> None:
+        self._writer.add_message(self._channel(key, msg_type), log_time_ns, payload, publish_time_ns)
+        self.messages += 1
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    key: str
+    msg: Message
+    log_time_ns: int
+    publish_time_ns: int
+
+
+@dataclass
+class ReadReport:
+    """What a tolerant read got through: messages decoded, skipped and why it stopped early."""
+
+    messages: int = 0
+    undecodable: int = 0
+    unknown_keys: set[str] = field(default_factory=set)
+    stopped_early: str | None = None
+
+
+def read_log(path: Path, key_filter: set[str] | None = None, report: ReadReport | None = None) -> Iterator[LogMessage]:
+    """Stream a log in file order, decoding and validating each message.
+
+    A truncated or damaged file yields everything before the damage; ``report.stopped_early``
+    says why it stopped. Undecodable messages are counted and skipped.
+    """
+    report = report if report is not None else ReadReport()
+    channels: dict[int, Channel] = {}
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True).records:
+                if isinstance(record, Footer):
+                    return  # a complete file: the summary section holds nothing we need
+                if isinstance(record, Schema):
+                    continue
+                if isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, McapMessage):
+                    ch = channels.get(record.channel_id)
+                    if ch is None or (key_filter is not None and ch.topic not in key_filter):
+                        continue
+                    try:
+                        msg_type = keys.message_type(ch.topic)
+                        msg = codec.decode(record.data, msg_type)
+                    except SchemaError:
+                        report.undecodable += 1
+                        if ch.topic.startswith(keys.ROOT):
+                            continue
+                        report.unknown_keys.add(ch.topic)
+                        continue
+                    report.messages += 1
+                    yield LogMessage(ch.topic, msg, record.log_time, record.publish_time)
+        except (McapError, EOFError, ValueError, OSError) as exc:
+            report.stopped_early = f"{type(exc).__name__}: {exc}"
+            log.warning("%s: stopped reading after %d messages: %s", path, report.messages, report.stopped_early)
