@@ -86,12 +86,19 @@ class Pair:
     slot: int | None = None  # iSAM2 factor index, None until the factor is in the graph
     refreshed_ns: int = 0
     dirty: bool = False
+    _cached: np.ndarray | None = field(default=None, repr=False)
+    _cached_n: int = field(default=0, repr=False)
 
-    def mean(self) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = project_rotation(self.rot_sum)
-        T[:3, 3] = self.pos_sum / self.n
-        return T
+    def mean(self, exact: bool = False) -> np.ndarray:
+        """Mean pose (4x4; do not modify). The rotation is re-projected once the count has grown
+        by an eighth since the last projection (the mean of many rotations barely moves; the SVD
+        dominated the hot path), or always with ``exact`` (when a factor is built)."""
+        if exact or self._cached is None or self.n - self._cached_n > self._cached_n // 8:
+            T = np.eye(4)
+            T[:3, :3] = project_rotation(self.rot_sum)
+            self._cached, self._cached_n = T, self.n
+        self._cached[:3, 3] = self.pos_sum / self.n
+        return self._cached
 
     def mean_covariance(self) -> np.ndarray:
         """Mean single-observation covariance (ROS order, marker frame)."""
@@ -108,6 +115,7 @@ class Pair:
         if self.n >= 3 and 2 * self.primary_in_alt > self.n:  # the majority says we are on the flip
             self.rot_sum, self.alt_rot_sum = self.alt_rot_sum, self.rot_sum
             self.primary_in_alt = self.n - self.primary_in_alt
+            self._cached = None
 
     def add(self, obs: Observation) -> bool:
         """Fold an observation in, choosing the IPPE branch consistent with the mean. False if rejected."""
@@ -287,7 +295,7 @@ class Estimator:
             log.info("%s is still again: segment %d", track.camera_id, track.segment)
             return True
         track.last_positions = positions
-        d2, shifts = [], []
+        deltas, covs = [], []
         cam_key = self._camera_key((track.camera_id, track.segment))
         for obs in static:
             pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
@@ -301,14 +309,18 @@ class Estimator:
                 map_margin = (2.0 * self.config.bump_position_m) ** 2
             else:
                 continue
-            delta = obs.camera_T_marker[:3, 3] - expected[:3, 3]
+            deltas.append(obs.camera_T_marker[:3, 3] - expected[:3, 3])
             # Marker-frame covariance into the camera frame with the expected rotation: the
             # observation's own may be a flip, which would point its long (depth) axis astray.
             R = expected[:3, :3]
-            cov = R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3)
-            d2.append(float(delta @ np.linalg.solve(cov + 1e-8 * np.eye(3), delta)))
-            shifts.append(float(np.linalg.norm(delta)))
-        moved = bool(d2) and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
+            covs.append(R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3))
+        d2: np.ndarray = np.zeros(0)
+        shifts: np.ndarray = np.zeros(0)
+        if deltas:  # one batched solve per frame instead of one per marker
+            D = np.array(deltas)
+            d2 = np.einsum("ij,ij->i", D, np.linalg.solve(np.array(covs) + 1e-8 * np.eye(3), D[:, :, None])[:, :, 0])
+            shifts = np.linalg.norm(D, axis=1)
+        moved = len(d2) > 0 and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
         track.suspect = track.suspect + 1 if moved else 0
         if track.suspect >= self.config.bump_frames:
             track.moving, track.still = True, 0
@@ -332,17 +344,14 @@ class Estimator:
         self._place_new(new_values)
         remove: list[int] = []
         refreshed: list[Pair] = []
-        refresh_ns = int(self.config.refresh_s * 1e9)
-        for ((cam, marker_id), pair) in self.pairs.items():
-            if not pair.dirty or (pair.slot is not None and now_ns - pair.refreshed_ns < refresh_ns):
-                continue
+        for (cam, marker_id), pair in self._due_pairs(now_ns):
             ck, mk = self._camera_key(cam), marker_symbol(marker_id)
             if not (self._has(ck, new_values) and self._has(mk, new_values)):
                 continue
             n_eff = min(pair.n, self.config.max_fused)
             cov = cov_ros_to_gtsam(pair.mean_covariance()) / n_eff
             noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov))
-            graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.mean()), noise))
+            graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.mean(exact=True)), noise))
             if pair.slot is not None:
                 remove.append(pair.slot)
             refreshed.append(pair)
@@ -361,6 +370,28 @@ class Estimator:
         self.values = self.isam.calculateEstimate()
         self.counters.updates += 1
         self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _due_pairs(self, now_ns: int) -> list[tuple[tuple[CameraKey, int], Pair]]:
+        """Pairs whose factor should be (re)built now.
+
+        New pairs always; young ones (fewer than ``max_fused`` observations) every refresh_s / 10
+        so a new segment converges within a fraction of a second; mature ones once per refresh_s,
+        the most overdue first and at most their fair share per update, so refreshes spread over
+        the updates instead of all landing in one (that was the p99 latency).
+        """
+        refresh_ns = int(self.config.refresh_s * 1e9)
+        urgent, mature = [], []
+        for key, pair in self.pairs.items():
+            if not pair.dirty:
+                continue
+            age = now_ns - pair.refreshed_ns
+            if pair.slot is None or (pair.n < self.config.max_fused and age >= refresh_ns // 10):
+                urgent.append((key, pair))
+            elif age >= refresh_ns:
+                mature.append((age, key, pair))
+        share = max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0)))
+        mature.sort(key=lambda x: -x[0])
+        return urgent + [(key, pair) for _, key, pair in mature[:share]]
 
     def relax(self, iterations: int) -> None:
         """Extra iSAM2 iterations without new factors (relinearise and re-solve)."""
@@ -460,20 +491,38 @@ class Estimator:
         return {mk: pe for mk, (_, pe) in best.items()}
 
     def _flagged_anchors(self) -> list[int]:
-        """Anchors whose observations, through cameras placed by other markers too, disagree with the prior."""
-        flagged = []
-        for a, prior in self.anchors.items():
-            devs = []
-            for ((cam, mk), pair) in self.pairs.items():
-                if mk != a or pair.n == 0:
-                    continue
-                key = self._camera_key(cam)
-                others = sum(1 for (c2, m2) in self.pairs if c2 == cam and m2 != a and marker_symbol(m2) in self.in_graph)
-                if key in self.in_graph and others >= 2:
-                    devs.append(np.linalg.norm((self._pose(key) @ pair.mean())[:3, 3] - prior[:3, 3]))
-            if devs and np.median(devs) > self.config.anchor_check_m:
-                flagged.append(a)
-        return flagged
+        """Anchors whose observations disagree with their surveyed pose (moved since the survey).
+
+        Per camera, every reference it sees (an anchor's surveyed pose, a mapped marker's
+        estimate) implies a camera pose through its observation: reference @ inv(camera_T_marker).
+        The largest group of references that agree (within ``anchor_check_m``) is the consensus;
+        an anchor outside it is flagged. Full poses, not marker centres: markers on one line would
+        leave a point fit free to rotate about it and blame the wrong anchor.
+        """
+        flagged: set[int] = set()
+        by_cam: dict[CameraKey, dict[int, Pair]] = {}
+        for (cam, mk), pair in self.pairs.items():
+            if pair.n > 0 and mk not in self.object_markers:
+                by_cam.setdefault(cam, {})[mk] = pair
+        tol = self.config.anchor_check_m
+        for seen in by_cam.values():
+            if not any(mk in self.anchors for mk in seen):
+                continue
+            implied = {}
+            for mk, pair in seen.items():
+                ref = self.anchors.get(mk)
+                if ref is None and marker_symbol(mk) in self.in_graph:
+                    ref = self._pose(marker_symbol(mk))
+                if ref is not None:
+                    implied[mk] = (ref @ invert_pose(pair.mean()))[:3, 3]
+            if len(implied) < 3:
+                continue
+            agree = {k: {j for j in implied if np.linalg.norm(implied[j] - implied[k]) <= tol} for k in implied}
+            consensus = max(agree.values(), key=len)
+            if len(consensus) * 2 <= len(implied):
+                continue  # no majority: cannot tell which anchor moved
+            flagged |= {k for k in implied if k in self.anchors and k not in consensus}
+        return sorted(flagged)
 
     # ------------------------------------------------------------ for tests and the offline solver
 

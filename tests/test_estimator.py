@@ -151,6 +151,7 @@ def test_bumped_camera_is_detected_and_reconverges_without_dragging_others() -> 
     check_camera(est, s, "a", 3.0, pos_mm=10.0, rot_deg=0.3)
     check_camera(est, s, "b", 3.0, pos_mm=10.0, rot_deg=0.3)
     assert_pose_close(e.cameras["b"].pose.T, before_b, 0.002, 0.05, "b moved when a was bumped")
+    assert e.flagged_anchors == []  # a bumped camera is not a moved anchor
 
 
 def test_flips_are_absorbed() -> None:

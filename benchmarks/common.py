@@ -1,0 +1,52 @@
+"""Shared benchmark plumbing: ``python -m benchmarks.NAME [--quick] [--json FILE]``.
+
+Each benchmark returns a flat dict of named figures with the unit in the name; this prints it as a
+table (with the machine) and writes it as JSON when asked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Callable
+
+from rich.console import Console
+from rich.table import Table
+
+
+def machine() -> str:
+    cpu = "unknown cpu"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def main(name: str, description: str, run: Callable[[bool], dict[str, float]], extra_args: Callable[[argparse.ArgumentParser], None] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog=f"python -m benchmarks.{name}", description=description)
+    parser.add_argument("--quick", action="store_true", help="a smaller run that finishes within a minute")
+    parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
+    if extra_args:
+        extra_args(parser)
+    args = parser.parse_args()
+    t0 = time.perf_counter()
+    figures = run(args.quick) if extra_args is None else run(args.quick, args)
+    elapsed = time.perf_counter() - t0
+    table = Table(title=f"benchmarks.{name}{' --quick' if args.quick else ''} ({elapsed:.0f} s)")
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    for k, v in figures.items():
+        table.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
+    console = Console()
+    console.print(table)
+    console.print(f"machine: {machine()}")
+    if args.json:
+        args.json.write_text(json.dumps({**figures, "machine": machine(), "quick": args.quick}, indent=2))
