@@ -157,3 +157,29 @@ def test_typed_wildcard_ignores_other_topics_that_match(client_transport: Transp
         got = sub.drain()
     assert [i.key for i in got] == [keys.status(CELL, "cam1")] * 3
     assert sum(sub.bad.values()) == 0
+
+
+def test_frames_travel_through_shared_memory(client_transport: TransportConfig) -> None:
+    """A 640x480 depth frame published with frames=True arrives intact, through an SHM buffer."""
+    depth = (np.arange(480 * 640, dtype=np.uint32) % 65536).astype(np.uint16).reshape(480, 640)
+    key = keys.depth(CELL, "cam1")
+    with Bus(client_transport, CELL) as pub_bus, Bus(client_transport, CELL) as sub_bus:
+        raw: list[bool] = []
+        probe = sub_bus.session.declare_subscriber(key, lambda s: raw.append(s.payload.as_shm() is not None))
+        sub = sub_bus.subscribe(key, m.RawImage, ring=True, capacity=4)
+        pub = pub_bus.publisher(key, frames=True)
+        msg = codec.image_to_msg(depth, 5, "cam1", "16UC1")
+        received = []
+
+        def publish_and_take() -> bool:
+            pub.put(msg)
+            item = sub.get(timeout_s=0.05)
+            if item is not None:
+                received.append(item.msg)
+            return bool(received)
+
+        wait_until(publish_and_take, 5.0, "a frame")
+        probe.undeclare()
+    assert pub.shm_puts == pub.published > 0
+    assert any(raw), "no frame arrived as a shared-memory buffer"
+    np.testing.assert_array_equal(codec.image_from_msg(received[0]), depth)

@@ -1,0 +1,107 @@
+"""The estimator daemon over real zenoh sessions: publishing, map query, persisted state, bad input."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations
+from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
+from estimator.service import EstimatorService
+from schemas import codec, keys
+from schemas import messages as m
+from schemas.bus import Bus, TransportConfig
+from schemas.spec import PoseSpec
+from tests.helpers import assert_pose_close, wait_until
+
+CELL = "svc"
+
+
+def scene() -> Scenario:
+    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    return Scenario(
+        markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2)],
+        cameras=[CameraSpec(id="a", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))],
+    )
+
+
+def to_msg(cam: str, stamp: int, obs) -> m.MarkerObservations:
+    msg = m.MarkerObservations(camera_id=cam, stamp_ns=stamp, image_width=640, image_height=480)
+    for o in obs:
+        item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=0.25, depth_refined=True)
+        item.corners_px.extend([0.0] * 8)
+        codec.pose_to_msg(o.camera_T_marker, item.camera_T_marker)
+        codec.pose_to_msg(o.alternative, item.candidate_b)
+        item.covariance.extend(codec.covariance_to_list(o.covariance))
+    return msg
+
+
+def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = False) -> None:
+    """Publish observations of camera a at 30 Hz (real time / 3 to keep the test short)."""
+    pub = bus.publisher(keys.markers(CELL, "a"))
+    raw = bus.session.declare_publisher(keys.markers(CELL, "a"))
+    rng = np.random.default_rng(0)
+    for k in range(int(seconds * 30)):
+        stamp = start_ns + int(k * 1e9 / 30)
+        pub.put(to_msg("a", stamp, frame_observations(s, "a", 0.0, stamp, rng, NoiseSettings())))
+        if garbage and k % 5 == 0:
+            raw.put(b"\x0a\x03cam\x10" + bytes(rng.integers(0, 256, 40, dtype=np.uint8)))
+        time.sleep(1 / 90)
+
+
+def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: float, start_ns: int, garbage: bool = False) -> tuple[EstimatorService, list]:
+    cfg = estimator_config(s, state_file=state, update_hz=20.0)
+    statuses: list[m.EstimatorStatus] = []
+    with Bus(transport, CELL) as svc_bus, Bus(transport, CELL) as client:
+        svc = EstimatorService(svc_bus, cfg)
+        client.subscribe(keys.estimate_status(CELL), m.EstimatorStatus, callback=lambda r: statuses.append(r.msg))
+        stop = threading.Event()
+        thread = threading.Thread(target=svc.run, args=(stop,))
+        thread.start()
+        try:
+            time.sleep(0.5)  # routes
+            feed(client, s, seconds, start_ns, garbage)
+            wait_until(lambda: svc.estimator.counters.observations > 0, 5.0, "observations to arrive")
+            time.sleep(0.3)
+            replies = client.query(keys.estimate_map(CELL))
+        finally:
+            stop.set()
+            thread.join(10)
+    return svc, statuses, replies
+
+
+def test_daemon_publishes_answers_the_map_and_survives_garbage(client_transport: TransportConfig, tmp_path: Path) -> None:
+    s = scene()
+    svc, statuses, replies = run_service(client_transport, s, tmp_path / "state.json", 2.0, 10**18, garbage=True)
+    assert statuses and statuses[-1].cameras[0].state == m.CameraState.LOCALIZED
+    assert sum(svc._sub.bad.values()) > 0, "the garbage was not seen (test set-up)"
+    assert len(replies) == 1
+    poses = codec.poses_from_msg(replies[0].msg.cameras)
+    assert_pose_close(poses["a"].T, s.camera("a").world_T_camera(0.0), 0.02, 0.5, "camera a from the map query")
+    assert {"marker_1", "marker_2", "marker_3"} <= set(codec.poses_from_msg(replies[0].msg.markers))
+
+
+def test_restart_restores_the_map(client_transport: TransportConfig, tmp_path: Path) -> None:
+    s = scene()
+    state = tmp_path / "state.json"
+    run_service(client_transport, s, state, 2.0, 10**18)
+    assert state.exists()
+    # A fresh daemon whose config has no anchor left and whose camera sees only markers 1-3:
+    # without the restored map it would be unanchored; with it, it is localised at once.
+    s.markers = [mk for mk in s.markers if mk.id != 0]
+    svc, statuses, _ = run_service(client_transport, s, state, 0.3, 2 * 10**18)
+    assert svc.restored == 4  # markers 0-3 as saved
+    assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED
+
+
+def test_corrupt_state_is_set_aside_not_trusted(client_transport: TransportConfig, tmp_path: Path) -> None:
+    s = scene()
+    state = tmp_path / "state.json"
+    state.write_text('{"sha256": "0", "body": {"version": 1, "cell": "svc", "markers": {}}}')
+    svc, statuses, _ = run_service(client_transport, s, state, 1.0, 10**18)
+    assert svc.restored == 0
+    assert list(tmp_path.glob("state.json.corrupt-*")), "the corrupt file was not kept aside"
+    assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED  # started from the anchors
