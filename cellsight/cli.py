@@ -509,6 +509,35 @@ def status(
         board.close()
 
 
+@app.command("replay")
+def replay_cmd(
+    log_file: Annotated[Path, typer.Argument(help="MCAP log written by cellsight record / demo")],
+    rate: Annotated[float, typer.Option(help="playback speed (2 = twice as fast)")] = 1.0,
+    all_keys: Annotated[bool, typer.Option("--all", help="also republish recorded estimates, tf and objects")] = False,
+    cell_config: CellConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Republish a log with its original timing, so the estimator can be driven by a recording."""
+    from drivers.replay import replay
+
+    _setup_logging(verbose)
+    if not log_file.is_file():
+        raise _fail(f"{log_file}: no such log file", 2)
+    if not rate > 0:
+        raise _fail(f"--rate must be positive, got {rate}", 2)
+    cfg = _load(cell_config)
+    stop = _stop_event()
+    with _bus(cfg, None, mode, connect, listen, config) as bus:
+        result = replay(bus, log_file, rate, all_keys, stop)
+    _stderr().print(f"{log_file}: {result.published} messages republished, {result.skipped} recorded estimates skipped")
+    if result.read.stopped_early:
+        _stderr().print(f"[yellow]warning:[/] the log ended early: {result.read.stopped_early}")
+
+
 def main() -> None:
     app()
 
