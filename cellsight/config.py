@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -25,6 +24,7 @@ from drivers.config import CameraConfig, MarkerConfig
 from estimator.config import EstimatorConfig
 from schemas.bus import TransportConfig
 from schemas.keys import check_name
+from schemas.spec import format_validation_error, read_toml
 
 ENV_PREFIX = "CELLSIGHT__"
 
@@ -85,23 +85,13 @@ def apply_env(data: dict[str, Any], environ: Mapping[str, str]) -> dict[str, Any
     return out
 
 
-def _format_errors(source: str, exc: ValidationError) -> str:
-    lines = [f"{source}: invalid configuration"]
-    for err in exc.errors():
-        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        got = err.get("input")
-        got_s = "" if isinstance(got, dict) else f" (got {got!r})"
-        lines.append(f"  {field}: {err['msg']}{got_s}")
-    return "\n".join(lines)
-
-
 def parse_config(data: dict[str, Any], source: str = "<config>", environ: Mapping[str, str] | None = None) -> CellConfig:
     """Validate a dict (e.g. parsed TOML) with environment overrides; raise ``ConfigError``."""
     data = apply_env(data, os.environ if environ is None else environ)
     try:
         return CellConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_errors(source, exc)) from exc
+        raise ConfigError(format_validation_error(source, exc)) from exc
 
 
 def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> CellConfig:
@@ -109,13 +99,7 @@ def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> 
     if path is None:
         return parse_config({}, "<defaults>", environ)
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: no such file") from exc
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    cfg = parse_config(data, str(path), environ)
+    cfg = parse_config(read_toml(path, ConfigError), str(path), environ)
     base = path.parent
     if cfg.cell.scenario is not None and not cfg.cell.scenario.is_absolute():
         cfg.cell.scenario = base / cfg.cell.scenario

@@ -87,3 +87,28 @@ class PoseSpec(BaseModel):
         else:
             R = np.eye(3)
         return make_pose(R, p)
+
+
+def read_toml(path, error: type[Exception], what: str = "file") -> dict:
+    """Parse a TOML file; raise ``error`` naming the file when it is missing or not TOML."""
+    import tomllib
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise error(f"{path}: no such {what}") from exc
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: not valid TOML: {exc}") from exc
+
+
+def format_validation_error(source: str, exc) -> str:
+    """A pydantic ``ValidationError`` as lines naming the source, each field and what was wrong."""
+    lines = [f"{source}: invalid configuration"]
+    for err in exc.errors():
+        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        got = err.get("input")
+        got_s = "" if isinstance(got, dict) else f" (got {got!r})"
+        lines.append(f"  {field}: {err['msg']}{got_s}")
+    return "\n".join(lines)

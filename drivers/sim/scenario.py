@@ -7,7 +7,6 @@ module is the built-in demo. Poses use ``schemas.spec.PoseSpec`` (position + one
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Literal
 
@@ -18,7 +17,7 @@ from drivers.config import IntrinsicsConfig
 from drivers.errors import ScenarioError
 from schemas.codec import CameraInfo, make_pose
 from schemas.keys import check_name
-from schemas.spec import PoseSpec, rpy_matrix
+from schemas.spec import PoseSpec, format_validation_error, read_toml, rpy_matrix
 
 DEMO_CELL = Path(__file__).with_name("demo_cell.toml")
 Vec3 = tuple[float, float, float]
@@ -221,17 +220,11 @@ class Scenario(_Strict):
 def load_scenario(path: Path | None = None) -> Scenario:
     """Load a scenario TOML (None: the built-in demo cell); raise ``ScenarioError`` naming the field."""
     path = DEMO_CELL if path is None else Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise ScenarioError(f"{path}: no such scenario file") from exc
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{path}: not valid TOML: {exc}") from exc
+    data = read_toml(path, ScenarioError, "scenario file")
     try:
         scenario = Scenario.model_validate(data)
     except ValidationError as exc:
-        details = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ScenarioError(f"{path}: invalid scenario: {details}") from exc
+        raise ScenarioError(format_validation_error(f"{path} (scenario)", exc)) from exc
     for obj in scenario.objects:
         if obj.mesh is not None and not obj.mesh.is_absolute():
             obj.mesh = path.parent / obj.mesh
