@@ -458,7 +458,7 @@ def run_cmd(
 def demo(
     duration: Annotated[float, typer.Option(help="seconds of the demo cell's scenario to run")] = 30.0,
     out: Annotated[Path, typer.Option("--out", help="folder for the log, config, summary and pictures")] = Path("runs/demo"),
-    max_image_hz: Annotated[float, typer.Option(help="images per camera per second in the log")] = 1.0,
+    max_image_hz: Annotated[float, typer.Option(help="images per camera per second in the log")] = 0.5,
     verbose: VerboseOpt = False,
 ) -> None:
     """Run the built-in simulated cell for a while, then report its accuracy against ground truth."""

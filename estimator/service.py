@@ -141,8 +141,9 @@ class EstimatorService:
         return est
 
     def publish(self, est: Estimate, stamp_ns: int) -> None:
+        # A moving camera's pose is tracked from one frame: it is stamped with that frame's time.
         cams = [
-            codec.StampedPose("world", c.camera_id, stamp_ns, c.pose.T, c.pose.covariance)
+            codec.StampedPose("world", c.camera_id, c.last_stamp_ns if c.state is CameraState.MOVING else stamp_ns, c.pose.T, c.pose.covariance)
             for c in est.cameras.values()
             if c.pose is not None and c.state in (CameraState.LOCALIZED, CameraState.MOVING, CameraState.STALE)
         ]
