@@ -8,6 +8,7 @@ for whatever has not exited after a grace period, leaving no process behind.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -57,11 +58,21 @@ class Child:
 
 
 class Supervisor:
-    """Keeps a set of child processes running until ``stop``."""
+    """Keeps a set of child processes running until ``stop``; ``manifest`` lists them as JSON."""
 
-    def __init__(self, children: list[Child]) -> None:
+    def __init__(self, children: list[Child], manifest: Path | None = None) -> None:
         self.children = children
         self.stopping = False
+        self.manifest = manifest
+
+    def write_manifest(self, all_children: list[Child] | None = None) -> None:
+        """``processes.json`` in the run folder: name, pid, restarts of every process (atomic)."""
+        if self.manifest is None:
+            return
+        rows = [{"name": c.name, "pid": c.pid, "restarts": c.restarts, "argv": c.argv} for c in (all_children or self.children)]
+        tmp = self.manifest.with_suffix(".tmp")
+        tmp.write_text(json.dumps(rows, indent=1))
+        os.replace(tmp, self.manifest)
 
     def start(self) -> None:
         for child in self.children:
@@ -91,6 +102,7 @@ class Supervisor:
                 child.start()
                 child.restarts += 1
                 events.append(f"{child.name} restarted (pid {child.pid}, restart {child.restarts})")
+                self.write_manifest()
         for e in events:
             log.warning(e)
         return events
@@ -181,7 +193,7 @@ def run_cell(
     stop = stop or threading.Event()
     epoch_ns = time.time_ns() + 3_000_000_000  # scenario time 0, once every process is up
     children = plan(cfg, run_dir, record, max_image_hz, epoch_ns)
-    sup = Supervisor(children)
+    sup = Supervisor(children, run_dir / "processes.json")
     router = children[0] if children and children[0].name == "router" else None
     try:
         if router is not None:
@@ -190,6 +202,7 @@ def run_cell(
         sup.children = [c for c in children if c is not router]
         sup.start()
         sup.children = children
+        sup.write_manifest()
         end = None if duration_s is None else time.time_ns() / 1e9 + duration_s + 3.0
         while not stop.is_set() and (end is None or time.time_ns() / 1e9 < end):
             sup.poll()

@@ -35,7 +35,7 @@ class EstimatorConfig(BaseModel):
     refresh_s: float = Field(default=1.0, gt=0, description="how often a fused pair factor is replaced")
     max_fused: int = Field(default=30, ge=1, description="cap on how many observations a fused factor counts")
     update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon")
-    stale_after_s: float = Field(default=1.0, gt=0, description="a camera with no frames this long is stale")
+    stale_after_s: float = Field(default=0.7, gt=0, description="a camera with no frames this long is stale")
     bump_position_m: float = Field(default=0.01, gt=0, description="marker shift in the camera frame that signals a move")
     bump_frames: int = Field(default=2, ge=1, description="consecutive frames above the threshold before a camera counts as moved")
     settle_frames: int = Field(default=5, ge=1, description="consecutive still frames before a moved camera gets a new segment")
