@@ -538,6 +538,43 @@ def replay_cmd(
         _stderr().print(f"[yellow]warning:[/] the log ended early: {result.read.stopped_early}")
 
 
+@app.command("resolve")
+def resolve_cmd(
+    log_file: Annotated[Path, typer.Argument(help="MCAP log (cellsight record / demo / replay)")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="output folder (default: LOG's name + _resolved)")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="cell config with the anchors (default: the one embedded in the log)")] = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Re-solve a log in batch: resolved.mcap, TUM trajectories, report.html with figures."""
+    from rich.progress import BarColumn, DownloadColumn, Progress, TimeRemainingColumn
+
+    from cellsight.resolve_cmd import peek_config, run_resolve
+
+    _setup_logging(verbose)
+    if not log_file.is_file():
+        raise _fail(f"{log_file}: no such log file", 2)
+    cfg = _load(config) if config is not None else peek_config(log_file)
+    if cfg is None:
+        raise _fail(f"{log_file} has no embedded cell config (not written by cellsight record?): give --config with the anchors", 2)
+    if not cfg.estimator.anchors:
+        from cellsight.scenario_config import complete
+
+        cfg = complete(cfg)
+    out = out or log_file.with_name(log_file.stem + "_resolved")
+    with Progress("[progress.description]{task.description}", BarColumn(), DownloadColumn(), TimeRemainingColumn(), console=_stderr()) as bar:
+        task = bar.add_task("reading and solving", total=log_file.stat().st_size)
+        run = run_resolve(log_file, out, cfg, lambda done, total: bar.update(task, completed=done))
+    r = run.result
+    typer.echo(f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers")
+    for cam, v in run.figures["cameras"].items():
+        off = v["offline_vs_truth_mm_deg"]
+        on = v["online_vs_truth_mm_deg"]
+        if off is not None:
+            typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else ""))
+    if run.read.stopped_early:
+        _stderr().print(f"[yellow]warning:[/] the log ended early ({run.read.stopped_early}); resolved from the {run.read.messages} messages before it")
+
+
 def main() -> None:
     app()
 

@@ -61,6 +61,20 @@ def matrix_from_quat(q: Iterable[float]) -> np.ndarray:
     )
 
 
+def matrices_from_quats(q: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of (N, 4) quaternions (x, y, z, w), normalised first."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+
+
 def make_pose(R: np.ndarray | None = None, t: Iterable[float] | None = None) -> np.ndarray:
     """4x4 pose from a 3x3 rotation (default identity) and a translation in metres (default 0)."""
     T = np.eye(4)
@@ -316,6 +330,72 @@ def poses_from_msg(msg: m.PosesWithCovariance) -> dict[str, StampedPose]:
 # ---------------------------------------------------------------- untrusted payloads
 
 
+@dataclass(frozen=True)
+class MarkerArrays:
+    """The observations of one ``MarkerObservations`` as arrays: ids (N,), camera_T_marker
+    (N, 4, 4), the other IPPE candidate (N, 4, 4; equal to the chosen one when absent),
+    covariances (N, 6, 6) in ROS order."""
+
+    ids: np.ndarray
+    poses: np.ndarray
+    alternatives: np.ndarray
+    covariances: np.ndarray
+
+
+def _pose_rows(poses) -> np.ndarray:
+    return np.array([[p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw] for p in poses], dtype=np.float64).reshape(-1, 7)
+
+
+def _poses_from_rows(rows: np.ndarray) -> np.ndarray:
+    T = np.zeros((len(rows), 4, 4))
+    T[:, :3, :3] = matrices_from_quats(rows[:, 3:])
+    T[:, :3, 3] = rows[:, :3]
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def marker_arrays(msg: m.MarkerObservations) -> MarkerArrays:
+    """Validate every observation of a message at once (batched numpy) and return it as arrays.
+
+    Raises ``DecodeError`` naming the first bad marker: wrong corner count, non-positive side,
+    non-finite or non-unit quaternion, covariance not 36 values / not symmetric / not positive
+    definite.
+    """
+    obs = msg.markers
+    for o in obs:  # cheap scalar checks first
+        if len(o.corners_px) != 8:
+            raise DecodeError(f"marker {o.marker_id}: {len(o.corners_px)} corner values, expected 8")
+        if not (o.side_m > 0 and math.isfinite(o.side_m)):
+            raise DecodeError(f"marker {o.marker_id}: side length {o.side_m} must be positive")
+        if len(o.covariance) != 36:
+            raise DecodeError(f"marker {o.marker_id} covariance: expected 36 values, got {len(o.covariance)}")
+    ids = np.array([o.marker_id for o in obs], dtype=np.int64)
+    rows = _pose_rows(o.camera_T_marker for o in obs)
+    alt_rows = _pose_rows((o.candidate_b if o.HasField("candidate_b") else o.camera_T_marker) for o in obs)
+    cov = np.array([list(o.covariance) for o in obs], dtype=np.float64).reshape(-1, 6, 6)
+    for name, r in (("camera_T_marker", rows), ("candidate_b", alt_rows)):
+        bad = ~np.all(np.isfinite(r), axis=1)
+        norms = np.linalg.norm(r[:, 3:], axis=1)
+        bad_norm = np.abs(norms - 1.0) > 1e-3
+        if bad.any():
+            raise DecodeError(f"marker {ids[bad.argmax()]} {name}: contains NaN or inf")
+        if bad_norm.any():
+            i = bad_norm.argmax()
+            raise DecodeError(f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")
+    if len(cov):
+        if not np.all(np.isfinite(cov)):
+            raise DecodeError(f"marker {ids[(~np.isfinite(cov)).any(axis=(1, 2)).argmax()]} covariance: contains NaN or inf")
+        asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-6 * np.abs(cov).max(axis=(1, 2)) + 1e-12
+        if asym.any():
+            raise DecodeError(f"marker {ids[asym.argmax()]} covariance: not symmetric")
+        try:
+            np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            i = int(np.argmin(np.linalg.eigvalsh(cov).min(axis=1)))
+            raise DecodeError(f"marker {ids[i]} covariance: not positive definite") from None
+    return MarkerArrays(ids, _poses_from_rows(rows), _poses_from_rows(alt_rows), cov)
+
+
 def _has_unknown_fields(msg: Message) -> bool:
     """True if ``msg`` or any sub-message carries fields our schema does not define."""
     if len(unknown_fields.UnknownFieldSet(msg)):
@@ -350,13 +430,7 @@ def _validate(msg: Message) -> None:
         CameraInfo.from_msg(msg)
     elif isinstance(msg, m.MarkerObservations):
         _check_id(msg.camera_id, "marker observations camera_id")
-        for obs in msg.markers:
-            if len(obs.corners_px) != 8:
-                raise DecodeError(f"marker {obs.marker_id}: {len(obs.corners_px)} corner values, expected 8")
-            if not (obs.side_m > 0 and math.isfinite(obs.side_m)):
-                raise DecodeError(f"marker {obs.marker_id}: side length {obs.side_m} must be positive")
-            pose_from_msg(obs.camera_T_marker, f"marker {obs.marker_id} camera_T_marker")
-            check_covariance(np.array(obs.covariance), f"marker {obs.marker_id} covariance")
+        marker_arrays(msg)
     elif isinstance(msg, m.PosesWithCovariance):
         poses_from_msg(msg)
     elif isinstance(msg, m.FrameTransforms):

@@ -11,11 +11,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from google.protobuf.message import Message
 from mcap.exceptions import McapError
-from mcap.records import Channel, Footer, Message as McapMessage, Schema
+from mcap.records import Channel, Footer, Message as McapMessage, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
@@ -118,11 +118,17 @@ class ReadReport:
 
     messages: int = 0
     undecodable: int = 0
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # MCAP metadata records by name
     unknown_keys: set[str] = field(default_factory=set)
     stopped_early: str | None = None
 
 
-def read_log(path: Path, key_filter: set[str] | None = None, report: ReadReport | None = None) -> Iterator[LogMessage]:
+def read_log(
+    path: Path,
+    key_filter: set[str] | None = None,
+    report: ReadReport | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Iterator[LogMessage]:
     """Stream a log in file order, decoding and validating each message.
 
     A truncated or damaged file yields everything before the damage; ``report.stopped_early``
@@ -130,11 +136,17 @@ def read_log(path: Path, key_filter: set[str] | None = None, report: ReadReport 
     """
     report = report if report is not None else ReadReport()
     channels: dict[int, Channel] = {}
+    total = Path(path).stat().st_size
     with open(path, "rb") as f:
         try:
             for record in StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True).records:
                 if isinstance(record, Footer):
                     return  # a complete file: the summary section holds nothing we need
+                if progress is not None:
+                    progress(f.tell(), total)
+                if isinstance(record, Metadata):
+                    report.metadata[record.name] = dict(record.metadata)
+                    continue
                 if isinstance(record, Schema):
                     continue
                 if isinstance(record, Channel):
@@ -154,6 +166,6 @@ def read_log(path: Path, key_filter: set[str] | None = None, report: ReadReport 
                         continue
                     report.messages += 1
                     yield LogMessage(ch.topic, msg, record.log_time, record.publish_time)
-        except (McapError, EOFError, ValueError, OSError) as exc:
+        except (McapError, EOFError, ValueError, OSError, RuntimeError) as exc:  # RuntimeError: lz4 on a damaged chunk
             report.stopped_early = f"{type(exc).__name__}: {exc}"
             log.warning("%s: stopped reading after %d messages: %s", path, report.messages, report.stopped_early)

@@ -1,0 +1,84 @@
+"""Offline re-solve throughput: a synthetic log of 4 cameras at 30 Hz, end to end incl. MCAP decoding.
+
+The log (default one hour, about 2.5 million marker observations; ``--quick``: one minute) is
+written first from the demo cell's geometry with noise pre-drawn from the front-end's model and
+cycled; only ``run_resolve`` (read, decode, validate, fuse, batch solve, write outputs) is timed.
+Peak resident memory shows whether the log is streamed (it must not grow with the log's length).
+"""
+
+from __future__ import annotations
+
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import main
+from benchmarks.scenes import NoiseSettings, frame_observations
+from cellsight.config import CellConfig
+from cellsight.resolve_cmd import run_resolve
+from cellsight.scenario_config import cell_config_of
+from drivers.sim.scenario import load_scenario
+from schemas import codec, keys
+from schemas import messages as m
+from schemas.log import LogWriter
+
+POOL = 32
+
+
+def obs_msg(cam: str, stamp: int, obs) -> bytes:
+    msg = m.MarkerObservations(camera_id=cam, stamp_ns=stamp, image_width=640, image_height=480)
+    for o in obs:
+        item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=0.25, depth_refined=True)
+        item.corners_px.extend([0.0] * 8)
+        codec.pose_to_msg(o.camera_T_marker, item.camera_T_marker)
+        codec.pose_to_msg(o.alternative, item.candidate_b)
+        item.covariance.extend(codec.covariance_to_list(o.covariance))
+    return msg
+
+
+def write_log(path: Path, seconds: float) -> tuple[CellConfig, int]:
+    s = load_scenario()
+    for c in s.cameras:
+        c.motion = []
+    cfg = cell_config_of(s)
+    rng = np.random.default_rng(0)
+    pools = {c.id: [frame_observations(s, c.id, 0.0, 0, rng, NoiseSettings(flip_rate=0.02)) for _ in range(POOL)] for c in s.cameras}
+    w = LogWriter(path, metadata={"config": cfg.to_toml()})
+    n = 0
+    for k in range(int(seconds * 30)):
+        stamp = 1_700_000_000_000_000_000 + k * 1_000_000_000 // 30
+        for cam, pool in pools.items():
+            obs = pool[k % POOL]
+            msg = obs_msg(cam, stamp, obs)
+            w.write_raw(keys.markers(cfg.cell.name, cam), m.MarkerObservations, msg.SerializeToString(), stamp, stamp)
+            n += len(obs)
+    w.close()
+    return cfg, n
+
+
+def run(quick: bool) -> dict[str, float]:
+    seconds = 60.0 if quick else 3600.0
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "hour.mcap"
+        cfg, n = write_log(log, seconds)
+        size_mb = log.stat().st_size / 1e6
+        rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        t0 = time.perf_counter()
+        result = run_resolve(log, Path(tmp) / "out", cfg).result
+        wall = time.perf_counter() - t0
+    return {
+        "log_seconds": seconds,
+        "log_mb": size_mb,
+        "observations": float(result.observations),
+        "observations_per_s": result.observations / wall,
+        "resolve_s": wall,
+        "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_peak_before_resolve_mb": rss_before,
+    }
+
+
+if __name__ == "__main__":
+    main("resolve", __doc__.splitlines()[0], run)

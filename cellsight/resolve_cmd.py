@@ -1,0 +1,275 @@
+"""``cellsight resolve``: re-solve a recorded log in batch and write what people and tools read.
+
+    DIR/resolved.mcap         solved poses and covariances on the daemon's keys, plus tf
+    DIR/trajectories/*.tum    per-camera poses at every frame of a static segment (for evo)
+    DIR/report.html + *.png   top view, residuals, outliers per marker, online vs offline, truth
+    DIR/resolve.json          the figures behind the report
+    DIR/config.toml           the configuration used
+
+Ground truth (``truth/`` keys, present in simulator logs) is read here only to evaluate; the
+solve itself never sees it.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from cellsight.config import CellConfig, parse_config, save_used
+from cellsight.report import Timeline, _ellipse, pose_error
+from estimator.resolve import ResolveResult, resolve
+from estimator.service import observations_from_msg
+from schemas import codec, keys
+from schemas.codec import DecodeError, StampedPose
+from schemas.log import LogWriter, ReadReport, read_log
+
+TRUTH_MIN_GAP_NS = 100_000_000  # keep ground truth and online estimates at <= 10 Hz per camera
+
+
+@dataclass
+class Side:
+    """What the single pass over the log keeps besides the observations (bounded: <= 10 Hz)."""
+
+    online: Timeline = field(default_factory=Timeline.empty)
+    truth_cameras: Timeline = field(default_factory=Timeline.empty)
+    truth_markers: dict[str, StampedPose] = field(default_factory=dict)
+    cell: str | None = None
+    skipped_frames: int = 0
+
+    def keep(self, tl: Timeline, msg) -> None:
+        for child, p in codec.poses_from_msg(msg).items():
+            last = tl.stamps.get(child)
+            if not last or p.stamp_ns - last[-1] >= TRUTH_MIN_GAP_NS:
+                tl.stamps[child].append(p.stamp_ns)
+                tl.poses[child].append(p)
+
+
+def frames_from_log(path: Path, side: Side, report: ReadReport, progress: Callable[[int, int], None] | None) -> Iterator:
+    for lm in read_log(path, None, report, progress):
+        parsed = keys.parse(lm.key)
+        side.cell = side.cell or parsed.cell
+        if parsed.topic == "markers":
+            try:
+                yield lm.msg.camera_id, lm.msg.stamp_ns, observations_from_msg(lm.msg)
+            except DecodeError:
+                side.skipped_frames += 1
+        elif parsed.topic == "estimate/cameras":
+            side.keep(side.online, lm.msg)
+        elif parsed.topic == "truth/cameras":
+            side.keep(side.truth_cameras, lm.msg)
+        elif parsed.topic == "truth/markers":
+            side.truth_markers.update(codec.poses_from_msg(lm.msg))
+
+
+def config_of_log(report: ReadReport) -> CellConfig | None:
+    """The cell config the recorder embedded in the log, if any."""
+    import tomllib
+
+    text = report.metadata.get("cellsight", {}).get("config")
+    return None if text is None else parse_config(tomllib.loads(text), "config embedded in the log")
+
+
+def peek_config(path: Path) -> CellConfig | None:
+    """Read only up to the log's metadata record (the recorder writes it first)."""
+    report = ReadReport()
+    for _ in read_log(path, set(), report):
+        if report.metadata:
+            break
+    if "cellsight" not in report.metadata:
+        for _ in read_log(path, set(), report):  # metadata written later: one cheap pass (nothing decoded)
+            pass
+    return config_of_log(report)
+
+
+@dataclass
+class ResolveRun:
+    result: ResolveResult
+    read: ReadReport
+    side: Side
+    out: Path
+    figures: dict
+
+
+def run_resolve(log_path: Path, out: Path, cfg: CellConfig, progress: Callable[[int, int], None] | None = None) -> ResolveRun:
+    out.mkdir(parents=True, exist_ok=True)
+    save_used(cfg, out)
+    side, report = Side(), ReadReport()
+    result = resolve(frames_from_log(log_path, side, report, progress), cfg.estimator)
+    figures = write_outputs(result, side, report, out, side.cell or cfg.cell.name)
+    return ResolveRun(result, report, side, out, figures)
+
+
+def segment_at(result: ResolveResult, cam: str, stamp: int):
+    """The solved segment of ``cam`` that covers ``stamp`` (None if it was moving or unanchored)."""
+    best = None
+    for s in result.segments:
+        if s.camera_id == cam and s.frames and s.first_stamp_ns <= stamp <= s.last_stamp_ns:
+            best = s
+    return best
+
+
+def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Path, cell: str) -> dict:
+    end = max((s.last_stamp_ns for s in result.segments), default=0)
+    # resolved.mcap: each segment's pose at its first and last frame, markers and tf at the end.
+    w = LogWriter(out / "resolved.mcap", metadata={"source": "cellsight resolve"})
+    for s in result.segments:
+        for stamp in sorted({s.first_stamp_ns, s.last_stamp_ns}):
+            w.write(keys.estimate_cameras(cell), codec.poses_to_msg(stamp, [StampedPose("world", s.camera_id, stamp, s.world_T_camera, s.covariance)]), stamp)
+    markers = [StampedPose("world", f"marker_{k}", end, T, C) for k, (T, C) in result.markers.items()]
+    w.write(keys.estimate_markers(cell), codec.poses_to_msg(end, markers), end)
+    latest = {}
+    for s in result.segments:
+        latest[s.camera_id] = s
+    w.write(keys.tf(cell), codec.transforms_to_msg(end, [("world", c, s.world_T_camera) for c, s in latest.items()] + [("world", p.child, p.T) for p in markers]), end)
+    w.close()
+    # TUM trajectories: "t tx ty tz qx qy qz qw" per frame of a solved static segment.
+    tdir = out / "trajectories"
+    tdir.mkdir(exist_ok=True)
+    by_seg = {(s.camera_id, s.segment): s for s in result.segments}
+    for cam, rows in result.frame_stamps.items():
+        lines = []
+        for stamp, seg in rows:
+            s = by_seg.get((cam, seg))
+            if s is None:
+                continue
+            q = codec.quat_from_matrix(s.world_T_camera[:3, :3])
+            t = s.world_T_camera[:3, 3]
+            lines.append(f"{stamp / 1e9:.9f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}")
+        (tdir / f"{cam}.tum").write_text("\n".join(lines) + ("\n" if lines else ""))
+    figures = evaluate(result, side)
+    figures.update({
+        "observations": result.observations, "frames": result.frames, "messages_read": report.messages,
+        "log_complete": report.stopped_early is None, "stopped_early": report.stopped_early,
+        "unanchored": result.unanchored, "flagged_anchors": result.flagged_anchors, "lm_iterations": result.iterations,
+    })  # fmt: skip
+    (out / "resolve.json").write_text(json.dumps(figures, indent=2, default=float))
+    plots(result, side, out)
+    (out / "report.html").write_text(html_report(result, figures))
+    return figures
+
+
+def evaluate(result: ResolveResult, side: Side) -> dict:
+    """Offline vs online vs truth, per camera: median position / rotation errors."""
+    cams: dict[str, dict] = {}
+    for cam in sorted({s.camera_id for s in result.segments}):
+        off_truth, on_truth, on_off = [], [], []
+        for p in side.online.poses.get(cam, []):
+            seg = segment_at(result, cam, p.stamp_ns)
+            if seg is not None:
+                on_off.append(pose_error(p.T, seg.world_T_camera))
+            t = side.truth_cameras.at(cam, p.stamp_ns)
+            if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
+                on_truth.append(pose_error(p.T, t.T))
+        for t in side.truth_cameras.poses.get(cam, []):
+            seg = segment_at(result, cam, t.stamp_ns)
+            if seg is not None:
+                off_truth.append(pose_error(seg.world_T_camera, t.T))
+        med = lambda rows: [float(np.median([r[0] for r in rows])), float(np.median([r[1] for r in rows]))] if rows else None  # noqa: E731
+        cams[cam] = {"offline_vs_truth_mm_deg": med(off_truth), "online_vs_truth_mm_deg": med(on_truth), "online_vs_offline_mm_deg": med(on_off)}
+    marker_err = []
+    for k, (T, _) in result.markers.items():
+        t = side.truth_markers.get(f"marker_{k}")
+        if t is not None:
+            marker_err.append(pose_error(T, t.T)[0])
+    return {"cameras": cams, "marker_position_error_mm_p50": float(np.median(marker_err)) if marker_err else None}
+
+
+def plots(result: ResolveResult, side: Side, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    fig, ax = plt.subplots(figsize=(7, 7))
+    for child, p in side.truth_markers.items():
+        ax.plot(p.T[0, 3], p.T[1, 3], "s", ms=6, mfc="none", mec="0.6")
+    for k, (T, C) in result.markers.items():
+        ax.plot(T[0, 3], T[1, 3], "s", ms=3, color="tab:blue")
+        _ellipse(ax, T, C, "tab:blue", Ellipse)
+    for s in result.segments:
+        ax.plot(s.world_T_camera[0, 3], s.world_T_camera[1, 3], "^", ms=7, color="tab:red")
+        _ellipse(ax, s.world_T_camera, s.covariance, "tab:red", Ellipse)
+        ax.annotate(f"{s.camera_id}.{s.segment}", s.world_T_camera[:2, 3], textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.set_aspect("equal")
+    ax.grid(alpha=0.3)
+    ax.set_title("Resolved cameras (segment) and markers, 2-sigma ellipses x10")
+    fig.tight_layout()
+    fig.savefig(out / "top_view.png", dpi=110)
+    plt.close(fig)
+
+    cams = sorted({r.camera_id for r in result.residuals})
+    fig, axes = plt.subplots(1, max(len(cams), 1), figsize=(3 * max(len(cams), 1), 3), squeeze=False)
+    for ax, cam in zip(axes[0], cams):
+        ax.hist([r.whitened_error for r in result.residuals if r.camera_id == cam], bins=15, color="tab:blue")
+        ax.set_title(cam)
+        ax.set_xlabel("whitened residual per pair")
+    fig.tight_layout()
+    fig.savefig(out / "residuals.png", dpi=100)
+    plt.close(fig)
+
+    rejected: dict[int, int] = {}
+    for r in result.residuals:
+        rejected[r.marker_id] = rejected.get(r.marker_id, 0) + r.rejected
+    fig, ax = plt.subplots(figsize=(8, 3))
+    ids = sorted(rejected)
+    ax.bar([str(i) for i in ids], [rejected[i] for i in ids], color="tab:orange")
+    ax.set_xlabel("marker id")
+    ax.set_ylabel("observations rejected")
+    ax.set_title("Outliers rejected per marker")
+    fig.tight_layout()
+    fig.savefig(out / "outliers.png", dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    t0 = min((s[0] for s in side.online.stamps.values() if s), default=0)
+    for cam, poses in sorted(side.online.poses.items()):
+        rows = [((p.stamp_ns - t0) / 1e9, pose_error(p.T, seg.world_T_camera)[0]) for p in poses if (seg := segment_at(result, cam, p.stamp_ns)) is not None]
+        if rows:
+            ax.plot(*zip(*rows), ".-", ms=2, lw=0.8, label=cam)
+    ax.set_yscale("log")
+    ax.set_xlabel("log time (s)")
+    ax.set_ylabel("online - offline position (mm)")
+    ax.set_title("How far the online estimate was from the offline solution")
+    ax.grid(alpha=0.3, which="both")
+    if side.online.poses:
+        ax.legend(fontsize=8, ncol=4)
+    fig.tight_layout()
+    fig.savefig(out / "online_vs_offline.png", dpi=100)
+    plt.close(fig)
+
+
+def html_report(result: ResolveResult, fig: dict) -> str:
+    def fmt(v) -> str:
+        return "-" if v is None else f"{v[0]:.2f} mm / {v[1]:.3f} deg"
+
+    rows = "".join(
+        f"<tr><td>{html.escape(c)}</td><td>{fmt(v['offline_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_offline_mm_deg'])}</td></tr>"
+        for c, v in fig["cameras"].items()
+    )
+    segs = "".join(
+        f"<tr><td>{html.escape(s.camera_id)}</td><td>{s.segment}</td><td>{s.frames}</td><td>{' '.join(f'{v:+.4f}' for v in s.world_T_camera[:3, 3])}</td>"
+        f"<td>{1000 * math.sqrt(max(np.linalg.eigvalsh(s.covariance[:3, :3]).max(), 0)):.2f}</td></tr>"
+        for s in result.segments
+    )
+    warn = "" if fig["log_complete"] else f"<p class=warn>The log was not complete ({html.escape(str(fig['stopped_early']))}); this covers what was readable.</p>"
+    return f"""<!doctype html><html><head><meta charset=utf-8><title>cellsight resolve</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
+<h1>Offline re-solve</h1>{warn}
+<p>{fig['frames']} frames, {fig['observations']} marker observations, {len(result.segments)} camera segments, {len(result.markers)} markers;
+Levenberg-Marquardt {fig['lm_iterations']} iterations. Unanchored cameras: {', '.join(fig['unanchored']) or 'none'}.
+Anchors flagged as moved: {', '.join(map(str, fig['flagged_anchors'])) or 'none'}.</p>
+<h2>Cameras (median errors; truth only in simulator logs)</h2>
+<table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>online vs offline</th></tr>{rows}</table>
+<h2>Segments</h2><table><tr><th>camera</th><th>segment</th><th>frames</th><th>position (m)</th><th>sigma (mm)</th></tr>{segs}</table>
+<h2>Top view</h2><img src="top_view.png">
+<h2>Residuals</h2><img src="residuals.png">
+<h2>Outliers</h2><img src="outliers.png">
+<h2>Online vs offline</h2><img src="online_vs_offline.png">
+</body></html>"""

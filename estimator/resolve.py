@@ -1,0 +1,126 @@
+"""Offline batch re-solve of a stream of marker observations (pure: observations in, result out).
+
+The stream goes through the same ``Estimator`` as the daemon, which builds the camera segments,
+resolves planar-PnP flips per pair and detects moved cameras. Its fused pair factors are the
+sufficient statistics of the log, so memory stays bounded however long the log is. At the end,
+Levenberg-Marquardt (robust Huber factors, from the incremental solution) solves the whole
+problem to convergence, and gtsam's ``Marginals`` give every pose's covariance. Per pair the
+whitened residual is kept for the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import gtsam
+import numpy as np
+
+from estimator.config import EstimatorConfig
+from estimator.graph import Estimator, camera_symbol, marker_symbol
+from estimator.observation import Observation
+from schemas.codec import cov_gtsam_to_ros, cov_ros_to_gtsam
+
+log = logging.getLogger(__name__)
+UPDATE_EVERY_NS = 200_000_000  # incremental updates while streaming (segments need a map to test against)
+
+
+@dataclass(frozen=True)
+class SegmentResult:
+    camera_id: str
+    segment: int
+    world_T_camera: np.ndarray
+    covariance: np.ndarray  # 6x6, ROS order, body frame
+    first_stamp_ns: int
+    last_stamp_ns: int
+    frames: int
+
+
+@dataclass(frozen=True)
+class PairResidual:
+    camera_id: str
+    segment: int
+    marker_id: int
+    observations: int
+    rejected: int  # observations the pair rejected as outliers
+    whitened_error: float  # sqrt(2 x factor error) at the solution: ~1 when consistent
+
+
+@dataclass
+class ResolveResult:
+    segments: list[SegmentResult]
+    markers: dict[int, tuple[np.ndarray, np.ndarray]]  # id -> (world_T_marker, ROS covariance)
+    residuals: list[PairResidual]
+    unanchored: list[str]  # cameras with no path to an anchor in the whole log
+    observations: int
+    frames: int
+    flagged_anchors: list[int]
+    final_error: float
+    iterations: int
+    frame_stamps: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # camera -> (stamp, segment)
+
+
+def resolve(
+    frames: Iterable[tuple[str, int, list[Observation]]],
+    config: EstimatorConfig,
+    progress: Callable[[int], None] | None = None,
+) -> ResolveResult:
+    """Batch-solve a stream of (camera id, stamp_ns, observations) frames, in capture order per camera."""
+    est = Estimator(config)
+    last_update = None
+    n_frames = n_obs = 0
+    stamps: dict[str, list[tuple[int, int]]] = {}
+    seg_span: dict[tuple[str, int], list[int]] = {}
+    for cam, stamp, obs in frames:
+        est.add_frame(cam, stamp, obs)
+        track = est.tracks[cam]
+        if not track.moving and track.suspect == 0 and track.last_stamp_ns == stamp:
+            stamps.setdefault(cam, []).append((stamp, track.segment))
+            span = seg_span.setdefault((cam, track.segment), [stamp, stamp, 0])
+            span[1], span[2] = stamp, span[2] + 1
+        n_frames += 1
+        n_obs += len(obs)
+        if last_update is None or stamp - last_update >= UPDATE_EVERY_NS:
+            est.update(stamp)
+            last_update = stamp
+            if progress is not None:
+                progress(n_obs)
+    if last_update is not None:
+        est.update(last_update + int(config.refresh_s * 1e9) + 1)  # every pair's final mean in the graph
+    graph = est.factor_graph()
+    if graph.size() == 0 or est.values.size() == 0:
+        return ResolveResult([], {}, [], sorted(est.tracks), n_obs, n_frames, [], 0.0, 0, stamps)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(200)
+    params.setRelativeErrorTol(1e-9)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, est.values, params)
+    values = optimizer.optimize()
+    marginals = gtsam.Marginals(graph, values)
+    segments = []
+    for (cam, seg), index in sorted(est.camera_index.items()):
+        key = camera_symbol(index)
+        if not values.exists(key):
+            continue
+        first, last, count = seg_span.get((cam, seg), [0, 0, 0])
+        segments.append(SegmentResult(cam, seg, values.atPose3(key).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(key)), first, last, count))
+    markers = {}
+    for mk in sorted({m for (_, m) in est.pairs} | set(est.anchors)):
+        key = marker_symbol(mk)
+        if values.exists(key):
+            markers[mk] = (values.atPose3(key).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(key)))
+    residuals = []
+    for ((cam, seg), mk), pair in sorted(est.pairs.items()):
+        ck, mkey = camera_symbol(est.camera_index[(cam, seg)]), marker_symbol(mk)
+        if not (values.exists(ck) and values.exists(mkey)) or pair.n == 0:
+            continue
+        cov = cov_ros_to_gtsam(pair.mean_covariance()) / min(pair.n, config.max_fused)
+        factor = gtsam.BetweenFactorPose3(ck, mkey, gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov))
+        residuals.append(PairResidual(cam, seg, mk, pair.n, pair.rejected, math.sqrt(2.0 * factor.error(values))))
+    placed = {cam for (cam, _), i in est.camera_index.items() if values.exists(camera_symbol(i))}
+    flagged = est.estimate(last_update or 0, with_covariance=False).flagged_anchors
+    return ResolveResult(
+        segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
+        float(graph.error(values)), int(optimizer.iterations()), stamps,
+    )  # fmt: skip

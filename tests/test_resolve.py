@@ -1,0 +1,107 @@
+"""Offline re-solve of MCAP logs: a synthetic log with known answers, and a truncated one."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.scenes import NoiseSettings, frame_observations
+from cellsight.config import CellConfig
+from cellsight.resolve_cmd import peek_config, run_resolve
+from cellsight.scenario_config import cell_config_of
+from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
+from schemas import codec, keys
+from schemas.log import LogWriter
+from schemas.spec import PoseSpec
+from tests.helpers import assert_pose_close
+from tests.test_estimator_service import to_msg
+
+CELL = "res"
+
+
+def scene() -> Scenario:
+    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    return Scenario(
+        markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")],
+        cameras=[
+            CameraSpec(id="a", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.3, 2.0, 1.0))),
+            CameraSpec(id="b", pose=PoseSpec(position=(0.6, 0.0, 1.2), look_at=(0.3, 2.0, 1.0))),
+        ],
+    )
+
+
+def write_log(path: Path, s: Scenario, seconds: float, flip_rate: float = 0.05) -> CellConfig:
+    cfg = cell_config_of(s, base=CellConfig.model_validate({"cell": {"name": CELL}}))
+    w = LogWriter(path, chunk_size=64 * 1024, metadata={"config": cfg.to_toml()})
+    rng = np.random.default_rng(1)
+    t0 = 1_700_000_000_000_000_000
+    for k in range(int(seconds * 30)):
+        stamp = t0 + int(k * 1e9 / 30)
+        for cam in s.cameras:
+            obs = frame_observations(s, cam.id, 0.0, stamp, rng, NoiseSettings(flip_rate=flip_rate))
+            w.write(keys.markers(CELL, cam.id), to_msg(cam.id, stamp, obs), stamp)
+            if k % 3 == 0:
+                truth = [codec.StampedPose("world", cam.id, stamp, cam.world_T_camera(0.0))]
+                w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, truth), stamp)
+    w.close()
+    return cfg
+
+
+def test_resolve_recovers_the_cameras_and_writes_the_report(tmp_path: Path) -> None:
+    s = scene()
+    log = tmp_path / "log.mcap"
+    write_log(log, s, 5.0)
+    cfg = peek_config(log)
+    assert cfg is not None and len(cfg.estimator.anchors) == 2  # the anchors come from the log itself
+    run = run_resolve(log, tmp_path / "out", cfg)
+    segs = {seg.camera_id: seg for seg in run.result.segments}
+    assert set(segs) == {"a", "b"} and run.result.unanchored == []
+    for cid, seg in segs.items():
+        assert_pose_close(seg.world_T_camera, s.camera(cid).world_T_camera(0.0), 0.005, 0.1, cid)
+    for name in ("resolved.mcap", "report.html", "top_view.png", "residuals.png", "outliers.png", "online_vs_offline.png", "resolve.json", "config.toml"):
+        assert (tmp_path / "out" / name).stat().st_size > 0, name
+    tum = (tmp_path / "out" / "trajectories" / "a.tum").read_text().splitlines()
+    assert len(tum) >= 140 and len(tum[0].split()) == 8  # t x y z qx qy qz qw, one per frame
+    figures = json.loads((tmp_path / "out" / "resolve.json").read_text())
+    assert figures["cameras"]["a"]["offline_vs_truth_mm_deg"][0] < 5.0
+
+
+def test_truncated_log_is_resolved_from_what_is_readable(tmp_path: Path) -> None:
+    s = scene()
+    log = tmp_path / "log.mcap"
+    write_log(log, s, 5.0)
+    data = log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])  # mid-chunk, no summary, no footer
+    cfg = peek_config(cut)
+    run = run_resolve(cut, tmp_path / "out", cfg)
+    assert run.read.stopped_early is not None
+    assert 0 < run.result.frames < 2 * 150
+    assert not json.loads((tmp_path / "out" / "resolve.json").read_text())["log_complete"]
+    for seg in run.result.segments:
+        assert_pose_close(seg.world_T_camera, s.camera(seg.camera_id).world_T_camera(0.0), 0.01, 0.2, seg.camera_id)
+
+
+def test_corrupt_chunk_stops_reading_with_a_warning(tmp_path: Path) -> None:
+    s = scene()
+    log = tmp_path / "log.mcap"
+    write_log(log, s, 3.0)
+    data = bytearray(log.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 200] = bytes(200)  # garbage in a chunk: its CRC no longer matches
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    run = run_resolve(bad, tmp_path / "out", peek_config(bad))
+    assert run.read.stopped_early is not None and run.result.frames > 0
+
+
+def test_log_without_config_is_refused_with_a_clear_error(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    log = tmp_path / "plain.mcap"
+    LogWriter(log).close()
+    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(log)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "--config" in out.stderr
