@@ -575,6 +575,41 @@ def resolve_cmd(
         _stderr().print(f"[yellow]warning:[/] the log ended early ({run.read.stopped_early}); resolved from the {run.read.messages} messages before it")
 
 
+@app.command("compare")
+def compare_cmd(
+    a: Annotated[Path, typer.Argument(help="first solved log (resolved.mcap, or a recording with estimates)")],
+    b: Annotated[Path, typer.Argument(help="second solved log")],
+    min_mm: Annotated[float, typer.Option(help="smallest position change that counts as moved")] = 1.0,
+    min_deg: Annotated[float, typer.Option(help="smallest rotation change that counts as moved")] = 0.05,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
+) -> None:
+    """How much each camera and marker moved between two solved logs, with a verdict against its uncertainty."""
+    import json as json_
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from cellsight.compare import compare, newest_poses
+
+    for f in (a, b):
+        if not f.is_file():
+            raise _fail(f"{f}: no such log file", 2)
+    (pa, ra), (pb, rb) = newest_poses(a), newest_poses(b)
+    if not pa or not pb:
+        raise _fail(f"{a if not pa else b}: holds no estimate/cameras or estimate/markers (resolve it first)", 2)
+    changes = compare(pa, pb, min_mm, min_deg)
+    if as_json:
+        typer.echo(json_.dumps([c.__dict__ for c in changes]))
+        return
+    t = Table(title=f"{a} -> {b}")
+    for col in ("frame", "position (mm)", "rotation (deg)", "sigmas", "verdict"):
+        t.add_column(col, no_wrap=True)
+    for c in changes:
+        style = "bold red" if c.verdict == "moved" else ""
+        t.add_row(c.frame, f"{c.position_mm:.2f}", f"{c.rotation_deg:.3f}", "-" if c.sigmas is None else f"{c.sigmas:.1f}", f"[{style}]{c.verdict}[/]" if style else c.verdict)
+    Console(width=120).print(t)
+
+
 def main() -> None:
     app()
 

@@ -105,3 +105,19 @@ def test_log_without_config_is_refused_with_a_clear_error(tmp_path: Path) -> Non
     LogWriter(log).close()
     out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(log)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "--config" in out.stderr
+
+
+def test_compare_finds_the_camera_that_moved_between_two_days(tmp_path: Path) -> None:
+    from cellsight.compare import compare, newest_poses
+
+    day1, day2 = scene(), scene()
+    day2.cameras[1].pose = PoseSpec(position=(0.62, 0.0, 1.2), look_at=(0.3, 2.0, 1.0))  # b moved 2 cm
+    for name, s in (("day1", day1), ("day2", day2)):
+        write_log(tmp_path / f"{name}.mcap", s, 4.0)
+        run_resolve(tmp_path / f"{name}.mcap", tmp_path / name, peek_config(tmp_path / f"{name}.mcap"))
+    a, _ = newest_poses(tmp_path / "day1" / "resolved.mcap")
+    b, _ = newest_poses(tmp_path / "day2" / "resolved.mcap")
+    verdicts = {c.frame: c for c in compare(a, b)}
+    assert verdicts["b"].verdict == "moved" and 15 < verdicts["b"].position_mm < 25
+    assert verdicts["a"].verdict == "unchanged", verdicts["a"]
+    assert all(verdicts[f"marker_{i}"].verdict == "unchanged" for i in (0, 1, 2, 3)), verdicts
