@@ -218,6 +218,8 @@ def router(
         session.close()
 
 
+FoxgloveOpt = Annotated[bool, typer.Option("--foxglove", help="serve the live bus to the Foxglove app over WebSocket (loopback)")]
+FoxglovePortOpt = Annotated[int, typer.Option(help="WebSocket port of the Foxglove live view")]
 CellConfigOpt = Annotated[Optional[Path], typer.Option("--cell-config", help="cell config TOML (default: the simulated demo cell)")]
 ScenarioOpt = Annotated[Optional[Path], typer.Option("--scenario", help="simulated cell scenario TOML (default: built-in demo cell)")]
 driver_app = typer.Typer(help="Sensor driver processes.", no_args_is_help=True)
@@ -399,7 +401,7 @@ def record(
         raise _fail(f"recording stopped early: {rec.failed}", 1)
 
 
-def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_image_hz: float | None, live: bool) -> None:
+def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_image_hz: float | None, live: bool, foxglove_port: int | None = None) -> None:
     """Start the cell under the launcher with an optional live status table."""
     from rich.live import Live
 
@@ -410,16 +412,21 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
     from schemas.errors import SchemaError
 
     stop = _stop_event()
-    board_bus = board = live_view = None
+    board_bus = board = live_view = bridge = None
 
     def tick(sup) -> None:
-        nonlocal board_bus, board
+        nonlocal board_bus, board, bridge
         if board is None:
             try:  # the router comes up with the cell; join it once it is there
                 board_bus = Bus(cfg.transport, cfg.cell.name)
                 board = StatusBoard(board_bus)
             except SchemaError:
                 return
+            if foxglove_port is not None:
+                from cellsight.live import FoxgloveBridge
+
+                bridge = FoxgloveBridge(board_bus, foxglove_port)
+                _stderr().print(f"Foxglove live view: open ws://127.0.0.1:{bridge.port} in the Foxglove app")
         if live_view is not None:
             live_view.update(board.table())
 
@@ -432,6 +439,8 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
     except CellsightError as exc:
         raise _fail(str(exc), 3) from None
     finally:
+        if bridge is not None:
+            bridge.close()
         if board is not None:
             board.close()
             board_bus.close()
@@ -444,13 +453,15 @@ def run_cmd(
     record: Annotated[bool, typer.Option("--record/--no-record", help="record the cell to OUT/log.mcap")] = False,
     max_image_hz: Annotated[Optional[float], typer.Option(help="when recording: images per camera per second")] = 2.0,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+    foxglove: FoxgloveOpt = False,
+    foxglove_port: FoxglovePortOpt = 8765,
     verbose: VerboseOpt = False,
 ) -> None:
     """Run a cell: router, one driver per camera, estimator (and recorder), supervised."""
     _setup_logging(verbose)
     cfg = _load_cell(cell_config)
     run_dir = out or Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")
-    _run(cfg, run_dir, duration, run_dir / "log.mcap" if record else None, max_image_hz, sys.stderr.isatty())
+    _run(cfg, run_dir, duration, run_dir / "log.mcap" if record else None, max_image_hz, sys.stderr.isatty(), foxglove_port if foxglove else None)
     _stderr().print(f"run folder: {run_dir}")
 
 
@@ -459,6 +470,8 @@ def demo(
     duration: Annotated[float, typer.Option(help="seconds of the demo cell's scenario to run")] = 30.0,
     out: Annotated[Path, typer.Option("--out", help="folder for the log, config, summary and pictures")] = Path("runs/demo"),
     max_image_hz: Annotated[float, typer.Option(help="images per camera per second in the log")] = 0.5,
+    foxglove: FoxgloveOpt = False,
+    foxglove_port: FoxglovePortOpt = 8765,
     verbose: VerboseOpt = False,
 ) -> None:
     """Run the built-in simulated cell for a while, then report its accuracy against ground truth."""
@@ -475,7 +488,7 @@ def demo(
             raise _fail(f"--duration {duration:g} is longer than the demo scenario ({scenario_len:g} s)", 2)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "log.mcap"
-    _run(cfg, out, duration, log_path, max_image_hz, sys.stderr.isatty())
+    _run(cfg, out, duration, log_path, max_image_hz, sys.stderr.isatty(), foxglove_port if foxglove else None)
     summary = write_report(log_path, cfg.cell.name, out)
     from rich.console import Console
     from rich.markdown import Markdown
