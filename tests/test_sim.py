@@ -112,3 +112,31 @@ def test_bumped_camera_moves_by_the_scripted_amount() -> None:
 def test_unknown_camera_is_named() -> None:
     with pytest.raises(ScenarioError, match="no camera 'nope'"):
         Scenario().camera("nope")
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
+def test_mesh_objects_from_files_are_rendered(tmp_path: Path, suffix: str) -> None:
+    """A 0.4 m cube from a mesh file, 1 m below a downward camera: its top face at 1.0 m depth."""
+    import open3d as o3d
+
+    cube = o3d.geometry.TriangleMesh.create_box(0.4, 0.4, 0.4).translate([-0.2, -0.2, 0.0])
+    cube.compute_triangle_normals()  # STL needs them
+    path = tmp_path / f"cube{suffix}"
+    assert o3d.io.write_triangle_mesh(str(path), cube)
+    scen = tmp_path / "s.toml"
+    scen.write_text(
+        'name = "mesh"\nfloor_size = [5.0, 5.0]\n[noise]\nenabled = false\n'
+        f'[[objects]]\nid = "cube"\nshape = "mesh"\nmesh = "{path.name}"\npose = {{ position = [0.0, 0.0, 0.0] }}\n'
+        '[[cameras]]\nid = "c"\npose = { position = [0.0, 0.0, 1.4], look_at = [0.0, 0.0, 0.0] }\n'
+    )
+    frame = SimCell(load_scenario(scen)).render("c", 0.0, 0)
+    centre = frame.depth_mm[230:250, 310:330].astype(int)
+    assert np.all(np.abs(centre - 1000) <= 1), "the cube's top face is not at 1.0 m"
+    assert abs(int(frame.depth_mm[20, 20]) - 1400) <= 1  # the corner sees the floor (optical depth 1.4 m)
+
+
+def test_missing_mesh_file_is_named(tmp_path: Path) -> None:
+    scen = tmp_path / "s.toml"
+    scen.write_text('[[objects]]\nid = "x"\nshape = "mesh"\nmesh = "nope.ply"\n[[cameras]]\nid = "c"\npose = { position = [0.0, 0.0, 1.4], look_at = [0.0, 0.0, 0.0] }\n')
+    with pytest.raises(ScenarioError, match="nope.ply"):
+        load_scenario(scen)

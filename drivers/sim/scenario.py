@@ -228,4 +228,6 @@ def load_scenario(path: Path | None = None) -> Scenario:
     for obj in scenario.objects:
         if obj.mesh is not None and not obj.mesh.is_absolute():
             obj.mesh = path.parent / obj.mesh
+        if obj.mesh is not None and not obj.mesh.is_file():
+            raise ScenarioError(f"{path}: object {obj.id}: mesh file {obj.mesh} does not exist")
     return scenario
