@@ -37,6 +37,7 @@ FLIP_GATE_RAD = math.radians(15.0)  # a candidate further than this from the pai
 POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, caught separately)
 MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
 MIN_PAIR_FOR_MOTION = 5  # observations a pair needs before it can witness a move
+YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
 
 
 class CameraState(Enum):
@@ -374,7 +375,7 @@ class Estimator:
     def _due_pairs(self, now_ns: int) -> list[tuple[tuple[CameraKey, int], Pair]]:
         """Pairs whose factor should be (re)built now.
 
-        New pairs always; young ones (fewer than ``max_fused`` observations) every refresh_s / 10
+        New pairs always; young ones (fewer than ``YOUNG_PAIR`` observations) every refresh_s / 10
         so a new segment converges within a fraction of a second; mature ones once per refresh_s,
         the most overdue first and at most their fair share per update, so refreshes spread over
         the updates instead of all landing in one (that was the p99 latency).
@@ -385,7 +386,7 @@ class Estimator:
             if not pair.dirty:
                 continue
             age = now_ns - pair.refreshed_ns
-            if pair.slot is None or (pair.n < self.config.max_fused and age >= refresh_ns // 10):
+            if pair.slot is None or (pair.n < YOUNG_PAIR and age >= refresh_ns // 10):
                 urgent.append((key, pair))
             elif age >= refresh_ns:
                 mature.append((age, key, pair))
