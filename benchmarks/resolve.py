@@ -17,27 +17,16 @@ import numpy as np
 
 from benchmarks.common import main
 from benchmarks.estimator_scale import rss_mb
-from benchmarks.scenes import NoiseSettings, frame_observations
+from benchmarks.scenes import NoiseSettings, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_cmd import run_resolve
 from cellsight.scenario_config import cell_config_of
 from drivers.sim.scenario import load_scenario
-from schemas import codec, keys
+from schemas import keys
 from schemas import messages as m
 from schemas.log import LogWriter
 
 POOL = 32
-
-
-def obs_msg(cam: str, stamp: int, obs) -> m.MarkerObservations:
-    msg = m.MarkerObservations(camera_id=cam, stamp_ns=stamp, image_width=640, image_height=480)
-    for o in obs:
-        item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=0.25, depth_refined=True)
-        item.corners_px.extend([0.0] * 8)
-        codec.pose_to_msg(o.camera_T_marker, item.camera_T_marker)
-        codec.pose_to_msg(o.alternative, item.candidate_b)
-        item.covariance.extend(codec.covariance_to_list(o.covariance))
-    return msg
 
 
 def write_log(path: Path, seconds: float) -> tuple[CellConfig, int]:
@@ -48,7 +37,7 @@ def write_log(path: Path, seconds: float) -> tuple[CellConfig, int]:
     rng = np.random.default_rng(0)
     # Messages are built once per pool entry; per frame only the stamp changes (building each of
     # hundreds of thousands of messages through the codec made writing the log the slow part).
-    pools = {c.id: [obs_msg(c.id, 0, frame_observations(s, c.id, 0.0, 0, rng, NoiseSettings(flip_rate=0.02))) for _ in range(POOL)] for c in s.cameras}
+    pools = {c.id: [observations_msg(c.id, 0, frame_observations(s, c.id, 0.0, 0, rng, NoiseSettings(flip_rate=0.02))) for _ in range(POOL)] for c in s.cameras}
     w = LogWriter(path, metadata={"config": cfg.to_toml()})
     n = 0
     msg = m.MarkerObservations()

@@ -99,3 +99,18 @@ def estimator_config(scenario: Scenario, **overrides) -> EstimatorConfig:
 
 def demo() -> Scenario:
     return load_scenario()
+
+
+def observations_msg(camera_id: str, stamp_ns: int, obs: list[Observation], side_m: float = 0.25):
+    """Synthetic observations as the wire message a driver would publish (depth-refined)."""
+    from schemas import codec
+    from schemas import messages as m
+
+    msg = m.MarkerObservations(camera_id=camera_id, stamp_ns=stamp_ns, image_width=640, image_height=480)
+    for o in obs:
+        item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=side_m, depth_refined=True)
+        item.corners_px.extend([0.0] * 8)
+        codec.pose_to_msg(o.camera_T_marker, item.camera_T_marker)
+        codec.pose_to_msg(o.alternative, item.candidate_b)
+        item.covariance.extend(codec.covariance_to_list(o.covariance))
+    return msg

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations
+from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
 from estimator.service import EstimatorService
 from schemas import codec, keys
@@ -28,15 +28,7 @@ def scene() -> Scenario:
     )
 
 
-def to_msg(cam: str, stamp: int, obs) -> m.MarkerObservations:
-    msg = m.MarkerObservations(camera_id=cam, stamp_ns=stamp, image_width=640, image_height=480)
-    for o in obs:
-        item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=0.25, depth_refined=True)
-        item.corners_px.extend([0.0] * 8)
-        codec.pose_to_msg(o.camera_T_marker, item.camera_T_marker)
-        codec.pose_to_msg(o.alternative, item.candidate_b)
-        item.covariance.extend(codec.covariance_to_list(o.covariance))
-    return msg
+to_msg = observations_msg  # synthetic observations as a driver's wire message
 
 
 def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = False) -> None:
