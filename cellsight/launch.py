@@ -21,7 +21,6 @@ from pathlib import Path
 
 from cellsight.config import CellConfig, save_used
 from cellsight.errors import CellsightError
-from schemas.bus import DEFAULT_ROUTER
 
 log = logging.getLogger(__name__)
 CLI = [sys.executable, "-m", "cellsight.cli"]
@@ -217,5 +216,3 @@ def run_cell(
             Supervisor(group).stop()
     return sup
 
-
-__all__ = ["Child", "Supervisor", "run_cell", "plan", "DEFAULT_ROUTER"]

@@ -189,8 +189,6 @@ def plot_top_view(d: RunData, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse
-
     fig, ax = plt.subplots(figsize=(7, 7))
     for child, poses in d.truth_markers.poses.items():
         T = poses[-1].T
@@ -198,7 +196,7 @@ def plot_top_view(d: RunData, path: Path) -> None:
     for child, poses in d.est_markers.poses.items():
         T, cov = poses[-1].T, poses[-1].covariance
         ax.plot(T[0, 3], T[1, 3], "s", ms=3, color="tab:blue")
-        _ellipse(ax, T, cov, "tab:blue", Ellipse)
+        draw_ellipse(ax, T, cov, "tab:blue")
     for child, poses in d.truth_objects.poses.items():
         T = poses[-1].T
         ax.plot(T[0, 3], T[1, 3], "o", ms=9, mfc="none", mec="tab:orange")
@@ -212,7 +210,7 @@ def plot_top_view(d: RunData, path: Path) -> None:
     for cam, poses in d.est_cameras.poses.items():
         T, cov = poses[-1].T, poses[-1].covariance
         ax.plot(T[0, 3], T[1, 3], "^", ms=6, color="tab:red")
-        _ellipse(ax, T, cov, "tab:red", Ellipse)
+        draw_ellipse(ax, T, cov, "tab:red")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -223,7 +221,10 @@ def plot_top_view(d: RunData, path: Path) -> None:
     plt.close(fig)
 
 
-def _ellipse(ax, T: np.ndarray, cov: np.ndarray | None, color: str, Ellipse) -> None:
+def draw_ellipse(ax, T: np.ndarray, cov: np.ndarray | None, color: str) -> None:
+    """2-sigma x10 ellipse of a pose's x-y position uncertainty (body-frame covariance, ROS order)."""
+    from matplotlib.patches import Ellipse
+
     if cov is None:
         return
     # Body-frame position covariance into the world frame, x-y block.

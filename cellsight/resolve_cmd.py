@@ -22,11 +22,11 @@ from typing import Callable, Iterator
 import numpy as np
 
 from cellsight.config import CellConfig, parse_config, save_used
-from cellsight.report import Timeline, _ellipse, pose_error
+from cellsight.report import Timeline, draw_ellipse, pose_error
 from estimator.resolve import ResolveResult, resolve
 from estimator.service import observations_from_msg
 from schemas import codec, keys
-from schemas.codec import DecodeError, StampedPose
+from schemas.codec import StampedPose
 from schemas.log import LogWriter, ReadReport, read_log
 
 TRUTH_MIN_GAP_NS = 100_000_000  # keep ground truth and online estimates at <= 10 Hz per camera
@@ -40,7 +40,6 @@ class Side:
     truth_cameras: Timeline = field(default_factory=Timeline.empty)
     truth_markers: dict[str, StampedPose] = field(default_factory=dict)
     cell: str | None = None
-    skipped_frames: int = 0
 
     def keep(self, tl: Timeline, msg) -> None:
         for child, p in codec.poses_from_msg(msg).items():
@@ -55,10 +54,7 @@ def frames_from_log(path: Path, side: Side, report: ReadReport, progress: Callab
         parsed = keys.parse(lm.key)
         side.cell = side.cell or parsed.cell
         if parsed.topic == "markers":
-            try:
-                yield lm.msg.camera_id, lm.msg.stamp_ns, observations_from_msg(lm.msg)
-            except DecodeError:
-                side.skipped_frames += 1
+            yield lm.msg.camera_id, lm.msg.stamp_ns, observations_from_msg(lm.msg)  # read_log validated it
         elif parsed.topic == "estimate/cameras":
             side.keep(side.online, lm.msg)
         elif parsed.topic == "truth/cameras":
@@ -185,17 +181,16 @@ def plots(result: ResolveResult, side: Side, out: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse
 
     fig, ax = plt.subplots(figsize=(7, 7))
     for child, p in side.truth_markers.items():
         ax.plot(p.T[0, 3], p.T[1, 3], "s", ms=6, mfc="none", mec="0.6")
     for k, (T, C) in result.markers.items():
         ax.plot(T[0, 3], T[1, 3], "s", ms=3, color="tab:blue")
-        _ellipse(ax, T, C, "tab:blue", Ellipse)
+        draw_ellipse(ax, T, C, "tab:blue")
     for s in result.segments:
         ax.plot(s.world_T_camera[0, 3], s.world_T_camera[1, 3], "^", ms=7, color="tab:red")
-        _ellipse(ax, s.world_T_camera, s.covariance, "tab:red", Ellipse)
+        draw_ellipse(ax, s.world_T_camera, s.covariance, "tab:red")
         ax.annotate(f"{s.camera_id}.{s.segment}", s.world_T_camera[:2, 3], textcoords="offset points", xytext=(6, 4), fontsize=8)
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)

@@ -34,8 +34,9 @@ _STATE = {
 
 
 def observations_from_msg(msg: m.MarkerObservations) -> list[Observation]:
-    """Wire observations as estimator input (validated, batched: this is the offline hot path)."""
-    a = codec.marker_arrays(msg)
+    """Wire observations as estimator input. ``msg`` must come from ``codec.decode`` (every
+    subscription and log reader does), which validated it: converting is all that is left."""
+    a = codec.marker_arrays(msg, check=False)
     return [
         Observation(msg.camera_id, msg.stamp_ns, int(a.ids[i]), a.poses[i], a.covariances[i], a.alternatives[i], msg.markers[i].ambiguous)
         for i in range(len(a.ids))
@@ -115,11 +116,7 @@ class EstimatorService:
 
     def ingest(self, items: list[Received[m.MarkerObservations]]) -> None:
         for item in items:
-            try:
-                obs = observations_from_msg(item.msg)
-            except codec.DecodeError as exc:  # validated on receipt, but never trust twice-parsed input
-                log.warning("dropping observations of %s: %s", item.msg.camera_id, exc)
-                continue
+            obs = observations_from_msg(item.msg)  # validated on receipt by the subscription
             self.clock.observe(item.msg.stamp_ns, item.receive_ns)
             self.estimator.add_frame(item.msg.camera_id, item.msg.stamp_ns, obs)
 

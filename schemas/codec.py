@@ -354,15 +354,18 @@ def _poses_from_rows(rows: np.ndarray) -> np.ndarray:
     return T
 
 
-def marker_arrays(msg: m.MarkerObservations) -> MarkerArrays:
+def marker_arrays(msg: m.MarkerObservations, check: bool = True) -> MarkerArrays:
     """Validate every observation of a message at once (batched numpy) and return it as arrays.
+
+    ``check=False`` only converts: for messages that already came through ``decode``, which
+    validated them with this same function.
 
     Raises ``DecodeError`` naming the first bad marker: wrong corner count, non-positive side,
     non-finite or non-unit quaternion, covariance not 36 values / not symmetric / not positive
     definite.
     """
     obs = msg.markers
-    for o in obs:  # cheap scalar checks first
+    for o in obs if check else ():  # cheap scalar checks first
         if len(o.corners_px) != 8:
             raise DecodeError(f"marker {o.marker_id}: {len(o.corners_px)} corner values, expected 8")
         if not (o.side_m > 0 and math.isfinite(o.side_m)):
@@ -373,6 +376,8 @@ def marker_arrays(msg: m.MarkerObservations) -> MarkerArrays:
     rows = _pose_rows(o.camera_T_marker for o in obs)
     alt_rows = _pose_rows((o.candidate_b if o.HasField("candidate_b") else o.camera_T_marker) for o in obs)
     cov = np.array([list(o.covariance) for o in obs], dtype=np.float64).reshape(-1, 6, 6)
+    if not check:
+        return MarkerArrays(ids, _poses_from_rows(rows), _poses_from_rows(alt_rows), cov)
     for name, r in (("camera_T_marker", rows), ("candidate_b", alt_rows)):
         bad = ~np.all(np.isfinite(r), axis=1)
         norms = np.linalg.norm(r[:, 3:], axis=1)

@@ -28,9 +28,6 @@ def scene() -> Scenario:
     )
 
 
-to_msg = observations_msg  # synthetic observations as a driver's wire message
-
-
 def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = False) -> None:
     """Publish observations of camera a at 30 Hz (real time / 3 to keep the test short)."""
     pub = bus.publisher(keys.markers(CELL, "a"))
@@ -38,7 +35,7 @@ def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = F
     rng = np.random.default_rng(0)
     for k in range(int(seconds * 30)):
         stamp = start_ns + int(k * 1e9 / 30)
-        pub.put(to_msg("a", stamp, frame_observations(s, "a", 0.0, stamp, rng, NoiseSettings())))
+        pub.put(observations_msg("a", stamp, frame_observations(s, "a", 0.0, stamp, rng, NoiseSettings())))
         if garbage and k % 5 == 0:
             raw.put(b"\x0a\x03cam\x10" + bytes(rng.integers(0, 256, 40, dtype=np.uint8)))
         time.sleep(1 / 90)

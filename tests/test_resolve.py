@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.scenes import NoiseSettings, frame_observations
+from benchmarks.scenes import NoiseSettings, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_cmd import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
@@ -16,7 +16,6 @@ from schemas import codec, keys
 from schemas.log import LogWriter
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
-from tests.test_estimator_service import to_msg
 
 CELL = "res"
 
@@ -41,7 +40,7 @@ def write_log(path: Path, s: Scenario, seconds: float, flip_rate: float = 0.05) 
         stamp = t0 + int(k * 1e9 / 30)
         for cam in s.cameras:
             obs = frame_observations(s, cam.id, 0.0, stamp, rng, NoiseSettings(flip_rate=flip_rate))
-            w.write(keys.markers(CELL, cam.id), to_msg(cam.id, stamp, obs), stamp)
+            w.write(keys.markers(CELL, cam.id), observations_msg(cam.id, stamp, obs), stamp)
             if k % 3 == 0:
                 truth = [codec.StampedPose("world", cam.id, stamp, cam.world_T_camera(0.0))]
                 w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, truth), stamp)
