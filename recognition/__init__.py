@@ -1,1 +1,6 @@
-"""Object recognition: VFH descriptors, camera-roll alignment and ICP (issue 5, not built yet)."""
+"""Object recognition: VFH descriptors, camera-roll alignment and ICP (DESIGN.md section 6).
+
+Pure cores: ``cloud`` (depth -> cloud, normals), ``vfh``, ``align`` (roll histogram, ICP),
+``segment``, ``models`` (the database), ``pipeline`` (one frame -> detections).
+``worker`` wraps them in a zenoh service.
+"""

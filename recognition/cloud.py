@@ -1,0 +1,158 @@
+"""Point clouds from registered depth, voxel downsampling and PCL-style normals.
+
+Clouds are float32 (N, 3) arrays in metres in the camera frame (x right, y down, z forward);
+organised clouds are (H, W, 3) with NaN where the sensor returned nothing, as PCL stores them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from open3d.core import nns
+
+from recognition.errors import CloudError
+
+#: Neighbours a covariance needs to define a plane; fewer gives a NaN normal, as in PCL.
+MIN_NORMAL_NEIGHBOURS = 3
+
+
+def depth_to_cloud(depth: np.ndarray, K: np.ndarray, depth_scale: float = 0.001) -> np.ndarray:
+    """Back-project a depth image into an organised cloud.
+
+    depth (H, W) integer or float sensor units, 0 = no return; K (3, 3) pinhole intrinsics in pixels;
+    depth_scale metres per unit (0.001 for 16UC1 millimetres). Returns (H, W, 3) float32 metres, NaN
+    where depth is 0. The arithmetic is PCL's ImageGrabber's, in float32, so that the result matches
+    the PCDs PCL writes from the same frames.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or depth.size == 0:
+        raise CloudError(f"depth image must be a non-empty (H, W) array, got shape {depth.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CloudError("intrinsics K must be a finite 3x3 matrix with positive focal lengths")
+    h, w = depth.shape
+    z = depth.astype(np.float32) * np.float32(depth_scale)
+    inv_fx, inv_fy = np.float32(1.0 / K[0, 0]), np.float32(1.0 / K[1, 1])
+    u = np.arange(w, dtype=np.float32) - np.float32(K[0, 2])
+    v = np.arange(h, dtype=np.float32) - np.float32(K[1, 2])
+    cloud = np.empty((h, w, 3), dtype=np.float32)
+    cloud[..., 0] = u[None, :] * z * inv_fx
+    cloud[..., 1] = v[:, None] * z * inv_fy
+    cloud[..., 2] = z
+    cloud[~(z > 0)] = np.nan
+    return cloud
+
+
+def finite_points(cloud: np.ndarray) -> np.ndarray:
+    """The finite points of an organised or flat cloud, as (N, 3) float32."""
+    pts = np.asarray(cloud, dtype=np.float32).reshape(-1, 3)
+    return pts[np.all(np.isfinite(pts), axis=1)]
+
+
+def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
+    """Points of a PCD or PLY file in float32 metres (every PCD encoding, LZF-compressed included).
+
+    organised=True keeps a PCD's HEIGHT x WIDTH layout and its NaN points: (H, W, 3). Otherwise the
+    finite points only: (N, 3).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CloudError(f"cloud file {path} does not exist")
+    if path.suffix.lower() not in (".pcd", ".ply"):
+        raise CloudError(f"cloud file {path}: use a .pcd or .ply file")
+    try:
+        pcd = o3d.t.io.read_point_cloud(str(path))
+    except RuntimeError as exc:
+        raise CloudError(f"cloud file {path} is unreadable: {exc}") from exc
+    if "positions" not in pcd.point or len(pcd.point.positions) == 0:
+        raise CloudError(f"cloud file {path} holds no points (empty or not a point cloud)")
+    pts = pcd.point.positions.numpy().astype(np.float32, copy=False)
+    if not organised:
+        found = finite_points(pts)
+        if len(found) == 0:
+            raise CloudError(f"cloud file {path} holds no finite points")
+        return found
+    width, height = _pcd_size(path) if path.suffix.lower() == ".pcd" else (len(pts), 1)
+    if width * height != len(pts):
+        raise CloudError(f"cloud file {path}: WIDTH x HEIGHT = {width}x{height} but {len(pts)} points")
+    return pts.reshape(height, width, 3)
+
+
+def _pcd_size(path: Path) -> tuple[int, int]:
+    """WIDTH and HEIGHT from a PCD header (Open3D flattens organised clouds)."""
+    width = height = None
+    with path.open("rb") as f:
+        for _ in range(20):
+            words = f.readline().decode("ascii", "replace").split()
+            if words and words[0] == "WIDTH":
+                width = int(words[1])
+            elif words and words[0] == "HEIGHT":
+                height = int(words[1])
+            elif words and words[0] == "DATA":
+                break
+    if width is None or height is None:
+        raise CloudError(f"cloud file {path}: PCD header has no WIDTH/HEIGHT")
+    return width, height
+
+
+def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Centroid of the points in each voxel of side voxel_m (m). (N, 3) -> (M, 3) float32."""
+    if voxel_m <= 0:
+        raise CloudError(f"voxel size must be positive, got {voxel_m} m")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    return np.asarray(pcd.voxel_down_sample(voxel_m).points, dtype=np.float32)
+
+
+def radius_neighbours(points: np.ndarray, radius_m: float, queries: np.ndarray | None = None):
+    """Indices of the points within radius_m of each query (default: every point, itself included).
+
+    Returns (indices (E,) int64, row_splits (Q + 1,) int64): query q's neighbours are
+    indices[row_splits[q]:row_splits[q + 1]], a CSR layout for vectorised per-point reductions.
+    """
+    pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+    q = pts if queries is None else o3d.core.Tensor(np.ascontiguousarray(queries, dtype=np.float32))
+    search = nns.NearestNeighborSearch(pts)
+    search.fixed_radius_index(radius_m)
+    idx, _, splits = search.fixed_radius_search(q, radius_m)
+    return idx.numpy().astype(np.int64), splits.numpy().astype(np.int64)
+
+
+def estimate_normals(
+    points: np.ndarray, radius_m: float, viewpoint: np.ndarray | tuple = (0.0, 0.0, 0.0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals as PCL's NormalEstimation computes them, vectorised.
+
+    For each point: the covariance of its neighbours within radius_m, the eigenvector of the smallest
+    eigenvalue as the normal, flipped to face the viewpoint (n . (viewpoint - p) >= 0); curvature is
+    lambda_min / sum(lambda). Points with fewer than 3 neighbours get NaN, as in PCL.
+    points (N, 3) metres -> normals (N, 3) float32, curvature (N,) float32.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        raise CloudError("cannot estimate normals of an empty cloud")
+    if radius_m <= 0:
+        raise CloudError(f"normal radius must be positive, got {radius_m} m")
+    idx, splits = radius_neighbours(pts, radius_m)
+    counts = np.diff(splits)
+    rows = np.repeat(np.arange(len(pts)), counts)
+    nbr = pts[idx]
+    n = np.maximum(counts, 1)
+    # First and second moments per neighbourhood, one weighted bincount each (no (E, 3, 3) temporary).
+    mean = np.stack([np.bincount(rows, nbr[:, a], minlength=len(pts)) / n for a in range(3)], axis=1)
+    cov = np.empty((len(pts), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            second = np.bincount(rows, nbr[:, a] * nbr[:, b], minlength=len(pts)) / n
+            cov[:, a, b] = cov[:, b, a] = second - mean[:, a] * mean[:, b]
+    evals, evecs = np.linalg.eigh(cov)
+    normals = evecs[:, :, 0]
+    flip = np.einsum("ij,ij->i", normals, np.asarray(viewpoint, dtype=np.float64) - pts) < 0
+    normals[flip] *= -1.0
+    total = evals.sum(axis=1)
+    curvature = np.divide(np.abs(evals[:, 0]), total, out=np.zeros(len(pts)), where=total > 0)
+    bad = counts < MIN_NORMAL_NEIGHBOURS
+    normals[bad] = np.nan
+    curvature[bad] = np.nan
+    return normals.astype(np.float32), curvature.astype(np.float32)

@@ -1,0 +1,59 @@
+"""Configuration of recognition: descriptor parameters (shared with the model database) and the pipeline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.spec import PoseSpec
+
+
+class DescriptorConfig(BaseModel):
+    """How a cloud becomes a descriptor. A database stores the values it was built with; a recogniser
+    using different ones would compare unlike histograms, so loading checks they agree."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    voxel_m: float = Field(default=0.005, gt=0, description="voxel side for downsampling, m")
+    normal_radius_m: float = Field(default=0.015, gt=0, description="neighbourhood radius for normals, m")
+    binning: Literal["pcl", "pcl17"] = Field(
+        default="pcl", description="VFH f2/f3 binning: 'pcl' = PCL >= 1.10.1 (default), 'pcl17' = PCL 1.7 (the paper's)"
+    )
+
+
+class ObjectMarkerConfig(BaseModel):
+    """A fiducial fixed on an object: seeing it names the object and gives a pose prior."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    marker_id: int = Field(ge=0)
+    object_id: str
+    object_T_marker: PoseSpec
+
+
+class RecognitionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    models: Path | None = Field(default=None, description="model database directory (cellsight model build)")
+    descriptor: DescriptorConfig = Field(default_factory=DescriptorConfig)
+    max_range_m: float = Field(default=3.5, gt=0, description="scene points farther than this are ignored")
+    plane_distance_m: float = Field(default=0.012, gt=0, description="RANSAC inlier distance for plane removal")
+    plane_noise_per_m2: float = Field(
+        default=0.0043, ge=0, description="plane band grows as this x range^2 (3 sigma of Kinect depth noise, 1/m)"
+    )
+    max_planes: int = Field(default=3, ge=0, description="dominant planes removed (table, floor, wall)")
+    min_plane_fraction: float = Field(default=0.1, gt=0, le=1, description="a plane must hold this share of the scene")
+    cluster_tolerance_m: float = Field(default=0.02, gt=0, description="Euclidean clustering distance")
+    cluster_min_points: int = Field(default=30, ge=3)
+    cluster_max_points: int = Field(default=25000, ge=3)
+    candidates: int = Field(default=6, ge=1, description="nearest model views tried per cluster")
+    roll_peaks: int = Field(default=3, ge=1, description="roll angles tried per view")
+    icp_distance_m: float = Field(default=0.015, gt=0, description="ICP correspondence distance (coarse pass: 2x)")
+    icp_iterations: int = Field(default=30, ge=1)
+    min_fitness: float = Field(default=0.5, ge=0, le=1, description="share of the visible model explained by the scene")
+    min_coverage: float = Field(default=0.5, ge=0, le=1, description="share of the cluster explained by the model")
+    max_rmse_m: float = Field(default=0.01, gt=0, description="inlier RMSE above which a match is rejected")
+    object_markers: list[ObjectMarkerConfig] = Field(default_factory=list)
+    rate_hz: float = Field(default=2.0, gt=0, description="worker: frames recognised per camera per second")

@@ -1,0 +1,284 @@
+"""The model database: per object a model cloud, and per view a VFH, a roll histogram and the view pose.
+
+On disk (``cellsight model build`` writes it)::
+
+    DIR/database.json        format, descriptor parameters, object ids
+    DIR/<object>/model.ply   model points with normals, object frame, metres
+    DIR/<object>/views.npz   vfh (V, 308), roll (V, 90), centroid (V, 3), view_T_object (V, 4, 4)
+    DIR/<object>/model.json  source, diameter, view count
+
+Views come from three sources: a mesh rendered from viewpoints on a tessellated sphere; a point cloud
+(its own capture viewpoint, plus sphere viewpoints through hidden-point removal); and multi-view
+recordings merged on a marker board (``recognition.recording``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from pydantic import ValidationError
+
+from recognition.cloud import depth_to_cloud, estimate_normals, finite_points, voxel_downsample
+from recognition.config import DescriptorConfig
+from recognition.descriptor import describe, prepare
+from recognition.errors import ModelError
+from recognition.vfh import ROLL_BINS, SIZE
+from schemas.codec import CameraInfo, invert_pose, make_pose
+from schemas.spec import look_at_matrix
+
+log = logging.getLogger(__name__)
+FORMAT = 1
+#: Fewest points a view needs to describe anything.
+MIN_VIEW_POINTS = 30
+
+
+@dataclass(frozen=True)
+class Views:
+    """Per-view descriptors of one object. vfh (V, 308); roll (V, 90); centroid (V, 3) m in the view's
+    camera frame; view_T_object (V, 4, 4)."""
+
+    vfh: np.ndarray
+    roll: np.ndarray
+    centroid: np.ndarray
+    view_T_object: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.vfh)
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    """One object: points, normals (M, 3) in its own frame, metres; its views; diameter (m)."""
+
+    object_id: str
+    points: np.ndarray
+    normals: np.ndarray
+    views: Views
+    source: str
+
+    @property
+    def diameter_m(self) -> float:
+        """Largest distance between two model points (bounded from the axis-aligned box)."""
+        lo, hi = self.points.min(axis=0), self.points.max(axis=0)
+        return float(np.linalg.norm(hi - lo))
+
+
+@dataclass
+class ModelDatabase:
+    """Object models sharing one descriptor configuration."""
+
+    descriptor: DescriptorConfig
+    models: dict[str, ObjectModel]
+
+    def add(self, model: ObjectModel) -> None:
+        if len(model.views) == 0:
+            raise ModelError(f"object {model.object_id!r}: no usable view (too few points seen from every viewpoint)")
+        self.models[model.object_id] = model
+
+    def view_table(self) -> tuple[np.ndarray, list[tuple[str, int]]]:
+        """All views stacked: descriptors (V, 308) and, per row, (object id, view index)."""
+        rows = [(oid, i) for oid, mdl in self.models.items() for i in range(len(mdl.views))]
+        if not rows:
+            return np.zeros((0, SIZE), dtype=np.float32), []
+        return np.concatenate([mdl.views.vfh for mdl in self.models.values()]), rows
+
+    def save(self, directory: str | Path) -> Path:
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        for oid, mdl in self.models.items():
+            od = d / oid
+            od.mkdir(exist_ok=True)
+            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(mdl.points.astype(np.float64)))
+            pcd.normals = o3d.utility.Vector3dVector(mdl.normals.astype(np.float64))
+            o3d.io.write_point_cloud(str(od / "model.ply"), pcd)
+            v = mdl.views
+            np.savez(od / "views.npz", vfh=v.vfh, roll=v.roll, centroid=v.centroid, view_T_object=v.view_T_object)
+            meta = {"object_id": oid, "source": mdl.source, "diameter_m": mdl.diameter_m, "views": len(v)}
+            (od / "model.json").write_text(json.dumps(meta, indent=2) + "\n")
+        index = {"format": FORMAT, "descriptor": self.descriptor.model_dump(), "objects": sorted(self.models)}
+        (d / "database.json").write_text(json.dumps(index, indent=2) + "\n")
+        return d
+
+    @classmethod
+    def load(cls, directory: str | Path) -> "ModelDatabase":
+        d = Path(directory)
+        index_file = d / "database.json"
+        if not index_file.is_file():
+            raise ModelError(f"{d} is not a model database (no database.json); build one with `cellsight model build`")
+        try:
+            index = json.loads(index_file.read_text())
+            if index.get("format") != FORMAT:
+                raise ModelError(f"{index_file}: format {index.get('format')!r}, this version reads {FORMAT}")
+            db = cls(DescriptorConfig.model_validate(index["descriptor"]), {})
+            for oid in index["objects"]:
+                db.add(_load_model(d / oid, oid))
+        except (KeyError, TypeError, json.JSONDecodeError, ValidationError) as exc:
+            raise ModelError(f"{index_file} is damaged: {exc}") from exc
+        return db
+
+
+def _load_model(od: Path, oid: str) -> ObjectModel:
+    pcd = o3d.io.read_point_cloud(str(od / "model.ply"))
+    if not pcd.has_points() or not pcd.has_normals():
+        raise ModelError(f"{od / 'model.ply'}: missing, empty or without normals")
+    try:
+        with np.load(od / "views.npz") as z:
+            views = Views(z["vfh"], z["roll"], z["centroid"], z["view_T_object"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise ModelError(f"{od / 'views.npz'} is unreadable: {exc}") from exc
+    n = len(views.vfh)
+    shapes = {"vfh": (n, SIZE), "roll": (n, ROLL_BINS), "centroid": (n, 3), "view_T_object": (n, 4, 4)}
+    for name, shape in shapes.items():
+        if getattr(views, name).shape != shape or not np.all(np.isfinite(getattr(views, name))):
+            raise ModelError(f"{od / 'views.npz'}: {name} should be finite with shape {shape}")
+    meta = json.loads((od / "model.json").read_text()) if (od / "model.json").is_file() else {}
+    return ObjectModel(oid, np.asarray(pcd.points, np.float32), np.asarray(pcd.normals, np.float32), views,
+                       str(meta.get("source", "")))
+
+
+def sphere_viewpoints(subdivisions: int = 1) -> np.ndarray:
+    """Unit directions of a tessellated icosahedron: 12, 42, 162 ... views for 0, 1, 2 subdivisions."""
+    ico = o3d.geometry.TriangleMesh.create_icosahedron(1.0)
+    if subdivisions > 0:
+        ico = ico.subdivide_loop(subdivisions)
+    v = np.asarray(ico.vertices)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _object_T_view(centre: np.ndarray, direction: np.ndarray, distance_m: float) -> np.ndarray:
+    """Pose of a virtual camera at centre + distance * direction looking at centre (up: object +z)."""
+    position = centre + distance_m * direction
+    up = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    return make_pose(look_at_matrix(position, centre, up), position)
+
+
+def _views_of(
+    clouds: Iterable[tuple[np.ndarray, np.ndarray]], params: DescriptorConfig, progress: Callable[[], None] | None
+) -> Views:
+    """Describe each (points in the view's camera frame, view_T_object) pair that has enough points."""
+    vfhs, rolls, cents, poses = [], [], [], []
+    for pts, view_T_object in clouds:
+        if progress:
+            progress()
+        if len(pts) < MIN_VIEW_POINTS:
+            continue
+        p, n = prepare(pts, params)
+        if len(p) < MIN_VIEW_POINTS:
+            continue
+        desc = describe(p, n, params)
+        vfhs.append(desc.vfh)
+        rolls.append(desc.roll)
+        cents.append(desc.centroid)
+        poses.append(view_T_object)
+    if not vfhs:
+        return Views(np.zeros((0, SIZE), np.float32), np.zeros((0, ROLL_BINS)), np.zeros((0, 3)), np.zeros((0, 4, 4)))
+    return Views(np.stack(vfhs), np.stack(rolls), np.stack(cents), np.stack(poses))
+
+
+def model_from_mesh(
+    object_id: str,
+    mesh: o3d.geometry.TriangleMesh,
+    params: DescriptorConfig,
+    *,
+    distance_m: float = 1.5,
+    subdivisions: int = 1,
+    camera: CameraInfo | None = None,
+    progress: Callable[[], None] | None = None,
+) -> ObjectModel:
+    """Render a mesh (object frame, metres) from viewpoints on a tessellated sphere around its centre.
+
+    Each view is a noise-free depth image from a virtual Kinect (default intrinsics) at distance_m,
+    back-projected exactly as a live frame is, so model and scene descriptors are computed alike.
+    """
+    if len(mesh.triangles) == 0:
+        raise ModelError(f"object {object_id!r}: the mesh has no triangles")
+    camera = camera or CameraInfo.kinect_v1()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    centre = mesh.get_axis_aligned_bounding_box().get_center()
+
+    def rendered():
+        for direction in sphere_viewpoints(subdivisions):
+            object_T_view = _object_T_view(centre, direction, distance_m)
+            view_T_object = invert_pose(object_T_view)
+            rays = scene.create_rays_pinhole(
+                o3d.core.Tensor(camera.K), o3d.core.Tensor(view_T_object), camera.width, camera.height
+            )
+            t_hit = scene.cast_rays(rays)["t_hit"].numpy()
+            # t_hit is along unnormalised rays (z = 1 in the camera frame for pinhole rays): it is depth.
+            depth = np.where(np.isfinite(t_hit), t_hit, 0.0)
+            yield finite_points(depth_to_cloud(depth, camera.K, depth_scale=1.0)), view_T_object
+
+    views = _views_of(rendered(), params, progress)
+    area = mesh.get_surface_area()
+    sample = mesh.sample_points_uniformly(max(1000, int(4 * area / params.voxel_m**2)), use_triangle_normal=True)
+    sample = sample.voxel_down_sample(params.voxel_m)
+    normals = np.asarray(sample.normals)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return ObjectModel(object_id, np.asarray(sample.points, np.float32), normals.astype(np.float32), views, "mesh")
+
+
+def model_from_cloud(
+    object_id: str,
+    points: np.ndarray,
+    params: DescriptorConfig,
+    *,
+    viewpoint: np.ndarray | tuple = (0.0, 0.0, 0.0),
+    distance_m: float = 1.0,
+    subdivisions: int = 1,
+    progress: Callable[[], None] | None = None,
+) -> ObjectModel:
+    """A model from a point cloud (object frame = the cloud's frame, metres).
+
+    The first view is the cloud as captured from ``viewpoint`` (a PCD's VIEWPOINT; the origin for a
+    sensor capture). Further views come from sphere viewpoints through hidden-point removal, kept
+    only when most of what they see faces them (a partial scan seen from behind is not a view).
+    """
+    pts = finite_points(points).astype(np.float64)
+    if len(pts) < MIN_VIEW_POINTS:
+        raise ModelError(f"object {object_id!r}: the cloud has {len(pts)} finite points, need {MIN_VIEW_POINTS}")
+    vp = np.asarray(viewpoint, dtype=np.float64)
+    model_pts = voxel_downsample(pts, params.voxel_m)
+    model_normals, _ = estimate_normals(model_pts, params.normal_radius_m, vp)
+    ok = np.all(np.isfinite(model_normals), axis=1)
+    model_pts, model_normals = model_pts[ok], model_normals[ok]
+    centre = model_pts.mean(axis=0)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pts_normals, _ = estimate_normals(pts, params.normal_radius_m, vp)
+
+    def seen():
+        view_T_object = np.eye(4)
+        view_T_object[:3, 3] = -vp
+        yield pts - vp, view_T_object  # the capture itself (its camera's rotation is the cloud frame's)
+        for direction in sphere_viewpoints(subdivisions):
+            object_T_view = _object_T_view(centre, direction, distance_m)
+            _, visible = pcd.hidden_point_removal(object_T_view[:3, 3], distance_m * 100)
+            idx = np.asarray(visible)
+            facing = np.einsum("ij,ij->i", pts_normals[idx], object_T_view[:3, 3] - pts[idx]) > 0
+            if len(idx) == 0 or facing.mean() < 0.5:
+                continue
+            view_T_object = invert_pose(object_T_view)
+            yield pts[idx] @ view_T_object[:3, :3].T + view_T_object[:3, 3], view_T_object
+
+    views = _views_of(seen(), params, progress)
+    return ObjectModel(object_id, model_pts, model_normals, views, "cloud")
+
+
+def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
+    """A triangle mesh (PLY, OBJ, STL, OFF, glTF) in metres; clear error if unreadable or empty."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"mesh file {path} does not exist")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    if len(mesh.triangles) == 0:
+        raise ModelError(f"mesh file {path} holds no triangles (unreadable, or a point cloud: use --cloud)")
+    if not np.all(np.isfinite(np.asarray(mesh.vertices))):
+        raise ModelError(f"mesh file {path} has non-finite vertices")
+    return mesh
+

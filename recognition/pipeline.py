@@ -1,0 +1,176 @@
+"""One frame -> detections: the paper's recognition pipeline as a pure function of a cloud.
+
+cloud -> range limit, voxel downsample, normals -> remove dominant planes -> Euclidean clusters ->
+VFH per cluster -> nearest model views -> camera-roll alignment -> ICP -> accept on fitness,
+coverage and RMSE. A marker on an object, when seen, names it and gives ICP its starting pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from recognition.align import IcpResult, refine_icp, roll_candidates, view_to_scene
+from recognition.cloud import estimate_normals, finite_points, voxel_downsample
+from recognition.config import RecognitionConfig
+from recognition.descriptor import describe
+from recognition.errors import ModelError
+from recognition.models import ModelDatabase, ObjectModel
+from recognition.segment import euclidean_clusters, remove_planes
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A pose hint for one object, e.g. from a marker fixed on it. camera_T_object (4, 4)."""
+
+    object_id: str
+    camera_T_object: np.ndarray
+
+
+@dataclass(frozen=True)
+class Detection:
+    """A recognised object in the camera frame. camera_T_object (4, 4); fitness and coverage 0..1."""
+
+    object_id: str
+    camera_T_object: np.ndarray
+    fitness: float
+    coverage: float
+    rmse_m: float
+    points: int
+    from_prior: bool = False
+
+
+@dataclass
+class SceneCloud:
+    """The prepared scene: downsampled points and normals (N, 3), and which survive plane removal."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    foreground: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+
+class Recognizer:
+    """Recognise the objects of a model database in single camera-frame clouds."""
+
+    def __init__(self, database: ModelDatabase, config: RecognitionConfig) -> None:
+        if database.descriptor != config.descriptor:
+            raise ModelError(
+                f"the model database was built with {database.descriptor.model_dump()} but recognition is configured "
+                f"with {config.descriptor.model_dump()}; rebuild the database or change [recognition.descriptor]"
+            )
+        self.db = database
+        self.config = config
+        self._table, self._rows = database.view_table()
+
+    def prepare(self, cloud: np.ndarray) -> SceneCloud:
+        """Finite points within range, downsampled, with normals, and the non-plane mask."""
+        c, d = self.config, self.config.descriptor
+        pts = finite_points(cloud)
+        pts = pts[np.linalg.norm(pts, axis=1) <= c.max_range_m]
+        if len(pts) == 0:
+            return SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+        pts = voxel_downsample(pts, d.voxel_m)
+        normals, _ = estimate_normals(pts, d.normal_radius_m)
+        ok = np.all(np.isfinite(normals), axis=1)
+        pts, normals = pts[ok], normals[ok]
+        fg = remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)
+        return SceneCloud(pts, normals, fg)
+
+    def recognize(self, cloud: np.ndarray, priors: Sequence[Prior] = ()) -> list[Detection]:
+        """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), best per object."""
+        scene = self.prepare(cloud)
+        if len(scene.points) == 0:
+            return []
+        c = self.config
+        fg_idx = np.flatnonzero(scene.foreground)
+        clusters = [fg_idx[k] for k in euclidean_clusters(
+            scene.points[fg_idx], c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points)]
+        found: dict[str, Detection] = {}
+        used = np.zeros(len(clusters), dtype=bool)
+        for prior in priors:
+            model = self.db.models.get(prior.object_id)
+            if model is None:
+                continue
+            k = _cluster_near(scene.points, clusters, prior.camera_T_object[:3, 3], model.diameter_m)
+            if k is None:
+                continue
+            det = self._score(model, scene, clusters[k], [prior.camera_T_object], from_prior=True)
+            if det is not None:
+                used[k] = True
+                found[prior.object_id] = det
+        for k, idx in enumerate(clusters):
+            if used[k]:
+                continue
+            det = self._match_cluster(scene, idx)
+            if det is not None and (det.object_id not in found or _better(det, found[det.object_id])):
+                found[det.object_id] = det
+        return sorted(found.values(), key=lambda d: d.object_id)
+
+    def _match_cluster(self, scene: SceneCloud, idx: np.ndarray) -> Detection | None:
+        """VFH nearest views -> roll candidates -> ICP; the best accepted hypothesis, if any."""
+        if len(self._rows) == 0:
+            return None
+        desc = describe(scene.points[idx], scene.normals[idx], self.config.descriptor)
+        dist = np.abs(self._table - desc.vfh).sum(axis=1)  # L1 between histograms
+        best: Detection | None = None
+        by_object: dict[str, list[np.ndarray]] = {}
+        for row in np.argsort(dist)[: self.config.candidates]:
+            oid, v = self._rows[row]
+            views = self.db.models[oid].views
+            for roll in roll_candidates(desc.roll, views.roll[v], self.config.roll_peaks):
+                camera_T_view = view_to_scene(desc.centroid, views.centroid[v], roll)
+                by_object.setdefault(oid, []).append(camera_T_view @ views.view_T_object[v])
+        for oid, starts in by_object.items():
+            det = self._score(self.db.models[oid], scene, idx, starts)
+            if det is not None and (best is None or _better(det, best)):
+                best = det
+        return best
+
+    def _score(
+        self, model: ObjectModel, scene: SceneCloud, idx: np.ndarray, starts: list[np.ndarray], from_prior: bool = False
+    ) -> Detection | None:
+        """ICP from each start onto the cluster; the best result if it passes the acceptance tests."""
+        c = self.config
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points[idx].astype(np.float64)))
+        target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
+        best: IcpResult | None = None
+        for start in starts:
+            res = refine_icp(model.points, model.normals, target, start, c.icp_distance_m, c.icp_iterations)
+            if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
+                best = res
+        if best is None:
+            return None
+        coverage = _coverage(model, best.camera_T_object, target, c.icp_distance_m)
+        ok = best.fitness >= c.min_fitness and coverage >= c.min_coverage and best.rmse_m <= c.max_rmse_m
+        log.debug("%s: fitness %.2f coverage %.2f rmse %.4f -> %s", model.object_id, best.fitness, coverage,
+                  best.rmse_m, "accepted" if ok else "rejected")
+        if not ok:
+            return None
+        return Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m, len(idx),
+                         from_prior)
+
+
+def _coverage(model: ObjectModel, camera_T_object: np.ndarray, target: o3d.geometry.PointCloud, dist: float) -> float:
+    """Share of the cluster's points within dist of the posed model."""
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points.astype(np.float64)))
+    src.transform(camera_T_object)
+    d = np.asarray(target.compute_point_cloud_distance(src))
+    return float(np.mean(d <= dist)) if len(d) else 0.0
+
+
+def _cluster_near(points: np.ndarray, clusters: list[np.ndarray], position: np.ndarray, radius: float) -> int | None:
+    """The cluster with the most points within radius of position, if any."""
+    counts = [int(np.sum(np.linalg.norm(points[idx] - position, axis=1) <= radius)) for idx in clusters]
+    if not counts or max(counts) == 0:
+        return None
+    return int(np.argmax(counts))
+
+
+def _better(a: Detection, b: Detection) -> bool:
+    return (a.fitness * a.coverage, -a.rmse_m) > (b.fitness * b.coverage, -b.rmse_m)

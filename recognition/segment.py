@@ -1,0 +1,56 @@
+"""Scene segmentation: remove dominant planes (RANSAC), then Euclidean clusters with size limits."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+
+def remove_planes(
+    points: np.ndarray,
+    distance_m: float,
+    max_planes: int,
+    min_fraction: float,
+    noise_per_m2: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """Mask (N,) of the points that are neither on nor behind a dominant plane (camera at the origin).
+
+    Up to max_planes planes are found, largest first, each only if its RANSAC inliers are at least
+    min_fraction of all points (so a box face is not taken for the table). A point is removed when it
+    lies behind the plane or within max(distance_m, noise_per_m2 * z^2) of it: depth noise grows with
+    the square of range, and a fixed band leaves the far end of a table behind as clutter. Seeded.
+    """
+    keep = np.ones(len(points), dtype=bool)
+    o3d.utility.random.seed(seed)
+    pts = np.asarray(points, dtype=np.float64)
+    band = np.maximum(distance_m, noise_per_m2 * pts[:, 2] ** 2)
+    for _ in range(max_planes):
+        rest = np.flatnonzero(keep)
+        if len(rest) < max(3, min_fraction * len(pts)):
+            break
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[rest]))
+        plane, inliers = pcd.segment_plane(distance_m, ransac_n=3, num_iterations=200)
+        if len(inliers) < min_fraction * len(pts):
+            break
+        a, b, c, d = plane
+        if d < 0:  # orient the normal towards the camera: the origin has positive signed distance
+            a, b, c, d = -a, -b, -c, -d
+        signed = pts[rest] @ np.array([a, b, c]) + d
+        keep[rest[signed < band[rest]]] = False
+    return keep
+
+
+def euclidean_clusters(points: np.ndarray, tolerance_m: float, min_points: int, max_points: int) -> list[np.ndarray]:
+    """Index arrays of the connected components of the tolerance_m neighbour graph, largest first.
+
+    PCL's EuclideanClusterExtraction: DBSCAN with one point per core is exactly that graph's
+    components. Clusters outside [min_points, max_points] are dropped.
+    """
+    if len(points) == 0:
+        return []
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    labels = np.asarray(pcd.cluster_dbscan(tolerance_m, min_points=1))
+    clusters = [np.flatnonzero(labels == k) for k in range(labels.max() + 1)]
+    clusters = [c for c in clusters if min_points <= len(c) <= max_points]
+    return sorted(clusters, key=len, reverse=True)

@@ -1,0 +1,153 @@
+"""Recognition against the Point Cloud Library's own data and reference values (shared/data/pcl)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from recognition.align import align_to_z, roll_candidates, roll_histogram, rot_z
+from recognition.cloud import depth_to_cloud, estimate_normals, read_cloud
+from recognition.config import DescriptorConfig, RecognitionConfig
+from recognition.errors import CloudError, ModelError
+from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
+from recognition.pipeline import Recognizer
+from recognition.vfh import F_BINS, vfh
+from tests.helpers import assert_pose_close
+
+PCL = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
+GRABBER_K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])  # pclzf/*.xml
+
+
+@pytest.fixture(scope="module")
+def milk() -> np.ndarray:
+    return read_cloud(PCL / "milk.pcd")
+
+
+@pytest.fixture(scope="module")
+def milk_pcl_normals() -> np.ndarray:
+    return np.array(json.loads((PCL / "reference" / "milk_normals_pcl.json").read_text())["normals"])[:, :3]
+
+
+def bun0() -> tuple[np.ndarray, np.ndarray]:
+    pcd = o3d.t.io.read_point_cloud(str(PCL / "bun0.pcd"))
+    return pcd.point.positions.numpy(), pcd.point.normals.numpy()
+
+
+@pytest.mark.parametrize("frame", sorted(p.stem for p in (PCL / "grabber_sequences" / "pcd").glob("*.pcd")))
+def test_depth_to_cloud_reproduces_pcl_grabber_exactly(frame: str) -> None:
+    ref = read_cloud(PCL / "grabber_sequences" / "pcd" / f"{frame}.pcd", organised=True)
+    depth = cv2.imread(str(PCL / "grabber_sequences" / "tiff" / f"{frame}_depth.tiff"), cv2.IMREAD_UNCHANGED)
+    cloud = depth_to_cloud(depth, GRABBER_K, depth_scale=0.001)
+    assert cloud.shape == ref.shape == (480, 640, 3)
+    np.testing.assert_array_equal(np.isnan(cloud), np.isnan(ref))
+    np.testing.assert_array_equal(cloud[~np.isnan(ref)], ref[~np.isnan(ref)])
+
+
+def test_normals_agree_with_pcl_on_milk(milk: np.ndarray, milk_pcl_normals: np.ndarray) -> None:
+    normals, _ = estimate_normals(milk, radius_m=0.02, viewpoint=(0, 0, 0))
+    cos = np.clip(np.einsum("ij,ij->i", normals, milk_pcl_normals), -1, 1)  # signed: orientation counts too
+    angle = np.degrees(np.arccos(cos))
+    assert np.median(angle) < 1.0 and np.percentile(angle, 99) < 5.0, (np.median(angle), np.percentile(angle, 99))
+
+
+def test_normals_are_nan_where_too_few_neighbours() -> None:
+    pts = np.array([[0, 0, 1.0], [0.001, 0, 1.0], [5, 5, 5.0]] + [[x, y, 2.0] for x in (0, 0.01) for y in (0, 0.01)])
+    normals, _ = estimate_normals(pts, radius_m=0.02)
+    assert np.isnan(normals[:3]).all() and np.isfinite(normals[3:]).all()
+    np.testing.assert_allclose(np.abs(normals[3:, 2]), 1.0, atol=1e-6)
+    assert (normals[3:, 2] < 0).all(), "normals must face the viewpoint at the origin"
+
+
+REFERENCE = json.loads((PCL / "reference" / "vfh_pcl_1_13.json").read_text())
+SETTINGS = {"default": {}, "normalize_distance_and_size_component": {"normalize_distance": True, "size_component": True}}
+
+
+@pytest.mark.parametrize("setting", sorted(SETTINGS))
+@pytest.mark.parametrize("cloud", ["bun0.pcd", "milk.pcd"])
+def test_vfh_equals_pcl_bin_for_bin(cloud: str, setting: str, milk: np.ndarray, milk_pcl_normals: np.ndarray) -> None:
+    points, normals = bun0() if cloud == "bun0.pcd" else (milk, milk_pcl_normals)
+    ours = vfh(points, normals, (0, 0, 0), binning="pcl", **SETTINGS[setting])
+    ref = np.array(REFERENCE[cloud][setting])
+    assert ours.shape == ref.shape == (308,)
+    worst = int(np.argmax(np.abs(ours - ref)))
+    assert np.abs(ours - ref).max() <= 1e-3, f"bin {worst}: ours {ours[worst]}, PCL {ref[worst]}"
+
+
+def test_vfh_pcl17_binning_spreads_f2_f3_and_keeps_the_rest(milk: np.ndarray, milk_pcl_normals: np.ndarray) -> None:
+    new = vfh(milk, milk_pcl_normals, binning="pcl")
+    old = vfh(milk, milk_pcl_normals, binning="pcl17")
+    f2_new, f2_old = new[F_BINS : 2 * F_BINS], old[F_BINS : 2 * F_BINS]
+    # PCL >= 1.10.1 maps f2 in [-1, 1] through (f + pi) / 2 pi: only bins 15..29 can fill.
+    assert f2_new[:15].sum() == 0 and f2_new[30:].sum() == 0
+    assert f2_old[:15].sum() + f2_old[30:].sum() > 0
+    np.testing.assert_allclose(f2_old.sum(), f2_new.sum(), rtol=1e-4)  # same points, other bins (float32 sums)
+    np.testing.assert_array_equal(old[:F_BINS], new[:F_BINS])  # f1 binned alike in both
+    np.testing.assert_array_equal(old[3 * F_BINS :], new[3 * F_BINS :])
+
+
+def test_vfh_leaves_out_points_with_non_finite_normals(milk: np.ndarray, milk_pcl_normals: np.ndarray) -> None:
+    pts = np.vstack([milk, [[0.1, 0.1, 0.8], [0.2, 0.1, 0.8]]])
+    normals = np.vstack([milk_pcl_normals, [[np.nan, 0, 0], [np.inf, 0, 1]]])
+    np.testing.assert_array_equal(vfh(pts, normals), vfh(milk, milk_pcl_normals))
+
+
+@pytest.mark.parametrize("bad", ["shape", "few", "binning"])
+def test_vfh_bad_input_is_a_clear_error(bad: str) -> None:
+    p = np.random.default_rng(0).normal(size=(50, 3))
+    args = {"shape": (p, p[:10]), "few": (p[:1], p[:1]), "binning": (p, p)}[bad]
+    with pytest.raises(CloudError):
+        vfh(*args, binning="pcl15" if bad == "binning" else "pcl")
+
+
+def test_roll_histogram_recovers_a_known_roll(milk: np.ndarray, milk_pcl_normals: np.ndarray) -> None:
+    """Turn the milk view about its centroid's line of sight; the roll alignment must find the angle."""
+    A = align_to_z(milk.mean(axis=0))
+    for roll_deg in (17.0, 95.0, -140.0):
+        R = A.T @ rot_z(np.radians(roll_deg)) @ A  # rotation about the centroid ray, through the origin
+        h0 = roll_histogram(milk, milk_pcl_normals)
+        h1 = roll_histogram(milk @ R.T, milk_pcl_normals @ R.T)
+        found = np.degrees(roll_candidates(h1, h0, peaks=1)[0])
+        err = (found - roll_deg + 180) % 360 - 180
+        assert abs(err) < 4.0, f"roll {roll_deg} deg recovered as {found:.1f} deg"
+
+
+def test_recognizes_the_milk_carton_in_pcls_real_scene(milk: np.ndarray) -> None:
+    """PCL's acceptance on its own data: model-to-scene RMSE under 1 cm, true pose the identity."""
+    cfg = RecognitionConfig()
+    db = ModelDatabase(cfg.descriptor, {})
+    db.add(model_from_cloud("milk", milk, cfg.descriptor))
+    scene = read_cloud(PCL / "milk_cartoon_all_small_clorox.pcd", organised=True)
+    detections = Recognizer(db, cfg).recognize(scene)
+    assert [d.object_id for d in detections] == ["milk"]
+    pose = detections[0].camera_T_object
+    model = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(milk.astype(float))).transform(pose)
+    scene_pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(read_cloud(PCL / "milk_cartoon_all_small_clorox.pcd")))
+    rmse = float(np.sqrt(np.mean(np.asarray(model.compute_point_cloud_distance(scene_pcd)) ** 2)))
+    assert rmse < 0.01, f"model-to-scene RMSE {rmse * 1000:.1f} mm"
+    assert_pose_close(pose, np.eye(4), pos_tol_m=0.01, rot_tol_deg=2.0, what="milk carton")
+
+
+def test_model_database_round_trips_and_refuses_damage(tmp_path: Path, milk: np.ndarray) -> None:
+    params = DescriptorConfig()
+    db = ModelDatabase(params, {})
+    db.add(model_from_cloud("milk", milk, params, subdivisions=0))
+    box = o3d.geometry.TriangleMesh.create_box(0.2, 0.1, 0.05)
+    db.add(model_from_mesh("box", box, params, subdivisions=0))
+    loaded = ModelDatabase.load(db.save(tmp_path / "db"))
+    assert sorted(loaded.models) == ["box", "milk"]
+    for oid in db.models:
+        np.testing.assert_array_equal(loaded.models[oid].views.vfh, db.models[oid].views.vfh)
+        np.testing.assert_allclose(loaded.models[oid].points, db.models[oid].points, atol=1e-6)
+    assert len(loaded.models["box"].views) == 12  # an icosahedron's vertices, each sees the box
+    with pytest.raises(ModelError, match="rebuild"):
+        Recognizer(loaded, RecognitionConfig(descriptor=DescriptorConfig(voxel_m=0.01)))
+    np.savez(tmp_path / "db" / "box" / "views.npz", vfh=np.zeros((2, 5)))
+    with pytest.raises(ModelError, match="views.npz"):
+        ModelDatabase.load(tmp_path / "db")
+    with pytest.raises(ModelError, match="no database.json"):
+        ModelDatabase.load(tmp_path)
