@@ -107,11 +107,13 @@ def refine_icp(
     camera_T_object: np.ndarray,
     max_distance_m: float,
     iterations: int = 30,
+    max_shift_m: float = np.inf,
 ) -> IcpResult:
     """Point-to-plane ICP of the camera-facing model points onto the scene (which must have normals).
 
     The visible set is chosen at the initial pose, refined, then chosen again at the refined pose for
-    the final score, so that the fitness counts the surface the camera should actually see.
+    the final score, so that the fitness counts the surface the camera should actually see. A result
+    that moved more than max_shift_m from the start (ICP sliding off a degenerate cluster) scores 0.
     """
     est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
@@ -121,6 +123,9 @@ def refine_icp(
         if len(src.points) < 3:
             return IcpResult(pose, 0.0, float("inf"))
         pose = o3d.pipelines.registration.registration_icp(src, scene, distance, pose, est, crit).transformation
+    start = np.asarray(camera_T_object, dtype=np.float64)
+    if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
+        return IcpResult(start, 0.0, float("inf"))
     src = _cloud(visible_points(model_points, model_normals, pose))
     ev = o3d.pipelines.registration.evaluate_registration(src, scene, max_distance_m, pose)
     return IcpResult(np.asarray(pose), float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))

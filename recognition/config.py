@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.spec import PoseSpec
 
@@ -16,8 +16,8 @@ class DescriptorConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    voxel_m: float = Field(default=0.005, gt=0, description="voxel side for downsampling, m")
-    normal_radius_m: float = Field(default=0.015, gt=0, description="neighbourhood radius for normals, m")
+    voxel_m: float = Field(default=0.01, gt=0, description="voxel side for downsampling, m")
+    normal_radius_m: float = Field(default=0.03, gt=0, description="neighbourhood radius for normals, m")
     binning: Literal["pcl", "pcl17"] = Field(
         default="pcl", description="VFH f2/f3 binning: 'pcl' = PCL >= 1.10.1 (default), 'pcl17' = PCL 1.7 (the paper's)"
     )
@@ -39,21 +39,38 @@ class RecognitionConfig(BaseModel):
     models: Path | None = Field(default=None, description="model database directory (cellsight model build)")
     descriptor: DescriptorConfig = Field(default_factory=DescriptorConfig)
     max_range_m: float = Field(default=3.5, gt=0, description="scene points farther than this are ignored")
+    workspace_min: tuple[float, float, float] | None = Field(
+        default=None, description="world-frame box where objects can be (m); used once the camera is localized"
+    )
+    workspace_max: tuple[float, float, float] | None = None
     plane_distance_m: float = Field(default=0.012, gt=0, description="RANSAC inlier distance for plane removal")
     plane_noise_per_m2: float = Field(
         default=0.0043, ge=0, description="plane band grows as this x range^2 (3 sigma of Kinect depth noise, 1/m)"
     )
-    max_planes: int = Field(default=3, ge=0, description="dominant planes removed (table, floor, wall)")
+    max_planes: int = Field(default=1, ge=0, description="dominant planes removed (the table; more for floor, walls)")
     min_plane_fraction: float = Field(default=0.1, gt=0, le=1, description="a plane must hold this share of the scene")
-    cluster_tolerance_m: float = Field(default=0.02, gt=0, description="Euclidean clustering distance")
+    cluster_tolerance_m: float = Field(default=0.035, gt=0, description="Euclidean clustering distance")
     cluster_min_points: int = Field(default=30, ge=3)
     cluster_max_points: int = Field(default=25000, ge=3)
-    candidates: int = Field(default=6, ge=1, description="nearest model views tried per cluster")
+    candidates: int = Field(default=3, ge=1, description="nearest model views tried per object and cluster")
     roll_peaks: int = Field(default=3, ge=1, description="roll angles tried per view")
     icp_distance_m: float = Field(default=0.015, gt=0, description="ICP correspondence distance (coarse pass: 2x)")
     icp_iterations: int = Field(default=30, ge=1)
     min_fitness: float = Field(default=0.5, ge=0, le=1, description="share of the visible model explained by the scene")
     min_coverage: float = Field(default=0.5, ge=0, le=1, description="share of the cluster explained by the model")
     max_rmse_m: float = Field(default=0.01, gt=0, description="inlier RMSE above which a match is rejected")
+    upright: bool = Field(
+        default=True,
+        description="objects stand on their base (object +z within 45 deg of world up): rejects the flipped poses a "
+        "symmetric shape allows; applies once the camera's world pose is known",
+    )
     object_markers: list[ObjectMarkerConfig] = Field(default_factory=list)
+    @model_validator(mode="after")
+    def _box(self) -> "RecognitionConfig":
+        if (self.workspace_min is None) != (self.workspace_max is None):
+            raise ValueError("give both workspace_min and workspace_max, or neither")
+        if self.workspace_min is not None and not all(a < b for a, b in zip(self.workspace_min, self.workspace_max)):
+            raise ValueError(f"workspace_min {self.workspace_min} must be below workspace_max {self.workspace_max}")
+        return self
+
     rate_hz: float = Field(default=2.0, gt=0, description="worker: frames recognised per camera per second")

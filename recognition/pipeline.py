@@ -23,6 +23,7 @@ from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import euclidean_clusters, remove_planes
 
 log = logging.getLogger(__name__)
+UPRIGHT_COS = float(np.cos(np.radians(45.0)))
 
 
 @dataclass(frozen=True)
@@ -67,12 +68,17 @@ class Recognizer:
         self.db = database
         self.config = config
         self._table, self._rows = database.view_table()
+        self._up: np.ndarray | None = None
 
-    def prepare(self, cloud: np.ndarray) -> SceneCloud:
-        """Finite points within range, downsampled, with normals, and the non-plane mask."""
+    def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
+        """Finite points within range (and the workspace, when the camera pose is known), downsampled,
+        with normals, and the non-plane mask."""
         c, d = self.config, self.config.descriptor
         pts = finite_points(cloud)
         pts = pts[np.linalg.norm(pts, axis=1) <= c.max_range_m]
+        if world_T_camera is not None and c.workspace_min is not None:
+            world = pts @ world_T_camera[:3, :3].T.astype(np.float32) + world_T_camera[:3, 3].astype(np.float32)
+            pts = pts[np.all((world >= c.workspace_min) & (world <= c.workspace_max), axis=1)]
         if len(pts) == 0:
             return SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
         pts = voxel_downsample(pts, d.voxel_m)
@@ -82,11 +88,18 @@ class Recognizer:
         fg = remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)
         return SceneCloud(pts, normals, fg)
 
-    def recognize(self, cloud: np.ndarray, priors: Sequence[Prior] = ()) -> list[Detection]:
-        """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), best per object."""
-        scene = self.prepare(cloud)
+    def recognize(
+        self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None
+    ) -> list[Detection]:
+        """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), best per object.
+
+        world_T_camera (4, 4), when known, crops the scene to the configured workspace.
+        """
+        scene = self.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
             return []
+        # World up in the camera frame, when known: the upright test needs it.
+        self._up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
         c = self.config
         fg_idx = np.flatnonzero(scene.foreground)
         clusters = [fg_idx[k] for k in euclidean_clusters(
@@ -120,12 +133,17 @@ class Recognizer:
         dist = np.abs(self._table - desc.vfh).sum(axis=1)  # L1 between histograms
         best: Detection | None = None
         by_object: dict[str, list[np.ndarray]] = {}
-        for row in np.argsort(dist)[: self.config.candidates]:
+        # The nearest views of every object, not of the database as a whole: on noisy clusters the
+        # descriptor ranks objects poorly, and ICP's fitness is the better judge between them.
+        for row in np.argsort(dist, kind="stable"):
             oid, v = self._rows[row]
+            starts = by_object.setdefault(oid, [])
+            if len(starts) >= self.config.candidates * self.config.roll_peaks:
+                continue
             views = self.db.models[oid].views
             for roll in roll_candidates(desc.roll, views.roll[v], self.config.roll_peaks):
                 camera_T_view = view_to_scene(desc.centroid, views.centroid[v], roll)
-                by_object.setdefault(oid, []).append(camera_T_view @ views.view_T_object[v])
+                starts.append(camera_T_view @ views.view_T_object[v])
         for oid, starts in by_object.items():
             det = self._score(self.db.models[oid], scene, idx, starts)
             if det is not None and (best is None or _better(det, best)):
@@ -141,7 +159,12 @@ class Recognizer:
         target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
         best: IcpResult | None = None
         for start in starts:
-            res = refine_icp(model.points, model.normals, target, start, c.icp_distance_m, c.icp_iterations)
+            if self._up is not None:
+                start = _stand_up(start, self._up, model.points.mean(axis=0))
+            res = refine_icp(model.points, model.normals, target, start, c.icp_distance_m, c.icp_iterations,
+                             max_shift_m=model.diameter_m)
+            if self._up is not None and res.camera_T_object[:3, 2] @ self._up < UPRIGHT_COS:
+                continue  # lying on its side or upside down: the mirror image of a symmetric shape
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
                 best = res
         if best is None:
@@ -154,6 +177,30 @@ class Recognizer:
             return None
         return Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m, len(idx),
                          from_prior)
+
+
+def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The pose turned, about the object's centre (object frame, m), so that its +z is world up.
+
+    A symmetric shape matched from the VFH of a single view is as likely upside down as not; for
+    objects that stand on their base the upright twin is the physical one.
+    """
+    z = camera_T_object[:3, 2]
+    if z @ up >= UPRIGHT_COS:
+        return camera_T_object
+    axis = np.cross(z, up)
+    s, c = np.linalg.norm(axis), float(z @ up)
+    if s < 1e-9:  # exactly upside down: turn about the object's x axis
+        axis, s = camera_T_object[:3, 0], 0.0
+    else:
+        axis = axis / s
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + s * K + (1 - c) * K @ K
+    pivot = camera_T_object[:3, :3] @ centre + camera_T_object[:3, 3]
+    out = camera_T_object.copy()
+    out[:3, :3] = R @ camera_T_object[:3, :3]
+    out[:3, 3] = R @ (camera_T_object[:3, 3] - pivot) + pivot
+    return out
 
 
 def _coverage(model: ObjectModel, camera_T_object: np.ndarray, target: o3d.geometry.PointCloud, dist: float) -> float:

@@ -145,7 +145,7 @@ def test_model_database_round_trips_and_refuses_damage(tmp_path: Path, milk: np.
         np.testing.assert_allclose(loaded.models[oid].points, db.models[oid].points, atol=1e-6)
     assert len(loaded.models["box"].views) == 12  # an icosahedron's vertices, each sees the box
     with pytest.raises(ModelError, match="rebuild"):
-        Recognizer(loaded, RecognitionConfig(descriptor=DescriptorConfig(voxel_m=0.01)))
+        Recognizer(loaded, RecognitionConfig(descriptor=DescriptorConfig(voxel_m=params.voxel_m * 2)))
     np.savez(tmp_path / "db" / "box" / "views.npz", vfh=np.zeros((2, 5)))
     with pytest.raises(ModelError, match="views.npz"):
         ModelDatabase.load(tmp_path / "db")

@@ -71,7 +71,7 @@ def _box_mesh(size, T: np.ndarray) -> o3d.geometry.TriangleMesh:
     return mesh.transform(T)
 
 
-def _object_mesh(obj: ObjectSpec) -> o3d.geometry.TriangleMesh:
+def object_mesh(obj: ObjectSpec) -> o3d.geometry.TriangleMesh:
     """Mesh in the object frame (origin at the base centre, z up)."""
     if obj.shape == "box":
         mesh = o3d.geometry.TriangleMesh.create_box(*obj.size)
@@ -187,7 +187,7 @@ class SimCell:
         if key != self._dynamic_key:
             s = _Scene()
             for obj, T in zip(self.scenario.objects, poses):
-                s.add(_object_mesh(obj).transform(T), obj.color)
+                s.add(object_mesh(obj).transform(T), obj.color)
             for mk in self.scenario.markers:
                 if mk.object is not None:
                     self._add_marker(s, mk, t_s)
