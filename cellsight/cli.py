@@ -23,6 +23,7 @@ bus_app = typer.Typer(help="Look at the zenoh bus.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 app.add_typer(bus_app, name="bus")
 
+RECOGNITION_NICE = 10
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="debug logging")]
 
 
@@ -228,6 +229,8 @@ markers_app = typer.Typer(help="The marker front-end on single images.", no_args
 app.add_typer(driver_app, name="driver")
 app.add_typer(sim_app, name="sim")
 app.add_typer(markers_app, name="markers")
+model_app = typer.Typer(help="Recognition model databases.", no_args_is_help=True)
+app.add_typer(model_app, name="model")
 
 
 @driver_app.command("sim")
@@ -330,6 +333,112 @@ def estimator_cmd(
     stop = _stop_event()
     with _bus(cfg, None, mode, connect, listen, config) as bus:
         EstimatorService(bus, est_cfg).run(stop, duration)
+
+
+@app.command("recognition")
+def recognition_cmd(
+    cell_config: CellConfigOpt = None,
+    scenario: ScenarioOpt = None,
+    models: Annotated[Optional[Path], typer.Option("--models", help="model database folder (default: [recognition] models, or built from the scenario)")] = None,
+    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run the recognition worker: depth frames and camera poses in, object poses in world frame out."""
+    from cellsight.model_build import models_for
+    from recognition.errors import RecognitionError
+    from recognition.worker import RecognitionWorker
+
+    _setup_logging(verbose)
+    cfg = _load_cell(cell_config, scenario)
+    # Recognition is the heaviest and least urgent work of a cell: drivers and the estimator go first.
+    os.nice(RECOGNITION_NICE)
+    try:
+        db = models_for(cfg, models)
+        stop = _stop_event()
+        with _bus(cfg, None, mode, connect, listen, config) as bus:
+            RecognitionWorker(bus, cfg.recognition, db).run(stop, duration)
+    except RecognitionError as exc:
+        raise _fail(str(exc), 2) from None
+
+
+@model_app.command("build")
+def model_build(
+    out: Annotated[Path, typer.Option("--out", help="database folder to write")],
+    scenario: Annotated[Optional[Path], typer.Option("--scenario", help="every object of this scenario TOML")] = None,
+    demo: Annotated[bool, typer.Option("--demo", help="every object of the built-in demo cell")] = False,
+    mesh: Annotated[Optional[list[str]], typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres")] = None,
+    cloud: Annotated[Optional[list[str]], typer.Option("--cloud", help="ID=FILE: a point cloud (PCD/PLY), metres, captured from its origin")] = None,
+    distance: Annotated[float, typer.Option(help="virtual camera distance for rendered views, m")] = 2.0,
+    cell_config: CellConfigOpt = None,
+) -> None:
+    """Build a recognition model database (views from a tessellated sphere; descriptors as configured)."""
+    from rich.progress import Progress
+
+    from cellsight.model_build import VIEWS_PER_OBJECT, build_database
+    from drivers.errors import DriverError
+    from drivers.sim.scenario import load_scenario
+    from recognition.errors import RecognitionError
+
+    def pairs(items: list[str] | None, what: str) -> dict[str, Path]:
+        out_ = {}
+        for item in items or []:
+            oid, sep, path = item.partition("=")
+            if not sep or not oid or not path:
+                raise _fail(f"--{what} {item!r}: write it as ID=FILE", 2)
+            out_[oid] = Path(path)
+        return out_
+
+    meshes, clouds = pairs(mesh, "mesh"), pairs(cloud, "cloud")
+    if not (scenario or demo or meshes or clouds):
+        raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE or --cloud ID=FILE", 2)
+    cfg = _load(cell_config)
+    try:
+        sc = load_scenario(scenario) if (scenario or demo) else None
+        total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds))
+        with Progress(console=_stderr(), transient=True) as bar:
+            task = bar.add_task("rendering and describing views", total=total)
+            db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds,
+                                distance_m=distance, progress=lambda: bar.advance(task))
+        db.save(out)
+    except (RecognitionError, DriverError) as exc:
+        raise _fail(str(exc), 2) from None
+    for oid, mdl in sorted(db.models.items()):
+        typer.echo(f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source})")
+    typer.echo(f"wrote {out}/")
+
+
+@app.command("recognize")
+def recognize_cmd(
+    models: Annotated[Path, typer.Option("--models", help="model database folder (cellsight model build)")],
+    scene: Annotated[Path, typer.Option("--scene", help="scene: PCD/PLY cloud, or 16-bit depth image in mm")],
+    fx: Annotated[Optional[float], typer.Option(help="depth image focal length x, px (default Kinect v1)")] = None,
+    fy: Annotated[Optional[float], typer.Option(help="depth image focal length y, px")] = None,
+    cx: Annotated[Optional[float], typer.Option(help="depth image principal point x, px")] = None,
+    cy: Annotated[Optional[float], typer.Option(help="depth image principal point y, px")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
+    cell_config: CellConfigOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Recognise the database's objects in one scene and print their poses in the camera frame."""
+    from cellsight.recognize_cmd import recognize_file
+    from recognition.errors import RecognitionError
+    from recognition.models import ModelDatabase
+
+    _setup_logging(verbose)
+    cfg = _load(cell_config)
+    try:
+        db = ModelDatabase.load(models)
+        result = recognize_file(scene, db, cfg.recognition.model_copy(update={"descriptor": db.descriptor}),
+                                fx=fx, fy=fy, cx=cx, cy=cy)
+    except RecognitionError as exc:
+        raise _fail(str(exc), 2) from None
+    typer.echo(result.to_json() if as_json else result.to_text())
+    if not result.detections:
+        raise typer.Exit(1)
 
 
 @sim_app.command("snapshot")
@@ -457,7 +566,7 @@ def run_cmd(
     foxglove_port: FoxglovePortOpt = 8765,
     verbose: VerboseOpt = False,
 ) -> None:
-    """Run a cell: router, one driver per camera, estimator (and recorder), supervised."""
+    """Run a cell: router, one driver per camera, estimator, recognition (and recorder), supervised."""
     _setup_logging(verbose)
     cfg = _load_cell(cell_config)
     run_dir = out or Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")

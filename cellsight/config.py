@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from cellsight.errors import ConfigError
 from drivers.config import CameraConfig, MarkerConfig
 from estimator.config import EstimatorConfig
+from recognition.config import RecognitionConfig
 from schemas.bus import TransportConfig
 from schemas.keys import check_name
 from schemas.spec import format_validation_error, read_toml
@@ -47,6 +48,7 @@ class CellConfig(BaseModel):
     cameras: list[CameraConfig] = Field(default_factory=list)
     markers: MarkerConfig = Field(default_factory=MarkerConfig)
     estimator: EstimatorConfig = Field(default_factory=EstimatorConfig)
+    recognition: RecognitionConfig = Field(default_factory=RecognitionConfig)
 
     @model_validator(mode="after")
     def _consistent(self) -> "CellConfig":

@@ -1,4 +1,4 @@
-"""``cellsight run``: one router, one driver per camera, the estimator and the recorder, supervised.
+"""``cellsight run``: one router, one driver per camera, the estimator, recognition and the recorder, supervised.
 
 Every component runs as its own process (``python -m cellsight.cli ...``) with the run's saved
 config, so a crash in one never takes the others down. A process that exits on its own is
@@ -154,6 +154,8 @@ def plan(cfg: CellConfig, run_dir: Path, record: Path | None, max_image_hz: floa
         children.append(Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log"))
     state = cfg.estimator.state_file or run_dir / "estimator_state.json"
     children.append(Child("estimator", CLI + ["estimator", "--state-file", str(state)] + common, logs / "estimator.log"))
+    if cfg.recognition.enabled:
+        children.append(Child("recognition", CLI + ["recognition"] + common, logs / "recognition.log"))
     if record is not None:
         argv = CLI + ["record", "--out", str(record)] + common
         if max_image_hz:
@@ -210,7 +212,7 @@ def run_cell(
             stop.wait(0.2)
     finally:
         # Stop the producers first and the router last, so the recorder sees everything.
-        order = [c for c in children if c.name.startswith("driver")] + [c for c in children if c.name == "estimator"]
+        order = [c for c in children if c.name.startswith("driver")] + [c for c in children if c.name in ("estimator", "recognition")]
         order += [c for c in children if c.name == "recorder"] + [c for c in children if c.name == "router"]
         for group in ([c for c in order if c.name != "router"], [c for c in order if c.name == "router"]):
             Supervisor(group).stop()

@@ -13,6 +13,7 @@ from cellsight.config import CellConfig, CellSection
 from drivers.config import CameraConfig, IntrinsicsConfig, MarkerConfig
 from drivers.sim.scenario import Scenario, load_scenario
 from estimator.config import AnchorConfig, EstimatorConfig
+from recognition.config import ObjectMarkerConfig, RecognitionConfig
 from schemas.codec import quat_from_matrix
 from schemas.spec import PoseSpec
 
@@ -37,6 +38,20 @@ def estimator_config_of(scenario: Scenario, **overrides) -> EstimatorConfig:
     )
 
 
+def recognition_config_of(scenario: Scenario, base: RecognitionConfig) -> RecognitionConfig:
+    """``base`` with the scenario's object markers and workspace (the scenario author's declarations)."""
+    markers = []
+    for mk in scenario.markers:
+        if mk.role == "object" and mk.object is not None:
+            T = mk.pose.matrix()
+            spec = PoseSpec(position=tuple(float(v) for v in T[:3, 3]), quaternion=tuple(float(v) for v in quat_from_matrix(T[:3, :3])))
+            markers.append(ObjectMarkerConfig(marker_id=mk.id, object_id=mk.object, object_T_marker=spec))
+    update: dict = {"object_markers": markers}
+    if scenario.workspace is not None and base.workspace_min is None:
+        update |= {"workspace_min": scenario.workspace[0], "workspace_max": scenario.workspace[1]}
+    return base.model_copy(update=update)
+
+
 def cell_config_of(scenario: Scenario, scenario_path: Path | None = None, base: CellConfig | None = None) -> CellConfig:
     """``base`` (transport, estimator tuning) with cameras, markers and anchors from the scenario."""
     base = base or CellConfig()
@@ -55,6 +70,7 @@ def cell_config_of(scenario: Scenario, scenario_path: Path | None = None, base: 
             "cameras": cameras,
             "markers": MarkerConfig.model_validate(markers.model_dump()),
             "estimator": estimator_config_of(scenario, **tuning),
+            "recognition": recognition_config_of(scenario, base.recognition),
         }
     )
 

@@ -45,6 +45,20 @@ def depth_to_cloud(depth: np.ndarray, K: np.ndarray, depth_scale: float = 0.001)
     return cloud
 
 
+def camera_rays(K: np.ndarray, width: int, height: int, world_T_camera: np.ndarray) -> np.ndarray:
+    """Rays for Open3D's RaycastingScene, one per pixel, (H * W, 6) float32: origin, direction.
+
+    Directions have z = 1 in the camera frame, so a hit's t is the pixel's depth; pixel (u, v) looks
+    along ((u - cx) / fx, (v - cy) / fy, 1), the convention of depth_to_cloud and OpenCV (Open3D's
+    own create_rays_pinhole aims half a pixel off, at u + 0.5).
+    """
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1).reshape(-1, 3)
+    dirs = dirs @ np.asarray(world_T_camera)[:3, :3].T
+    origin = np.broadcast_to(np.asarray(world_T_camera)[:3, 3], dirs.shape)
+    return np.hstack([origin, dirs]).astype(np.float32)
+
+
 def finite_points(cloud: np.ndarray) -> np.ndarray:
     """The finite points of an organised or flat cloud, as (N, 3) float32."""
     pts = np.asarray(cloud, dtype=np.float32).reshape(-1, 3)

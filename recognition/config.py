@@ -36,6 +36,7 @@ class ObjectMarkerConfig(BaseModel):
 class RecognitionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
+    enabled: bool = Field(default=True, description="run the recognition worker in `cellsight run`")
     models: Path | None = Field(default=None, description="model database directory (cellsight model build)")
     descriptor: DescriptorConfig = Field(default_factory=DescriptorConfig)
     max_range_m: float = Field(default=3.5, gt=0, description="scene points farther than this are ignored")
@@ -58,6 +59,9 @@ class RecognitionConfig(BaseModel):
     icp_iterations: int = Field(default=30, ge=1)
     min_fitness: float = Field(default=0.5, ge=0, le=1, description="share of the visible model explained by the scene")
     min_coverage: float = Field(default=0.5, ge=0, le=1, description="share of the cluster explained by the model")
+    min_fitness_shared: float = Field(
+        default=0.8, ge=0, le=1, description="fitness that accepts a match covering only part of a cluster (touching objects)"
+    )
     max_rmse_m: float = Field(default=0.01, gt=0, description="inlier RMSE above which a match is rejected")
     upright: bool = Field(
         default=True,
@@ -73,4 +77,6 @@ class RecognitionConfig(BaseModel):
             raise ValueError(f"workspace_min {self.workspace_min} must be below workspace_max {self.workspace_max}")
         return self
 
-    rate_hz: float = Field(default=2.0, gt=0, description="worker: frames recognised per camera per second")
+    rate_hz: float = Field(
+        default=0.5, gt=0, description="worker: frames recognised per camera per second (one takes ~0.75 s of a core)"
+    )

@@ -24,7 +24,7 @@ import numpy as np
 import open3d as o3d
 from pydantic import ValidationError
 
-from recognition.cloud import depth_to_cloud, estimate_normals, finite_points, voxel_downsample
+from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, finite_points, voxel_downsample
 from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
@@ -207,11 +207,8 @@ def model_from_mesh(
         for direction in sphere_viewpoints(subdivisions):
             object_T_view = _object_T_view(centre, direction, distance_m)
             view_T_object = invert_pose(object_T_view)
-            rays = scene.create_rays_pinhole(
-                o3d.core.Tensor(camera.K), o3d.core.Tensor(view_T_object), camera.width, camera.height
-            )
-            t_hit = scene.cast_rays(rays)["t_hit"].numpy()
-            # t_hit is along unnormalised rays (z = 1 in the camera frame for pinhole rays): it is depth.
+            rays = o3d.core.Tensor(camera_rays(camera.K, camera.width, camera.height, object_T_view))
+            t_hit = scene.cast_rays(rays)["t_hit"].numpy().reshape(camera.height, camera.width)
             depth = np.where(np.isfinite(t_hit), t_hit, 0.0)
             yield finite_points(depth_to_cloud(depth, camera.K, depth_scale=1.0)), view_T_object
 

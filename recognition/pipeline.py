@@ -24,6 +24,8 @@ from recognition.segment import euclidean_clusters, remove_planes
 
 log = logging.getLogger(__name__)
 UPRIGHT_COS = float(np.cos(np.radians(45.0)))
+#: Touching objects explained away one after another in one cluster, at most.
+MAX_OBJECTS_PER_CLUSTER = 3
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,7 @@ class Detection:
     fitness: float
     coverage: float
     rmse_m: float
-    points: int
+    points: int  # scene points the model explains
     from_prior: bool = False
 
 
@@ -113,25 +115,33 @@ class Recognizer:
             k = _cluster_near(scene.points, clusters, prior.camera_T_object[:3, 3], model.diameter_m)
             if k is None:
                 continue
-            det = self._score(model, scene, clusters[k], [prior.camera_T_object], from_prior=True)
-            if det is not None:
-                used[k] = True
-                found[prior.object_id] = det
+            match = self._score(model, scene, clusters[k], [prior.camera_T_object], from_prior=True)
+            if match is not None:
+                used[k] = match[0].coverage >= c.min_coverage
+                found[prior.object_id] = match[0]
         for k, idx in enumerate(clusters):
-            if used[k]:
-                continue
-            det = self._match_cluster(scene, idx)
-            if det is not None and (det.object_id not in found or _better(det, found[det.object_id])):
-                found[det.object_id] = det
+            rest = idx
+            # Objects that touch share a cluster: a confident match that explains only part of it is
+            # kept, its points are explained away, and the rest is matched again.
+            for _ in range(0 if used[k] else MAX_OBJECTS_PER_CLUSTER):
+                match = self._match_cluster(scene, rest)
+                if match is None:
+                    break
+                det, explained = match
+                if det.object_id not in found or _better(det, found[det.object_id]):
+                    found[det.object_id] = det
+                rest = rest[~explained]
+                if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
+                    break
         return sorted(found.values(), key=lambda d: d.object_id)
 
-    def _match_cluster(self, scene: SceneCloud, idx: np.ndarray) -> Detection | None:
+    def _match_cluster(self, scene: SceneCloud, idx: np.ndarray) -> tuple[Detection, np.ndarray] | None:
         """VFH nearest views -> roll candidates -> ICP; the best accepted hypothesis, if any."""
         if len(self._rows) == 0:
             return None
         desc = describe(scene.points[idx], scene.normals[idx], self.config.descriptor)
         dist = np.abs(self._table - desc.vfh).sum(axis=1)  # L1 between histograms
-        best: Detection | None = None
+        best: tuple[Detection, np.ndarray] | None = None
         by_object: dict[str, list[np.ndarray]] = {}
         # The nearest views of every object, not of the database as a whole: on noisy clusters the
         # descriptor ranks objects poorly, and ICP's fitness is the better judge between them.
@@ -145,15 +155,20 @@ class Recognizer:
                 camera_T_view = view_to_scene(desc.centroid, views.centroid[v], roll)
                 starts.append(camera_T_view @ views.view_T_object[v])
         for oid, starts in by_object.items():
-            det = self._score(self.db.models[oid], scene, idx, starts)
-            if det is not None and (best is None or _better(det, best)):
-                best = det
+            match = self._score(self.db.models[oid], scene, idx, starts)
+            if match is not None and (best is None or _better(match[0], best[0])):
+                best = match
         return best
 
     def _score(
         self, model: ObjectModel, scene: SceneCloud, idx: np.ndarray, starts: list[np.ndarray], from_prior: bool = False
-    ) -> Detection | None:
-        """ICP from each start onto the cluster; the best result if it passes the acceptance tests."""
+    ) -> tuple[Detection, np.ndarray] | None:
+        """ICP from each start onto the cluster; the best result if it passes the acceptance tests,
+        with the mask of the cluster points it explains.
+
+        Accepted: fitness, coverage and RMSE within bounds; or, for a cluster several objects share,
+        a fitness of at least min_fitness_shared with enough explained points to be a cluster itself.
+        """
         c = self.config
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points[idx].astype(np.float64)))
         target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
@@ -169,14 +184,18 @@ class Recognizer:
                 best = res
         if best is None:
             return None
-        coverage = _coverage(model, best.camera_T_object, target, c.icp_distance_m)
-        ok = best.fitness >= c.min_fitness and coverage >= c.min_coverage and best.rmse_m <= c.max_rmse_m
+        explained = _explained(model, best.camera_T_object, target, c.icp_distance_m)
+        coverage = float(explained.mean()) if len(explained) else 0.0
+        whole = best.fitness >= c.min_fitness and coverage >= c.min_coverage
+        shared = best.fitness >= c.min_fitness_shared and explained.sum() >= c.cluster_min_points
+        ok = (whole or shared) and best.rmse_m <= c.max_rmse_m
         log.debug("%s: fitness %.2f coverage %.2f rmse %.4f -> %s", model.object_id, best.fitness, coverage,
                   best.rmse_m, "accepted" if ok else "rejected")
         if not ok:
             return None
-        return Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m, len(idx),
-                         from_prior)
+        det = Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m,
+                        int(explained.sum()), from_prior)
+        return det, explained
 
 
 def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -203,12 +222,11 @@ def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -
     return out
 
 
-def _coverage(model: ObjectModel, camera_T_object: np.ndarray, target: o3d.geometry.PointCloud, dist: float) -> float:
-    """Share of the cluster's points within dist of the posed model."""
+def _explained(model: ObjectModel, camera_T_object: np.ndarray, target: o3d.geometry.PointCloud, dist: float) -> np.ndarray:
+    """Mask of the cluster's points within dist of the posed model."""
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points.astype(np.float64)))
     src.transform(camera_T_object)
-    d = np.asarray(target.compute_point_cloud_distance(src))
-    return float(np.mean(d <= dist)) if len(d) else 0.0
+    return np.asarray(target.compute_point_cloud_distance(src)) <= dist
 
 
 def _cluster_near(points: np.ndarray, clusters: list[np.ndarray], position: np.ndarray, radius: float) -> int | None:

@@ -116,6 +116,13 @@ def pose_to_msg(T: np.ndarray, out: m.Pose | None = None) -> m.Pose:
     return msg
 
 
+def foxglove_pose(T: np.ndarray, out) -> None:
+    """Fill a ``foxglove.Pose`` (position + orientation sub-messages) from a 4x4 pose."""
+    p = pose_to_msg(T)
+    out.position.x, out.position.y, out.position.z = p.x, p.y, p.z
+    out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = p.qx, p.qy, p.qz, p.qw
+
+
 def pose_from_msg(msg: m.Pose, what: str = "pose") -> np.ndarray:
     """4x4 pose from a ``Pose`` message; rejects non-finite values and non-unit quaternions."""
     t = np.array([msg.x, msg.y, msg.z])

@@ -182,6 +182,8 @@ class Scenario(_Strict):
     marker_side_m: float = Field(default=0.15, gt=0)
     floor_size: tuple[float, float] = (3.0, 3.0)
     floor_color: Vec3 = (0.45, 0.45, 0.42)
+    # World-frame box where objects can be (m): what recognition searches once cameras are localized.
+    workspace: tuple[Vec3, Vec3] | None = None
     boxes: list[BoxSpec] = Field(default_factory=list)
     objects: list[ObjectSpec] = Field(default_factory=list)
     markers: list[MarkerSpec] = Field(default_factory=list)

@@ -1,0 +1,71 @@
+"""``cellsight recognize``: the recognition pipeline on one scene file, as a result object."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from recognition.cloud import depth_to_cloud, read_cloud
+from recognition.config import RecognitionConfig
+from recognition.errors import CloudError
+from recognition.models import ModelDatabase
+from recognition.pipeline import Detection, Recognizer
+from schemas.codec import CameraInfo, quat_from_matrix
+
+
+@dataclass(frozen=True)
+class RecognizeResult:
+    scene: Path
+    points: int
+    detections: list[Detection]
+
+    def rows(self) -> list[dict]:
+        return [
+            {
+                "object_id": d.object_id,
+                "position_m": np.round(d.camera_T_object[:3, 3], 4).tolist(),
+                "quaternion_xyzw": np.round(quat_from_matrix(d.camera_T_object[:3, :3]), 5).tolist(),
+                "fitness": round(d.fitness, 3),
+                "coverage": round(d.coverage, 3),
+                "rmse_m": round(d.rmse_m, 5),
+                "cluster_points": d.points,
+            }
+            for d in self.detections
+        ]
+
+    def to_json(self) -> str:
+        return json.dumps({"scene": str(self.scene), "points": self.points, "detections": self.rows()}, indent=2)
+
+    def to_text(self) -> str:
+        lines = [f"{self.scene}: {self.points} points, {len(self.detections)} object(s) (camera frame)"]
+        for r in self.rows():
+            x, y, z = r["position_m"]
+            lines.append(f"  {r['object_id']:<12} at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  q {r['quaternion_xyzw']}  "
+                         f"fitness {r['fitness']:.2f}  coverage {r['coverage']:.2f}  rmse {1000 * r['rmse_m']:.1f} mm")
+        return "\n".join(lines)
+
+
+def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx: float | None = None,
+               cy: float | None = None, depth_scale: float = 0.001) -> np.ndarray:
+    """A camera-frame cloud from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
+    (Kinect v1 defaults for any that are not given)."""
+    if scene.suffix.lower() in (".pcd", ".ply"):
+        return read_cloud(scene, organised=scene.suffix.lower() == ".pcd")
+    depth = cv2.imread(str(scene), cv2.IMREAD_UNCHANGED)
+    if depth is None or depth.ndim != 2:
+        raise CloudError(f"{scene}: not a PCD/PLY cloud nor a single-channel depth image")
+    K = CameraInfo.kinect_v1(depth.shape[1], depth.shape[0]).K
+    for (r, c), v in (((0, 0), fx), ((1, 1), fy), ((0, 2), cx), ((1, 2), cy)):
+        if v is not None:
+            K[r, c] = v
+    return depth_to_cloud(depth, K, depth_scale)
+
+
+def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, **intrinsics) -> RecognizeResult:
+    cloud = load_scene(scene, **intrinsics)
+    finite = int(np.all(np.isfinite(cloud.reshape(-1, 3)), axis=1).sum())
+    return RecognizeResult(scene, finite, Recognizer(db, config).recognize(cloud))

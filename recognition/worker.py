@@ -1,0 +1,228 @@
+"""The recognition worker: depth frames and camera poses in, object poses in world coordinates out.
+
+Owns the zenoh side: the newest depth frame per camera (ring inboxes), intrinsics, ``tf`` from the
+estimator, object-marker observations for priors; publishes ``objects`` and ``objects/scene``.
+Recognition itself is ``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``.
+A camera is used once the estimator has localized it: detections are only useful in world frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from recognition.config import RecognitionConfig
+from recognition.models import ModelDatabase
+from recognition.pipeline import Detection, Prior, Recognizer
+from recognition.cloud import depth_to_cloud
+from schemas import codec, keys
+from schemas import messages as m
+from schemas.bus import Bus
+from schemas.errors import DecodeError, KeyError_
+
+log = logging.getLogger(__name__)
+#: Marker observations this close in time to a depth frame (ns) count as seen with it.
+PRIOR_WINDOW_NS = 100_000_000
+#: Detections from cameras further apart than this are not the same object (m).
+SAME_OBJECT_M = 0.05
+
+
+@dataclass(frozen=True)
+class WorldDetection:
+    """One camera's detection in world frame. stamp_ns: the depth frame's time (ns)."""
+
+    camera_id: str
+    stamp_ns: int
+    world_T_object: np.ndarray
+    detection: Detection
+
+    @property
+    def score(self) -> float:
+        d = self.detection
+        return d.fitness * d.coverage / max(d.rmse_m, 1e-4) ** 2
+
+
+@dataclass(frozen=True)
+class FusedObject:
+    """An object as reported: world_T_object (4, 4), the cameras that agree on it, best fitness and RMSE."""
+
+    object_id: str
+    stamp_ns: int
+    world_T_object: np.ndarray
+    camera_ids: list[str]
+    fitness: float
+    rmse_m: float
+
+
+def fuse(detections: list[WorldDetection]) -> list[FusedObject]:
+    """One pose per object from the cameras' latest detections.
+
+    The best-scored detection (fitness x coverage / RMSE^2) sets the rotation: symmetric shapes give
+    equally valid rotations that must not be averaged. Positions of the detections within 5 cm of it
+    are averaged with the same weights; detections further away are outvoted, not blended in.
+    """
+    by_object: dict[str, list[WorldDetection]] = {}
+    for d in detections:
+        by_object.setdefault(d.detection.object_id, []).append(d)
+    out = []
+    for oid, group in sorted(by_object.items()):
+        best = max(group, key=lambda d: d.score)
+        agree = [d for d in group if np.linalg.norm(d.world_T_object[:3, 3] - best.world_T_object[:3, 3]) <= SAME_OBJECT_M]
+        w = np.array([d.score for d in agree])
+        T = best.world_T_object.copy()
+        T[:3, 3] = np.average([d.world_T_object[:3, 3] for d in agree], axis=0, weights=w)
+        out.append(FusedObject(oid, max(d.stamp_ns for d in agree), T, sorted(d.camera_id for d in agree),
+                               best.detection.fitness, best.detection.rmse_m))
+    return out
+
+
+def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDetections:
+    msg = m.ObjectDetections(stamp_ns=stamp_ns)
+    for o in objects:
+        item = msg.objects.add(object_id=o.object_id, fitness=o.fitness, rmse_m=o.rmse_m)
+        item.camera_ids.extend(o.camera_ids)
+        codec.pose_to_msg(o.world_T_object, item.world_T_object)
+    return msg
+
+
+def scene_to_msg(stamp_ns: int, objects: list[FusedObject], db: ModelDatabase) -> m.SceneUpdate:
+    """Foxglove 3-D scene: each object's model bounding box, posed in world, with its name."""
+    msg = m.SceneUpdate()
+    for o in objects:
+        model = db.models.get(o.object_id)
+        if model is None:
+            continue
+        lo, hi = model.points.min(axis=0), model.points.max(axis=0)
+        ent = msg.entities.add(frame_id="world", id=f"object_{o.object_id}")
+        codec.stamp_to_timestamp(stamp_ns, ent.timestamp)
+        ent.lifetime.FromNanoseconds(2_000_000_000)
+        cube = ent.cubes.add()
+        box_T = o.world_T_object.copy()
+        box_T[:3, 3] = o.world_T_object[:3, :3] @ ((lo + hi) / 2) + o.world_T_object[:3, 3]
+        codec.foxglove_pose(box_T, cube.pose)
+        cube.size.x, cube.size.y, cube.size.z = (float(v) for v in hi - lo)
+        cube.color.r, cube.color.g, cube.color.b, cube.color.a = 0.2, 0.8, 0.3, 0.5
+        text = ent.texts.add(text=o.object_id, billboard=True, font_size=14)
+        codec.foxglove_pose(o.world_T_object, text.pose)
+        text.color.r = text.color.g = text.color.b = text.color.a = 1.0
+    return msg
+
+
+class RecognitionWorker:
+    """Runs the recogniser on each localized camera in turn, at most ``rate_hz`` per camera."""
+
+    def __init__(self, bus: Bus, config: RecognitionConfig, database: ModelDatabase) -> None:
+        self.bus = bus
+        self.config = config
+        self.db = database
+        self.recognizer = Recognizer(database, config)
+        cell = bus.cell
+        self._depth = bus.subscribe(keys.all_cameras(cell, "depth/image_raw"), m.RawImage, capacity=16, ring=True)
+        self._info = bus.subscribe(keys.all_cameras(cell, "camera_info"), m.CameraCalibration, capacity=64, ring=True)
+        self._tf = bus.subscribe(keys.tf(cell), m.FrameTransforms, capacity=16, ring=True)
+        self._markers = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=256, ring=True)
+        self._pub = bus.publisher(keys.objects(cell))
+        self._pub_scene = bus.publisher(keys.objects_scene(cell))
+        bus.declare_alive("recognition", "main")
+        self._object_T_marker = {mk.marker_id: (mk.object_id, mk.object_T_marker.matrix()) for mk in config.object_markers}
+        self.intrinsics: dict[str, codec.CameraInfo] = {}
+        self.world_T_camera: dict[str, np.ndarray] = {}
+        self.frames: dict[str, m.RawImage] = {}
+        self.marker_msgs: dict[str, m.MarkerObservations] = {}
+        self.latest: dict[tuple[str, str], WorldDetection] = {}  # (camera, object) -> newest detection
+        self.last_run: dict[str, float] = {}
+        self.errors = 0
+        self._warned: set[str] = set()
+
+    def _absorb(self) -> None:
+        for item in self._info.drain():
+            try:
+                self.intrinsics[keys.parse(item.key).camera] = codec.CameraInfo.from_msg(item.msg)
+            except (DecodeError, KeyError_) as exc:
+                self._warn_once(item.key, f"unusable camera_info on {item.key}: {exc}")
+        for item in self._tf.drain():
+            for (parent, child), T in codec.transforms_from_msg(item.msg).items():
+                if parent == "world":
+                    self.world_T_camera[child] = T
+        for item in self._depth.drain():
+            self.frames[keys.parse(item.key).camera] = item.msg
+        for item in self._markers.drain():
+            self.marker_msgs[item.msg.camera_id] = item.msg
+
+    def _warn_once(self, what: str, message: str) -> None:
+        if what not in self._warned:
+            self._warned.add(what)
+            log.warning(message)
+
+    def _next_camera(self) -> str | None:
+        """The ready camera whose last run is oldest, if its period has elapsed."""
+        now = time.monotonic()
+        ready = [c for c in self.frames if c in self.intrinsics and c in self.world_T_camera
+                 and now - self.last_run.get(c, -np.inf) >= 1.0 / self.config.rate_hz]
+        for c in self.frames:
+            if c not in self.world_T_camera:
+                self._warn_once(f"unlocalized/{c}", f"{c}: waiting for the estimator to localize it")
+        return min(ready, key=lambda c: self.last_run.get(c, -np.inf)) if ready else None
+
+    def priors(self, camera_id: str, stamp_ns: int) -> list[Prior]:
+        msg = self.marker_msgs.get(camera_id)
+        if msg is None or abs(msg.stamp_ns - stamp_ns) > PRIOR_WINDOW_NS or not self._object_T_marker:
+            return []
+        a = codec.marker_arrays(msg, check=False)
+        out = []
+        for marker_id, camera_T_marker in zip(a.ids, a.poses):
+            if int(marker_id) in self._object_T_marker:
+                oid, object_T_marker = self._object_T_marker[int(marker_id)]
+                out.append(Prior(oid, camera_T_marker @ codec.invert_pose(object_T_marker)))
+        return out
+
+    def process(self, camera_id: str) -> list[WorldDetection]:
+        """Recognise the newest frame of one camera; remember and return its world-frame detections."""
+        frame = self.frames.pop(camera_id)
+        self.last_run[camera_id] = time.monotonic()
+        stamp_ns = codec.timestamp_to_stamp(frame.timestamp)
+        if frame.encoding != "16UC1":
+            raise DecodeError(f"{camera_id}: depth encoding {frame.encoding!r}, expected 16UC1 millimetres")
+        depth = codec.image_from_msg(frame)
+        info = self.intrinsics[camera_id]
+        if depth.shape != (info.height, info.width):
+            raise DecodeError(f"{camera_id}: depth is {depth.shape[1]}x{depth.shape[0]} but camera_info says "
+                              f"{info.width}x{info.height}")
+        world_T_camera = self.world_T_camera[camera_id]
+        cloud = depth_to_cloud(depth, info.K, depth_scale=0.001)
+        found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera)
+        for key in [k for k in self.latest if k[0] == camera_id]:
+            del self.latest[key]  # what this camera no longer sees is no longer reported by it
+        out = [WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d) for d in found]
+        for d in out:
+            self.latest[(camera_id, d.detection.object_id)] = d
+        return out
+
+    def step(self) -> list[FusedObject] | None:
+        """Absorb what arrived, recognise one camera if one is due, publish the fused objects."""
+        self._absorb()
+        cam = self._next_camera()
+        if cam is None:
+            return None
+        try:
+            self.process(cam)
+        except (DecodeError, ValueError) as exc:  # one bad frame never stops the worker
+            self.errors += 1
+            log.warning("%s: frame skipped: %s", cam, exc)
+            return None
+        objects = fuse(list(self.latest.values()))
+        stamp = max((o.stamp_ns for o in objects), default=0)
+        self._pub.put(detections_to_msg(stamp, objects))
+        self._pub_scene.put(scene_to_msg(stamp, objects, self.db))
+        return objects
+
+    def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
+        stop = stop or threading.Event()
+        start = time.monotonic()
+        while not stop.is_set() and (duration_s is None or time.monotonic() - start < duration_s):
+            if self.step() is None:
+                stop.wait(0.02)
