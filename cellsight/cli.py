@@ -23,7 +23,7 @@ bus_app = typer.Typer(help="Look at the zenoh bus.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 app.add_typer(bus_app, name="bus")
 
-RECOGNITION_NICE = 10
+RECOGNITION_NICE = 5
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="debug logging")]
 
 

@@ -180,6 +180,28 @@ def wait_for_router(endpoint: str, timeout_s: float = 10.0) -> None:
     raise CellsightError(f"the zenoh router on {endpoint} did not come up within {timeout_s:.0f} s (see the router log)")
 
 
+def with_models(cfg: CellConfig, run_dir: Path) -> CellConfig:
+    """The config with a model database for recognition, or with recognition off if there is none.
+
+    A simulated cell's objects are built into RUN_DIR/models before the cell starts: inside the
+    running cell the (niced) worker would compete with the renderers for the CPU for minutes.
+    """
+    rec = cfg.recognition
+    if not rec.enabled or rec.models is not None:
+        return cfg
+    from cellsight.model_build import models_for
+    from recognition.errors import ModelError
+
+    try:
+        log.info("building the recognition models of the scenario's objects into %s", run_dir / "models")
+        models_for(cfg).save(run_dir / "models")
+        rec = rec.model_copy(update={"models": (run_dir / "models").resolve()})
+    except ModelError as exc:
+        log.warning("recognition is off: %s", exc)
+        rec = rec.model_copy(update={"enabled": False})
+    return cfg.model_copy(update={"recognition": rec})
+
+
 def run_cell(
     cfg: CellConfig,
     run_dir: Path,
@@ -192,6 +214,7 @@ def run_cell(
 ) -> Supervisor:
     """Start the cell, supervise it until ``duration_s`` or ``stop``, shut it down; returns the supervisor."""
     stop = stop or threading.Event()
+    cfg = with_models(cfg, run_dir)
     epoch_ns = time.time_ns() + 3_000_000_000  # scenario time 0, once every process is up
     children = plan(cfg, run_dir, record, max_image_hz, epoch_ns)
     sup = Supervisor(children, run_dir / "processes.json")

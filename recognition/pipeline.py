@@ -20,12 +20,16 @@ from recognition.config import RecognitionConfig
 from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
-from recognition.segment import euclidean_clusters, remove_planes
+from recognition.segment import euclidean_clusters, remove_planes, split_oversized
 
 log = logging.getLogger(__name__)
 UPRIGHT_COS = float(np.cos(np.radians(45.0)))
 #: Touching objects explained away one after another in one cluster, at most.
 MAX_OBJECTS_PER_CLUSTER = 3
+#: A cluster wider than this many times the largest model is split with a tighter tolerance ...
+SPLIT_ABOVE = 1.2
+#: ... down to this many voxels (below it a surface falls apart into its samples).
+MIN_TOLERANCE_VOXELS = 1.5
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,7 @@ class Recognizer:
         self.config = config
         self._table, self._rows = database.view_table()
         self._up: np.ndarray | None = None
+        self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
 
     def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
         """Finite points within range (and the workspace, when the camera pose is known), downsampled,
@@ -106,6 +111,8 @@ class Recognizer:
         fg_idx = np.flatnonzero(scene.foreground)
         clusters = [fg_idx[k] for k in euclidean_clusters(
             scene.points[fg_idx], c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points)]
+        clusters = split_oversized(scene.points, clusters, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
+                                   MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points)
         found: dict[str, Detection] = {}
         used = np.zeros(len(clusters), dtype=bool)
         for prior in priors:

@@ -54,3 +54,29 @@ def euclidean_clusters(points: np.ndarray, tolerance_m: float, min_points: int, 
     clusters = [np.flatnonzero(labels == k) for k in range(labels.max() + 1)]
     clusters = [c for c in clusters if min_points <= len(c) <= max_points]
     return sorted(clusters, key=len, reverse=True)
+
+
+def split_oversized(
+    points: np.ndarray, clusters: list[np.ndarray], max_extent_m: float, tolerance_m: float, min_tolerance_m: float,
+    min_points: int,
+) -> list[np.ndarray]:
+    """Clusters larger than any object (2-98 % bounding-box diagonal over max_extent_m) re-clustered with a
+    tighter tolerance, down to min_tolerance_m: objects standing close together merge at the
+    tolerance a noisy far surface needs, and come apart at a smaller one. Largest first."""
+    out: list[np.ndarray] = []
+    todo = [(c, tolerance_m) for c in clusters]
+    while todo:
+        idx, tol = todo.pop()
+        pts = points[idx]
+        lo, hi = np.percentile(pts, [2, 98], axis=0)  # robust to flying pixels at depth edges
+        extent = float(np.linalg.norm(hi - lo))
+        finer = tol * 0.7
+        if extent <= max_extent_m or finer < min_tolerance_m:
+            out.append(idx)
+            continue
+        parts = euclidean_clusters(pts, finer, min_points, len(idx))
+        if len(parts) <= 1:
+            todo.append((idx, finer))  # still one piece: try finer still
+        else:
+            todo.extend((idx[p], finer) for p in parts)
+    return sorted(out, key=len, reverse=True)
