@@ -46,6 +46,7 @@ def test_robot_subscriber_prints_world_poses_of_the_demo_objects(tmp_path: Path)
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and {ln.split()[0] for ln in lines} < {"crate", "can", "tote"}:
             time.sleep(0.5)
+        time.sleep(10.0)  # a few more rounds: the first may use a camera pose still settling
     finally:
         robot.kill()
         cell.send_signal(signal.SIGINT)
@@ -57,6 +58,8 @@ def test_robot_subscriber_prints_world_poses_of_the_demo_objects(tmp_path: Path)
     assert set(seen) == {"crate", "can", "tote"}, f"printed: {lines[-5:]}"
     truth = {o.id: o for o in load_scenario().objects}
     for oid in ("crate", "can"):  # static objects; the tote slides by 10 cm
-        err = np.linalg.norm(seen[oid][-1] - truth[oid].world_T_object(0.0)[:3, 3])
-        # 3 cm: the camera pose error (~5 mm) plus recognition (~5 mm), with a wide margin.
-        assert err < 0.03, f"{oid} printed {seen[oid][-1]}, {err * 1000:.0f} mm from where it stands"
+        printed = np.median(seen[oid], axis=0)
+        err = np.linalg.norm(printed - truth[oid].world_T_object(0.0)[:3, 3])
+        # 4 cm: the camera pose bound of the end-to-end demo test (2 cm; 0.5 deg at 2 m is 1.7 cm)
+        # plus recognition (median 3-7 mm, p95 about 1 cm), with a margin for a loaded CI machine.
+        assert err < 0.04, f"{oid} printed {printed} (median), {err * 1000:.0f} mm from where it stands"
