@@ -24,6 +24,7 @@ from benchmarks.common import main
 from cellsight.model_build import database_from_scenario
 from drivers.sim.render import SimCell, object_mesh
 from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario
+from recognition.align import rot_z
 from recognition.cloud import camera_rays, depth_to_cloud
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.pipeline import Recognizer
@@ -55,18 +56,13 @@ def shape_of(obj: ObjectSpec) -> Shape:
     if obj.shape == "box":
         turns = [np.eye(3), np.diag([-1.0, -1, 1])]
     else:  # cylinder (sphere scored as one too): any turn about the axis
-        turns = [make_pose(_rz(a))[:3, :3] for a in np.radians(np.arange(0, 360, 2))]
+        turns = [rot_z(a) for a in np.radians(np.arange(0, 360, 2))]
     syms = []
     for F in flips:
         for Rz in turns:
             R = Rz @ F
             syms.append(make_pose(R, centre - R @ centre))
     return Shape(pts, diameter, np.stack(syms))
-
-
-def _rz(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
 def adds(shape: Shape, est: np.ndarray, gt: np.ndarray) -> float:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from cellsight.config import CellConfig, CellSection
 from drivers.config import CameraConfig, IntrinsicsConfig, MarkerConfig
 from drivers.sim.scenario import Scenario, load_scenario
@@ -18,14 +20,17 @@ from schemas.codec import quat_from_matrix
 from schemas.spec import PoseSpec
 
 
+def pose_spec(T: np.ndarray) -> PoseSpec:
+    """A 4x4 pose as a config PoseSpec (position + quaternion)."""
+    return PoseSpec(position=tuple(float(v) for v in T[:3, 3]), quaternion=tuple(float(v) for v in quat_from_matrix(T[:3, :3])))
+
+
 def anchors_of(scenario: Scenario) -> list[AnchorConfig]:
     out = []
     for mk in scenario.markers:
         if mk.role != "anchor":
             continue
-        T = mk.pose.matrix()
-        spec = PoseSpec(position=tuple(float(v) for v in T[:3, 3]), quaternion=tuple(float(v) for v in quat_from_matrix(T[:3, :3])))
-        out.append(AnchorConfig(marker_id=mk.id, world_T_marker=spec, sigma_position_m=mk.sigma_position_m, sigma_rotation_deg=mk.sigma_rotation_deg))
+        out.append(AnchorConfig(marker_id=mk.id, world_T_marker=pose_spec(mk.pose.matrix()), sigma_position_m=mk.sigma_position_m, sigma_rotation_deg=mk.sigma_rotation_deg))
     return out
 
 
@@ -43,9 +48,7 @@ def recognition_config_of(scenario: Scenario, base: RecognitionConfig) -> Recogn
     markers = []
     for mk in scenario.markers:
         if mk.role == "object" and mk.object is not None:
-            T = mk.pose.matrix()
-            spec = PoseSpec(position=tuple(float(v) for v in T[:3, 3]), quaternion=tuple(float(v) for v in quat_from_matrix(T[:3, :3])))
-            markers.append(ObjectMarkerConfig(marker_id=mk.id, object_id=mk.object, object_T_marker=spec))
+            markers.append(ObjectMarkerConfig(marker_id=mk.id, object_id=mk.object, object_T_marker=pose_spec(mk.pose.matrix())))
     update: dict = {"object_markers": markers}
     if scenario.workspace is not None and base.workspace_min is None:
         update |= {"workspace_min": scenario.workspace[0], "workspace_max": scenario.workspace[1]}

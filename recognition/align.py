@@ -16,18 +16,29 @@ import open3d as o3d
 from recognition.vfh import ROLL_BINS
 
 
+def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | None = None) -> np.ndarray:
+    """Smallest rotation R (3, 3) with R @ a/|a| = b/|b| (Rodrigues).
+
+    When a and b are opposite every axis normal to them will do: the half turn is about
+    half_turn_axis (unit, normal to a; default x, which suits a = -z).
+    """
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis, s = np.asarray(half_turn_axis if half_turn_axis is not None else (1.0, 0.0, 0.0), dtype=np.float64), 0.0
+    else:
+        axis = axis / s
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
 def align_to_z(direction: np.ndarray) -> np.ndarray:
     """Smallest rotation R (3, 3) with R @ direction/|direction| = +z."""
-    d = np.asarray(direction, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(d, z)
-    s, c = np.linalg.norm(axis), float(d @ z)
-    if s < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    k = axis / s
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * K + (1 - c) * K @ K
+    return rotation_between(direction, np.array([0.0, 0.0, 1.0]))
 
 
 def roll_histogram(points: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from recognition.align import IcpResult, refine_icp, roll_candidates, view_to_scene
+from recognition.align import IcpResult, refine_icp, roll_candidates, rotation_between, view_to_scene
 from recognition.cloud import estimate_normals, finite_points, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.descriptor import describe
@@ -74,7 +74,6 @@ class Recognizer:
         self.db = database
         self.config = config
         self._table, self._rows = database.view_table()
-        self._up: np.ndarray | None = None
         self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
 
     def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
@@ -106,7 +105,7 @@ class Recognizer:
         if len(scene.points) == 0:
             return []
         # World up in the camera frame, when known: the upright test needs it.
-        self._up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
+        up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
         c = self.config
         fg_idx = np.flatnonzero(scene.foreground)
         clusters = [fg_idx[k] for k in euclidean_clusters(
@@ -122,7 +121,7 @@ class Recognizer:
             k = _cluster_near(scene.points, clusters, prior.camera_T_object[:3, 3], model.diameter_m)
             if k is None:
                 continue
-            match = self._score(model, scene, clusters[k], [prior.camera_T_object], from_prior=True)
+            match = self._score(model, scene, clusters[k], [prior.camera_T_object], up, from_prior=True)
             if match is not None:
                 used[k] = match[0].coverage >= c.min_coverage
                 found[prior.object_id] = match[0]
@@ -131,7 +130,7 @@ class Recognizer:
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
             for _ in range(0 if used[k] else MAX_OBJECTS_PER_CLUSTER):
-                match = self._match_cluster(scene, rest)
+                match = self._match_cluster(scene, rest, up)
                 if match is None:
                     break
                 det, explained = match
@@ -142,7 +141,9 @@ class Recognizer:
                     break
         return sorted(found.values(), key=lambda d: d.object_id)
 
-    def _match_cluster(self, scene: SceneCloud, idx: np.ndarray) -> tuple[Detection, np.ndarray] | None:
+    def _match_cluster(
+        self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None
+    ) -> tuple[Detection, np.ndarray] | None:
         """VFH nearest views -> roll candidates -> ICP; the best accepted hypothesis, if any."""
         if len(self._rows) == 0:
             return None
@@ -162,18 +163,24 @@ class Recognizer:
                 camera_T_view = view_to_scene(desc.centroid, views.centroid[v], roll)
                 starts.append(camera_T_view @ views.view_T_object[v])
         for oid, starts in by_object.items():
-            match = self._score(self.db.models[oid], scene, idx, starts)
+            match = self._score(self.db.models[oid], scene, idx, starts, up)
             if match is not None and (best is None or _better(match[0], best[0])):
                 best = match
         return best
 
     def _score(
-        self, model: ObjectModel, scene: SceneCloud, idx: np.ndarray, starts: list[np.ndarray], from_prior: bool = False
+        self,
+        model: ObjectModel,
+        scene: SceneCloud,
+        idx: np.ndarray,
+        starts: list[np.ndarray],
+        up: np.ndarray | None,
+        from_prior: bool = False,
     ) -> tuple[Detection, np.ndarray] | None:
         """ICP from each start onto the cluster; the best result if it passes the acceptance tests,
         with the mask of the cluster points it explains.
 
-        Accepted: fitness, coverage and RMSE within bounds; or, for a cluster several objects share,
+        up: world up in the camera frame (None: no upright test). Accepted: fitness, coverage and RMSE within bounds; or, for a cluster several objects share,
         a fitness of at least min_fitness_shared with enough explained points to be a cluster itself.
         """
         c = self.config
@@ -181,11 +188,11 @@ class Recognizer:
         target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
         best: IcpResult | None = None
         for start in starts:
-            if self._up is not None:
-                start = _stand_up(start, self._up, model.points.mean(axis=0))
+            if up is not None:
+                start = _stand_up(start, up, model.points.mean(axis=0))
             res = refine_icp(model.points, model.normals, target, start, c.icp_distance_m, c.icp_iterations,
                              max_shift_m=model.diameter_m)
-            if self._up is not None and res.camera_T_object[:3, 2] @ self._up < UPRIGHT_COS:
+            if up is not None and res.camera_T_object[:3, 2] @ up < UPRIGHT_COS:
                 continue  # lying on its side or upside down: the mirror image of a symmetric shape
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
                 best = res
@@ -211,17 +218,10 @@ def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -
     A symmetric shape matched from the VFH of a single view is as likely upside down as not; for
     objects that stand on their base the upright twin is the physical one.
     """
-    z = camera_T_object[:3, 2]
-    if z @ up >= UPRIGHT_COS:
+    if camera_T_object[:3, 2] @ up >= UPRIGHT_COS:
         return camera_T_object
-    axis = np.cross(z, up)
-    s, c = np.linalg.norm(axis), float(z @ up)
-    if s < 1e-9:  # exactly upside down: turn about the object's x axis
-        axis, s = camera_T_object[:3, 0], 0.0
-    else:
-        axis = axis / s
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    R = np.eye(3) + s * K + (1 - c) * K @ K
+    # Exactly upside down: turn about the object's own x axis.
+    R = rotation_between(camera_T_object[:3, 2], up, half_turn_axis=camera_T_object[:3, 0])
     pivot = camera_T_object[:3, :3] @ centre + camera_T_object[:3, 3]
     out = camera_T_object.copy()
     out[:3, :3] = R @ camera_T_object[:3, :3]
