@@ -3,7 +3,9 @@
 The same bridge as the recorder, into Foxglove's server instead of a file: every key becomes a
 channel with its protobuf schema (Foxglove's own for images, calibration and tf), payloads pass
 through untouched. Images (RawImage and camera_info share the camera id as frame_id, and tf has
-world -> camera), so the 3-D panel shows camera frustums, marker axes and camera poses.
+world -> camera), so the 3-D panel shows camera frustums, marker axes and camera poses; with the
+recognition worker running it also shows the fused world cloud (``points``, a colour per camera)
+and the objects' boxes (``objects/scene``).
 Images are thinned to ``max_image_hz`` per camera to spare the WebSocket.
 """
 

@@ -42,6 +42,22 @@ class MarkerSummary:
 
 
 @dataclass
+class ObjectSummary:
+    """One simulated object: how the recognition worker's fused world poses compare with truth.
+
+    Errors are of the object frame's origin (base centre) and of its up axis, both unaffected by
+    the turns that leave a box or a cylinder looking the same; yaw is not scored for that reason.
+    """
+
+    object_id: str
+    detections: int  # objects messages that contained it
+    first_detected_s: float | None  # scenario seconds from the first frame
+    position_error_mm_final: float | None
+    position_error_mm_p50: float | None
+    tilt_error_deg_p50: float | None
+
+
+@dataclass
 class Timeline:
     """Per child frame: sorted stamps and poses."""
 
@@ -53,9 +69,12 @@ class Timeline:
         return cls(defaultdict(list), defaultdict(list))
 
     def add(self, msg) -> None:
-        for child, p in codec.poses_from_msg(msg).items():
-            self.stamps[child].append(p.stamp_ns)
-            self.poses[child].append(p)
+        for p in codec.poses_from_msg(msg).values():
+            self.add_pose(p)
+
+    def add_pose(self, p: StampedPose) -> None:
+        self.stamps[p.child].append(p.stamp_ns)
+        self.poses[p.child].append(p)
 
     def at(self, child: str, stamp_ns: int) -> StampedPose | None:
         """The pose with the nearest stamp (truth is published every frame)."""
@@ -81,25 +100,31 @@ class RunData:
     truth_cameras: Timeline
     truth_markers: Timeline
     truth_objects: Timeline
+    est_objects: Timeline  # child frames named like the truth: object_<id>
     states: dict[str, list[tuple[int, int]]]  # camera -> (stamp, state)
     read: ReadReport
 
 
 def load_run(log_path: Path, cell: str) -> RunData:
-    d = RunData(Timeline.empty(), Timeline.empty(), Timeline.empty(), Timeline.empty(), Timeline.empty(), defaultdict(list), ReadReport())
+    d = RunData(*(Timeline.empty() for _ in range(6)), defaultdict(list), ReadReport())
     routes = {
         keys.estimate_cameras(cell): d.est_cameras, keys.estimate_markers(cell): d.est_markers,
         keys.truth(cell, "cameras"): d.truth_cameras, keys.truth(cell, "markers"): d.truth_markers,
         keys.truth(cell, "objects"): d.truth_objects,
     }  # fmt: skip
-    wanted = set(routes) | {keys.estimate_status(cell)}
+    wanted = set(routes) | {keys.estimate_status(cell), keys.objects(cell)}
     for lm in read_log(log_path, wanted, d.read):
         if lm.key in routes:
             routes[lm.key].add(lm.msg)
+        elif lm.key == keys.objects(cell):
+            for o in lm.msg.objects:
+                T = codec.pose_from_msg(o.world_T_object, f"object {o.object_id!r}")
+                stamp = o.stamp_ns or lm.msg.stamp_ns  # logs before objects had their own stamps
+                d.est_objects.add_pose(StampedPose("world", f"object_{o.object_id}", stamp, T))
         else:
             for cam in lm.msg.cameras:
                 d.states[cam.camera_id].append((lm.msg.stamp_ns, cam.state))
-    for tl in (d.est_cameras, d.est_markers, d.truth_cameras, d.truth_markers, d.truth_objects):
+    for tl in (d.est_cameras, d.est_markers, d.truth_cameras, d.truth_markers, d.truth_objects, d.est_objects):
         for child in list(tl.stamps):
             order = np.argsort(tl.stamps[child], kind="stable")
             tl.stamps[child] = [tl.stamps[child][i] for i in order]
@@ -116,6 +141,32 @@ def camera_errors(d: RunData, cam: str) -> tuple[np.ndarray, np.ndarray, np.ndar
             rows.append((p.stamp_ns, *pose_error(p.T, t.T)))
     a = np.array(rows) if rows else np.zeros((0, 3))
     return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
+
+
+def object_errors(d: RunData, frame: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps ns, position errors mm, tilt errors deg) of every published pose of object ``frame``."""
+    rows = []
+    for p in d.est_objects.poses.get(frame, []):
+        t = d.truth_objects.at(frame, p.stamp_ns)
+        if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
+            cos_tilt = float(np.clip(p.T[:3, 2] @ t.T[:3, 2], -1.0, 1.0))
+            rows.append((p.stamp_ns, np.linalg.norm(p.T[:3, 3] - t.T[:3, 3]) * 1000, math.degrees(math.acos(cos_tilt))))
+    a = np.array(rows) if rows else np.zeros((0, 3))
+    return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
+
+
+def summarize_objects(d: RunData) -> list[ObjectSummary]:
+    t0 = min((s[0] for s in d.truth_cameras.stamps.values() if s), default=0)
+    out = []
+    for frame in sorted(d.truth_objects.stamps):
+        stamps, pe, te = object_errors(d, frame)
+        out.append(ObjectSummary(
+            frame.removeprefix("object_"), len(d.est_objects.stamps.get(frame, [])),
+            max(0.0, (int(stamps[0]) - t0) / 1e9) if len(stamps) else None,
+            float(pe[-1]) if len(pe) else None, float(np.median(pe)) if len(pe) else None,
+            float(np.median(te)) if len(te) else None,
+        ))  # fmt: skip
+    return out
 
 
 def summarize(d: RunData) -> tuple[list[CameraSummary], list[MarkerSummary]]:
@@ -148,15 +199,17 @@ def write_report(log_path: Path, cell: str, out_dir: Path) -> dict:
     """summary.json, summary.md, top_view.png and errors.png in ``out_dir``; returns the summary dict."""
     d = load_run(log_path, cell)
     cams, markers = summarize(d)
+    objects = summarize_objects(d)
     summary = {
         "log": str(log_path),
         "messages_read": d.read.messages,
         "log_complete": d.read.stopped_early is None,
         "cameras": [asdict(c) for c in cams],
         "markers": [asdict(m) for m in markers],
+        "objects": [asdict(o) for o in objects],
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    (out_dir / "summary.md").write_text(markdown(cams, markers))
+    (out_dir / "summary.md").write_text(markdown(cams, markers, objects))
     plot_top_view(d, out_dir / "top_view.png")
     plot_errors(d, out_dir / "errors.png")
     return summary
@@ -166,7 +219,7 @@ def _fmt(v: float | None, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
-def markdown(cams: list[CameraSummary], markers: list[MarkerSummary]) -> str:
+def markdown(cams: list[CameraSummary], markers: list[MarkerSummary], objects: list[ObjectSummary] = ()) -> str:
     lines = [
         "| camera | final state | localized after (s) | final pos err (mm) | final rot err (deg) | p50 last 5 s (mm / deg) | reported sigma (mm) |",
         "|---|---|---|---|---|---|---|",
@@ -180,6 +233,17 @@ def markdown(cams: list[CameraSummary], markers: list[MarkerSummary]) -> str:
     if markers:
         pe = np.array([m.position_error_mm for m in markers])
         lines += ["", f"Markers ({len(markers)}): position error median {np.median(pe):.1f} mm, max {pe.max():.1f} mm."]
+    if objects:
+        lines += [
+            "",
+            "| object | detections | first seen (s) | final pos err (mm) | p50 pos err (mm) | p50 tilt err (deg) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for o in objects:
+            lines.append(
+                f"| {o.object_id} | {o.detections} | {_fmt(o.first_detected_s, '.1f')} | {_fmt(o.position_error_mm_final, '.1f')} | "
+                f"{_fmt(o.position_error_mm_p50, '.1f')} | {_fmt(o.tilt_error_deg_p50, '.1f')} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -201,6 +265,9 @@ def plot_top_view(d: RunData, path: Path) -> None:
         T = poses[-1].T
         ax.plot(T[0, 3], T[1, 3], "o", ms=9, mfc="none", mec="tab:orange")
         ax.annotate(child.replace("object_", ""), (T[0, 3], T[1, 3]), textcoords="offset points", xytext=(6, -10), fontsize=8, color="tab:orange")
+    for child, poses in d.est_objects.poses.items():
+        T = poses[-1].T
+        ax.plot(T[0, 3], T[1, 3], "o", ms=5, color="tab:orange")
     for cam, poses in d.truth_cameras.poses.items():
         T = poses[-1].T
         ax.plot(T[0, 3], T[1, 3], "^", ms=10, mfc="none", mec="k")
@@ -237,28 +304,37 @@ def draw_ellipse(ax, T: np.ndarray, cov: np.ndarray | None, color: str) -> None:
 
 
 def plot_errors(d: RunData, path: Path) -> None:
-    """Position and rotation error of each camera's published pose over time."""
+    """Position and rotation error of each camera's published pose over time; objects' position
+    error below when the run recognised any."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     t0 = min((s[0] for s in d.truth_cameras.stamps.values() if s), default=0)
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    has_objects = any(d.est_objects.stamps.values())
+    fig, axes = plt.subplots(3 if has_objects else 2, 1, figsize=(8, 8.5 if has_objects else 6), sharex=True)
+    a1, a2 = axes[0], axes[1]
     for cam in sorted(d.truth_cameras.stamps):
         stamps, pe, re = camera_errors(d, cam)
         t = (stamps - t0) / 1e9
         a1.plot(t, pe, ".-", ms=2, lw=0.8, label=cam)
         a2.plot(t, re, ".-", ms=2, lw=0.8, label=cam)
-    a1.set_yscale("log")
-    a2.set_yscale("log")
-    a1.set_ylabel("position error (mm)")
-    a2.set_ylabel("rotation error (deg)")
-    a2.set_xlabel("scenario time (s)")
+    a1.set_ylabel("camera position error (mm)")
+    a2.set_ylabel("camera rotation error (deg)")
     a1.legend(ncol=4, fontsize=8)
-    a1.grid(alpha=0.3, which="both")
-    a2.grid(alpha=0.3, which="both")
-    a1.set_title("Camera pose error against ground truth")
+    a1.set_title("Pose error against ground truth")
+    if has_objects:
+        a3 = axes[2]
+        for frame in sorted(d.truth_objects.stamps):
+            stamps, pe, _ = object_errors(d, frame)
+            a3.plot((stamps - t0) / 1e9, pe, "o-", ms=3, lw=0.8, label=frame.removeprefix("object_"))
+        a3.set_ylabel("object position error (mm)")
+        a3.legend(ncol=4, fontsize=8)
+    for ax in axes:
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+    axes[-1].set_xlabel("scenario time (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -80,3 +80,6 @@ class RecognitionConfig(BaseModel):
     rate_hz: float = Field(
         default=0.5, gt=0, description="worker: frames recognised per camera per second (one takes ~0.75 s of a core)"
     )
+    cloud_voxel_m: float = Field(
+        default=0.03, ge=0, description="worker: voxel of the fused world point cloud it publishes on `points` (0: none)"
+    )

@@ -1,9 +1,11 @@
 """The recognition worker: depth frames and camera poses in, object poses in world coordinates out.
 
-Owns the zenoh side: the newest depth frame per camera (ring inboxes), intrinsics, ``tf`` from the
-estimator, object-marker observations for priors; publishes ``objects`` and ``objects/scene``.
-Recognition itself is ``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``.
-A camera is used once the estimator has localized it: detections are only useful in world frame.
+Owns the zenoh side: the newest depth frame per camera (ring inboxes), intrinsics, ``tf`` and
+camera states from the estimator, object-marker observations for priors; publishes ``objects``,
+``objects/scene`` and the fused cloud on ``points``. Recognition itself is
+``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``. A camera is used once the
+estimator has localized it (detections are only useful in world frame), and its detections are
+dropped while the estimator says it is moving or unanchored.
 """
 
 from __future__ import annotations
@@ -11,14 +13,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from recognition.config import RecognitionConfig
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Prior, Recognizer
-from recognition.cloud import depth_to_cloud
+from recognition.cloud import depth_to_cloud, finite_points, voxel_downsample
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
@@ -29,16 +31,26 @@ log = logging.getLogger(__name__)
 PRIOR_WINDOW_NS = 100_000_000
 #: Detections from cameras further apart than this are not the same object (m).
 SAME_OBJECT_M = 0.05
+#: Estimator camera states in which a camera's world pose is not to be trusted.
+UNUSABLE_STATES = (m.CameraState.MOVING, m.CameraState.UNANCHORED)
+#: A camera pose that moved this far since a detection means the camera was moved: the detection is
+#: dropped rather than carried over (m, deg). Estimator refinements are millimetres.
+MOVED_M, MOVED_DEG = 0.05, 3.0
+#: Colours of the cameras' points in the fused cloud (RGBA), in camera-id order.
+CLOUD_COLOURS = np.array([[31, 119, 180, 255], [255, 127, 14, 255], [44, 160, 44, 255], [214, 39, 40, 255],
+                          [148, 103, 189, 255], [140, 86, 75, 255], [227, 119, 194, 255], [188, 189, 34, 255]], np.uint8)
 
 
 @dataclass(frozen=True)
 class WorldDetection:
-    """One camera's detection in world frame. stamp_ns: the depth frame's time (ns)."""
+    """One camera's detection in world frame. stamp_ns: the depth frame's time (ns); world_T_camera:
+    the camera's estimated pose it was put in world with."""
 
     camera_id: str
     stamp_ns: int
     world_T_object: np.ndarray
     detection: Detection
+    world_T_camera: np.ndarray
 
     @property
     def score(self) -> float:
@@ -80,10 +92,26 @@ def fuse(detections: list[WorldDetection]) -> list[FusedObject]:
     return out
 
 
+def fused_cloud(stamp_ns: int, clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> m.PointCloud:
+    """The cameras' points (camera frame, (N, 3) each) in world frame as one cloud, a colour per camera.
+
+    Where the cameras' clouds of the same surface separate, their poses disagree: the view shows
+    the calibration's quality at a glance.
+    """
+    xyz, rgba = [], []
+    for i, cam in enumerate(sorted(c for c in clouds if c in world_T_camera)):
+        T = world_T_camera[cam]
+        xyz.append(clouds[cam] @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
+        rgba.append(np.broadcast_to(CLOUD_COLOURS[i % len(CLOUD_COLOURS)], (len(clouds[cam]), 4)))
+    if not xyz:
+        return codec.points_to_msg(stamp_ns, "world", np.zeros((0, 3), np.float32), np.zeros((0, 4), np.uint8))
+    return codec.points_to_msg(stamp_ns, "world", np.concatenate(xyz), np.concatenate(rgba))
+
+
 def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDetections:
     msg = m.ObjectDetections(stamp_ns=stamp_ns)
     for o in objects:
-        item = msg.objects.add(object_id=o.object_id, fitness=o.fitness, rmse_m=o.rmse_m)
+        item = msg.objects.add(object_id=o.object_id, fitness=o.fitness, rmse_m=o.rmse_m, stamp_ns=o.stamp_ns)
         item.camera_ids.extend(o.camera_ids)
         codec.pose_to_msg(o.world_T_object, item.world_T_object)
     return msg
@@ -125,15 +153,19 @@ class RecognitionWorker:
         self._info = bus.subscribe(keys.all_cameras(cell, "camera_info"), m.CameraCalibration, capacity=64, ring=True)
         self._tf = bus.subscribe(keys.tf(cell), m.FrameTransforms, capacity=16, ring=True)
         self._markers = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=256, ring=True)
+        self._status = bus.subscribe(keys.estimate_status(cell), m.EstimatorStatus, capacity=4, ring=True)
         self._pub = bus.publisher(keys.objects(cell))
         self._pub_scene = bus.publisher(keys.objects_scene(cell))
+        self._pub_points = bus.publisher(keys.points(cell))
         bus.declare_alive("recognition", "main")
         self._object_T_marker = {mk.marker_id: (mk.object_id, mk.object_T_marker.matrix()) for mk in config.object_markers}
         self.intrinsics: dict[str, codec.CameraInfo] = {}
         self.world_T_camera: dict[str, np.ndarray] = {}
+        self.camera_state: dict[str, int] = {}  # the estimator's latest CameraState.State per camera
         self.frames: dict[str, m.RawImage] = {}
         self.marker_msgs: dict[str, m.MarkerObservations] = {}
         self.latest: dict[tuple[str, str], WorldDetection] = {}  # (camera, object) -> newest detection
+        self.clouds: dict[str, np.ndarray] = {}  # camera -> its newest frame's points, voxel-thinned, camera frame
         self.last_run: dict[str, float] = {}
         self.errors = 0
         self._warned: set[str] = set()
@@ -148,6 +180,9 @@ class RecognitionWorker:
             for (parent, child), T in codec.transforms_from_msg(item.msg).items():
                 if parent == "world":
                     self.world_T_camera[child] = T
+        for item in self._status.drain():
+            for cam in item.msg.cameras:
+                self.camera_state[cam.camera_id] = cam.state
         for item in self._depth.drain():
             self.frames[keys.parse(item.key).camera] = item.msg
         for item in self._markers.drain():
@@ -158,10 +193,14 @@ class RecognitionWorker:
             self._warned.add(what)
             log.warning(message)
 
+    def placed(self, camera_id: str) -> bool:
+        """The camera has a world pose and the estimator does not say it is moving or unanchored."""
+        return camera_id in self.world_T_camera and self.camera_state.get(camera_id) not in UNUSABLE_STATES
+
     def _next_camera(self) -> str | None:
         """The ready camera whose last run is oldest, if its period has elapsed."""
         now = time.monotonic()
-        ready = [c for c in self.frames if c in self.intrinsics and c in self.world_T_camera
+        ready = [c for c in self.frames if c in self.intrinsics and self.placed(c)
                  and now - self.last_run.get(c, -np.inf) >= 1.0 / self.config.rate_hz]
         for c in self.frames:
             if c not in self.world_T_camera:
@@ -194,10 +233,14 @@ class RecognitionWorker:
                               f"{info.width}x{info.height}")
         world_T_camera = self.world_T_camera[camera_id]
         cloud = depth_to_cloud(depth, info.K, depth_scale=0.001)
+        if self.config.cloud_voxel_m > 0:
+            pts = finite_points(cloud)
+            pts = pts[pts[:, 2] <= self.config.max_range_m]
+            self.clouds[camera_id] = voxel_downsample(pts, self.config.cloud_voxel_m) if len(pts) else pts
         found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera)
         for key in [k for k in self.latest if k[0] == camera_id]:
             del self.latest[key]  # what this camera no longer sees is no longer reported by it
-        out = [WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d) for d in found]
+        out = [WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d, world_T_camera) for d in found]
         for d in out:
             self.latest[(camera_id, d.detection.object_id)] = d
         return out
@@ -214,11 +257,32 @@ class RecognitionWorker:
             self.errors += 1
             log.warning("%s: frame skipped: %s", cam, exc)
             return None
-        objects = fuse(list(self.latest.values()))
+        objects = fuse(self.current_detections())
         stamp = max((o.stamp_ns for o in objects), default=0)
         self._pub.put(detections_to_msg(stamp, objects))
         self._pub_scene.put(scene_to_msg(stamp, objects, self.db))
+        if self.config.cloud_voxel_m > 0:
+            self._pub_points.put(fused_cloud(stamp, self.clouds, self.world_T_camera))
         return objects
+
+    def current_detections(self) -> list[WorldDetection]:
+        """The cameras' latest detections, put in world frame with each camera's newest pose.
+
+        A camera's pose keeps improving after the frame was recognised (early on by centimetres);
+        the object relative to the camera does not change, so it is carried over to the newest pose.
+        A camera the estimator reports moving, or whose pose jumped, has its detections voided until
+        its next frame.
+        """
+        out = []
+        for d in self.latest.values():
+            if not self.placed(d.camera_id):
+                continue
+            T = self.world_T_camera[d.camera_id]
+            step = codec.invert_pose(d.world_T_camera) @ T
+            angle = np.degrees(np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1.0, 1.0)))
+            if np.linalg.norm(step[:3, 3]) <= MOVED_M and angle <= MOVED_DEG:
+                out.append(replace(d, world_T_object=T @ d.detection.camera_T_object, world_T_camera=T))
+        return out
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
         stop = stop or threading.Event()

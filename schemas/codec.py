@@ -275,6 +275,43 @@ class CameraInfo:
         return cls(int(msg.width), int(msg.height), np.array(msg.K), np.array(msg.D), msg.distortion_model or "plumb_bob")
 
 
+# ---------------------------------------------------------------- point clouds
+
+#: foxglove.PackedElementField numeric types used here.
+_FLOAT32, _UINT8 = 7, 1
+#: One point: x, y, z float32 (m), then red, green, blue, alpha uint8: 16 bytes.
+_POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "u1", (4,))])
+_POINT_FIELDS = (("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32),
+                 ("red", 12, _UINT8), ("green", 13, _UINT8), ("blue", 14, _UINT8), ("alpha", 15, _UINT8))  # fmt: skip
+
+
+def points_to_msg(stamp_ns: int, frame_id: str, xyz: np.ndarray, rgba: np.ndarray) -> m.PointCloud:
+    """A ``foxglove.PointCloud`` of xyz (N, 3) metres in ``frame_id``, coloured by rgba (N, 4) uint8."""
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or np.shape(rgba) != (len(xyz), 4):
+        raise ValueError(f"points must be (N, 3) with colours (N, 4), got {xyz.shape} and {np.shape(rgba)}")
+    packed = np.empty(len(xyz), _POINT)
+    packed["x"], packed["y"], packed["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    packed["rgba"] = rgba
+    msg = m.PointCloud(frame_id=frame_id, point_stride=_POINT.itemsize, data=packed.tobytes())
+    stamp_to_timestamp(stamp_ns, msg.timestamp)
+    msg.pose.orientation.w = 1.0
+    for name, offset, kind in _POINT_FIELDS:
+        msg.fields.add(name=name, offset=offset, type=kind)
+    return msg
+
+
+def points_from_msg(msg: m.PointCloud) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (N, 3) float32, rgba (N, 4) uint8) of a cloud in the layout ``points_to_msg`` writes."""
+    fields = tuple((f.name, f.offset, f.type) for f in msg.fields)
+    if fields != _POINT_FIELDS or msg.point_stride != _POINT.itemsize:
+        raise DecodeError(f"point cloud layout {fields} stride {msg.point_stride} is not x,y,z float32 + rgba uint8")
+    if len(msg.data) % _POINT.itemsize:
+        raise DecodeError(f"point cloud data is {len(msg.data)} bytes, not a multiple of {_POINT.itemsize}")
+    packed = np.frombuffer(msg.data, _POINT)
+    return np.stack([packed["x"], packed["y"], packed["z"]], axis=1), packed["rgba"].copy()
+
+
 # ---------------------------------------------------------------- transforms and pose lists
 
 

@@ -35,12 +35,13 @@ CELL_TOPICS: dict[str, type[Message]] = {
     "estimate/map": m.Map,
     "objects": m.ObjectDetections,
     "objects/scene": m.SceneUpdate,
+    "points": m.PointCloud,
     "truth/cameras": m.PosesWithCovariance,
     "truth/markers": m.PosesWithCovariance,
     "truth/objects": m.PosesWithCovariance,
 }
 # Names a camera may not take, because they would collide with cell-wide topics.
-_RESERVED = {"tf", "estimate", "objects", "truth", "alive"}
+_RESERVED = {"tf", "estimate", "objects", "points", "truth", "alive"}
 
 
 def check_name(name: str, what: str = "name") -> str:
@@ -114,6 +115,11 @@ def objects(cell: str) -> str:
 
 def objects_scene(cell: str) -> str:
     return _cell(cell, "objects/scene")
+
+
+def points(cell: str) -> str:
+    """The cameras' depth fused into one world-frame cloud (foxglove.PointCloud), for viewing."""
+    return _cell(cell, "points")
 
 
 def truth(cell: str, what: str) -> str:

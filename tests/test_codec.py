@@ -71,6 +71,28 @@ def test_depth_image_round_trip(depth: np.ndarray) -> None:
     np.testing.assert_array_equal(codec.image_from_msg(msg), depth)
 
 
+@settings(max_examples=30)
+@given(st.integers(0, 50).flatmap(lambda n: st.tuples(
+    hnp.arrays(np.float32, (n, 3), elements=st.floats(-10, 10, width=32)), hnp.arrays(np.uint8, (n, 4)))))
+def test_point_cloud_round_trip_in_foxglove_layout(cloud) -> None:
+    xyz, rgba = cloud
+    msg = codec.decode(codec.points_to_msg(5, "world", xyz, rgba).SerializeToString(), m.PointCloud)
+    got_xyz, got_rgba = codec.points_from_msg(msg)
+    np.testing.assert_array_equal(got_xyz, xyz)
+    np.testing.assert_array_equal(got_rgba, rgba)
+    # Foxglove reads colour from fields named red/green/blue/alpha.
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "red", "green", "blue", "alpha"] and msg.point_stride == 16
+
+
+def test_point_cloud_in_another_layout_is_rejected() -> None:
+    msg = codec.points_to_msg(5, "world", np.zeros((2, 3)), np.zeros((2, 4), np.uint8))
+    msg.point_stride = 12
+    with pytest.raises(DecodeError, match="stride 12"):
+        codec.points_from_msg(msg)
+    with pytest.raises(ValueError, match="colours"):
+        codec.points_to_msg(5, "world", np.zeros((2, 3)), np.zeros((3, 4), np.uint8))
+
+
 def test_camera_info_round_trip_and_kinect_defaults() -> None:
     info = codec.CameraInfo.kinect_v1()
     assert (info.K[0, 0], info.K[1, 1], info.K[0, 2], info.K[1, 2]) == (525.0, 525.0, 319.5, 239.5)

@@ -52,6 +52,20 @@ def test_demo_cameras_localize_near_truth(demo_run: Path) -> None:
     assert len(markers) >= 15 and sorted(m["position_error_mm"] for m in markers)[len(markers) // 2] < 15.0
 
 
+def test_demo_reports_the_objects_near_truth(demo_run: Path) -> None:
+    """The recognition worker found every object and the summary scores it against truth.
+
+    3 cm: a few times the recognition benchmark's median (3-7 mm) plus what an early camera pose can
+    still be off in a 12 s run; the objects are 10-30 cm large.
+    """
+    summary = json.loads((demo_run / "summary.json").read_text())
+    objects = {o["object_id"]: o for o in summary["objects"]}
+    assert set(objects) == {"crate", "can", "tote"}
+    for o in objects.values():
+        assert o["detections"] >= 1 and o["position_error_mm_final"] < 30.0 and o["tilt_error_deg_p50"] < 5.0, o
+    assert "| crate |" in (demo_run / "summary.md").read_text()
+
+
 def test_demo_log_decodes_with_plain_mcap_readers(demo_run: Path) -> None:
     """No project code: mcap + mcap-protobuf-support, with Foxglove's schema names for images and tf."""
     types: dict[str, str] = {}
@@ -63,6 +77,7 @@ def test_demo_log_decodes_with_plain_mcap_readers(demo_run: Path) -> None:
     assert types["cellsight/demo/tf"] == "foxglove.FrameTransforms"
     assert types["cellsight/demo/estimate/status"] == "cellsight.EstimatorStatus"
     assert types["cellsight/demo/cam4/markers"] == "cellsight.MarkerObservations"
+    assert types["cellsight/demo/points"] == "foxglove.PointCloud"
 
 
 def test_demo_leaves_no_process_behind(demo_run: Path) -> None:

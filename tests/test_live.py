@@ -6,10 +6,11 @@ import asyncio
 import json
 import time
 
+import numpy as np
 import websockets
 
 from cellsight.live import FoxgloveBridge
-from schemas import keys
+from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from tests.conftest import free_port
@@ -38,10 +39,20 @@ def test_bus_keys_appear_in_foxglove_with_their_schemas(client_transport: Transp
         try:
             status = pub_bus.publisher(keys.status(CELL, "cam1"))
             tf_pub = pub_bus.publisher(keys.estimate_status(CELL))
-            wait_until(lambda: (status.put(m.DriverStatus(camera_id="cam1", stamp_ns=1)), tf_pub.put(m.EstimatorStatus(stamp_ns=1)), bridge.forwarded >= 2)[2], 5.0, "forwarded messages")
-            want = {keys.status(CELL, "cam1"), keys.estimate_status(CELL)}
+            cloud_pub = pub_bus.publisher(keys.points(CELL))
+            cloud = codec.points_to_msg(1, "world", np.zeros((4, 3)), np.full((4, 4), 255, np.uint8))
+
+            def publish() -> bool:
+                status.put(m.DriverStatus(camera_id="cam1", stamp_ns=1))
+                tf_pub.put(m.EstimatorStatus(stamp_ns=1))
+                cloud_pub.put(cloud)
+                return bridge.forwarded >= 3
+
+            wait_until(publish, 5.0, "forwarded messages")
+            want = {keys.status(CELL, "cam1"), keys.estimate_status(CELL), keys.points(CELL)}
             seen = asyncio.run(advertised(bridge.port, want, 5.0))
         finally:
             bridge.close()
     assert seen[keys.status(CELL, "cam1")] == "cellsight.DriverStatus"
     assert seen[keys.estimate_status(CELL)] == "cellsight.EstimatorStatus"
+    assert seen[keys.points(CELL)] == "foxglove.PointCloud"  # the fused cloud, drawn by the 3-D panel

@@ -182,20 +182,22 @@ class Map(_message.Message):
     def __init__(self, cameras: _Optional[_Union[PosesWithCovariance, _Mapping]] = ..., markers: _Optional[_Union[PosesWithCovariance, _Mapping]] = ..., status: _Optional[_Union[EstimatorStatus, _Mapping]] = ...) -> None: ...
 
 class ObjectDetection(_message.Message):
-    __slots__ = ("object_id", "camera_ids", "world_T_object", "covariance", "fitness", "rmse_m")
+    __slots__ = ("object_id", "camera_ids", "world_T_object", "covariance", "fitness", "rmse_m", "stamp_ns")
     OBJECT_ID_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
     WORLD_T_OBJECT_FIELD_NUMBER: _ClassVar[int]
     COVARIANCE_FIELD_NUMBER: _ClassVar[int]
     FITNESS_FIELD_NUMBER: _ClassVar[int]
     RMSE_M_FIELD_NUMBER: _ClassVar[int]
+    STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     object_id: str
     camera_ids: _containers.RepeatedScalarFieldContainer[str]
     world_T_object: Pose
     covariance: _containers.RepeatedScalarFieldContainer[float]
     fitness: float
     rmse_m: float
-    def __init__(self, object_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., world_T_object: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., fitness: _Optional[float] = ..., rmse_m: _Optional[float] = ...) -> None: ...
+    stamp_ns: int
+    def __init__(self, object_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., world_T_object: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., fitness: _Optional[float] = ..., rmse_m: _Optional[float] = ..., stamp_ns: _Optional[int] = ...) -> None: ...
 
 class ObjectDetections(_message.Message):
     __slots__ = ("stamp_ns", "objects")
