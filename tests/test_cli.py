@@ -81,3 +81,30 @@ def test_bus_echo_prints_a_message_from_another_process(router_endpoint: str) ->
 def test_bus_echo_times_out_with_exit_1(router_endpoint: str) -> None:
     out = run(["bus", "echo", "cellsight/demo/**", "--timeout", "1", "--connect", router_endpoint])
     assert out.returncode == 1 and "no message" in out.stderr
+
+
+def test_status_shows_cameras_with_poses_and_objects(router_endpoint: str) -> None:
+    proc = subprocess.Popen(CLI + ["status", "--duration", "3", "--cell", "lab", "--connect", router_endpoint],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    status = m.EstimatorStatus(stamp_ns=1, observations=7)
+    status.cameras.add(camera_id="cam1", state=m.CameraState.LOCALIZED, position_sigma_m=0.004)
+    cameras = codec.poses_to_msg(1, [codec.StampedPose("world", "cam1", 1, codec.make_pose(t=[1.25, -0.5, 2.0]))])
+    objects = m.ObjectDetections(stamp_ns=1)
+    crate = objects.objects.add(object_id="crate", fitness=0.93, rmse_m=0.0052, camera_ids=["cam1"])
+    codec.pose_to_msg(codec.make_pose(t=[0.1, 0.2, 0.75]), crate.world_T_object)
+    try:
+        with Bus(TransportConfig(connect=[router_endpoint]), "lab") as bus:
+            pubs = [(bus.publisher(keys.estimate_status("lab")), status), (bus.publisher(keys.estimate_cameras("lab")), cameras),
+                    (bus.publisher(keys.objects("lab")), objects)]  # fmt: skip
+            while proc.poll() is None:
+                for pub, msg in pubs:
+                    pub.put(msg)
+                time.sleep(0.1)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    cam1 = next(line for line in out.splitlines() if "cam1" in line and "localized" in line)
+    assert "+1.250, -0.500, +2.000" in cam1 and "4.0" in cam1
+    crate_row = next(line for line in out.splitlines() if "crate" in line)
+    assert "+0.100, +0.200, +0.750" in crate_row and "0.93" in crate_row and "5.2" in crate_row
