@@ -13,6 +13,7 @@ solve itself never sees it.
 from __future__ import annotations
 
 import html
+import logging
 import json
 import math
 from dataclasses import dataclass, field
@@ -23,13 +24,16 @@ import numpy as np
 
 from cellsight.config import CellConfig, parse_config, save_used
 from cellsight.report import Timeline, draw_ellipse, pose_error
-from estimator.resolve import ResolveResult, resolve
-from estimator.service import observations_from_msg
+from estimator.resolve import FrameBlock, ResolveResult, resolve
 from schemas import codec, keys
+from schemas import messages as m
 from schemas.codec import StampedPose
+from schemas.errors import DecodeError
 from schemas.log import LogWriter, ReadReport, read_log
 
 TRUTH_MIN_GAP_NS = 100_000_000  # keep ground truth and online estimates at <= 10 Hz per camera
+log = logging.getLogger(__name__)
+BLOCK_FRAMES = 30  # marker frames per camera validated and folded in together (1 s at 30 Hz)
 
 
 @dataclass
@@ -49,18 +53,47 @@ class Side:
                 tl.poses[child].append(p)
 
 
-def frames_from_log(path: Path, side: Side, report: ReadReport, progress: Callable[[int, int], None] | None) -> Iterator:
-    for lm in read_log(path, None, report, progress):
+def blocks_from_log(path: Path, side: Side, report: ReadReport, progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
+    """Each camera's marker frames in blocks of ``BLOCK_FRAMES``, validated a block at a time."""
+    pending: dict[str, list[m.MarkerObservations]] = {}
+    for lm in read_log(path, None, report, progress, deferred=frozenset({m.MarkerObservations})):
         parsed = keys.parse(lm.key)
         side.cell = side.cell or parsed.cell
         if parsed.topic == "markers":
-            yield lm.msg.camera_id, lm.msg.stamp_ns, observations_from_msg(lm.msg)  # read_log validated it
+            msgs = pending.setdefault(lm.msg.camera_id, [])
+            msgs.append(lm.msg)
+            if len(msgs) == BLOCK_FRAMES:
+                yield from _block(lm.msg.camera_id, pending.pop(lm.msg.camera_id), report)
         elif parsed.topic == "estimate/cameras":
             side.keep(side.online, lm.msg)
         elif parsed.topic == "truth/cameras":
             side.keep(side.truth_cameras, lm.msg)
         elif parsed.topic == "truth/markers":
             side.truth_markers.update(codec.poses_from_msg(lm.msg))
+    for camera_id, msgs in pending.items():
+        yield from _block(camera_id, msgs, report)
+
+
+def _block(camera_id: str, msgs: list[m.MarkerObservations], report: ReadReport) -> Iterator[FrameBlock]:
+    """Validate a camera's frames together; if that fails, one by one, dropping (and counting) the bad."""
+    try:
+        codec.check_id(camera_id, "marker observations camera_id")
+        arrays = codec.marker_batch(msgs)
+    except DecodeError:
+        good = []
+        for msg in msgs:
+            try:
+                codec.check_id(msg.camera_id, "marker observations camera_id")
+                codec.marker_arrays(msg)
+                good.append(msg)
+            except DecodeError as exc:
+                report.messages -= 1
+                report.undecodable += 1
+                log.warning("%s frame at %d ns skipped: %s", msg.camera_id[:40], msg.stamp_ns, exc)
+        if not good:
+            return
+        msgs, arrays = good, codec.marker_batch(good, check=False)
+    yield FrameBlock(camera_id, np.array([msg.stamp_ns for msg in msgs], dtype=np.int64), arrays)
 
 
 def config_of_log(report: ReadReport) -> CellConfig | None:
@@ -96,7 +129,7 @@ def run_resolve(log_path: Path, out: Path, cfg: CellConfig, progress: Callable[[
     out.mkdir(parents=True, exist_ok=True)
     save_used(cfg, out)
     side, report = Side(), ReadReport()
-    result = resolve(frames_from_log(log_path, side, report, progress), cfg.estimator)
+    result = resolve(blocks_from_log(log_path, side, report, progress), cfg.estimator)
     figures = write_outputs(result, side, report, out, side.cell or cfg.cell.name)
     return ResolveRun(result, report, side, out, figures)
 

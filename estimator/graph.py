@@ -28,8 +28,8 @@ import numpy as np
 
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, kabsch, place
-from estimator.observation import Observation
-from schemas.codec import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose
+from estimator.observation import Observation, observations_of
+from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +38,7 @@ POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, ca
 MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
 MIN_PAIR_FOR_MOTION = 5  # observations a pair needs before it can witness a move
 YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
+TRACE_GATE = 1.0 + 2.0 * math.cos(FLIP_GATE_RAD)  # trace(R_mean^T R) above this: within the flip gate
 
 
 class CameraState(Enum):
@@ -120,21 +121,56 @@ class Pair:
 
     def add(self, obs: Observation) -> bool:
         """Fold an observation in, choosing the IPPE branch consistent with the mean. False if rejected."""
+        return self.add_pose(obs.camera_T_marker, obs.alternative, obs.covariance)
+
+    def add_pose(self, T: np.ndarray, other: np.ndarray | None, cov: np.ndarray) -> bool:
+        """``add`` of camera_T_marker T (4x4), its IPPE alternative and covariance (6x6, ROS order)."""
         if self.n == 0:
-            self._take(obs.camera_T_marker, obs.alternative, obs.covariance, False)
+            self._take(T, other, cov, False)
             return True
         mean = self.mean()
-        T, other, swapped = obs.camera_T_marker, obs.alternative, False
+        first, swapped = (T, other), False
         if other is not None and rotation_angle(mean[:3, :3], other[:3, :3]) < rotation_angle(mean[:3, :3], T[:3, :3]):
             T, other, swapped = other, T, True
         if rotation_angle(mean[:3, :3], T[:3, :3]) < FLIP_GATE_RAD and np.linalg.norm(T[:3, 3] - mean[:3, 3]) < POSITION_GATE_M:
-            self._take(T, other, obs.covariance, swapped)
+            self._take(T, other, cov, swapped)
             return True
         self.rejected += 1
         if self.rejected > self.n:  # the majority disagrees with the mean in position too: restart
             self.__init__()
-            self._take(obs.camera_T_marker, obs.alternative, obs.covariance, False)
+            self._take(*first, cov, False)
         return False
+
+    def add_many(self, poses: np.ndarray, alternatives: np.ndarray, covariances: np.ndarray) -> int:
+        """``add`` of a batch (N, 4, 4), (N, 4, 4), (N, 6, 6), all judged against the mean before it.
+
+        For a settled pair the mean moves by a fraction of the noise over a batch, so the choices
+        are those of one-by-one adding. Returns the number accepted. A batch that would trip the
+        restart rule is added one by one instead, where the rule is exact.
+        """
+        mean = self.mean()
+        tr_pose = np.einsum("ij,nij->n", mean[:3, :3], poses[:, :3, :3])  # trace(R_mean^T R): larger = closer
+        tr_alt = np.einsum("ij,nij->n", mean[:3, :3], alternatives[:, :3, :3])
+        swap = tr_alt > tr_pose
+        chosen = np.where(swap[:, None, None], alternatives, poses)
+        ok = (np.maximum(tr_pose, tr_alt) > TRACE_GATE) & (np.linalg.norm(chosen[:, :3, 3] - mean[:3, 3], axis=1) < POSITION_GATE_M)
+        k = int(ok.sum())
+        if self.rejected + (len(ok) - k) > self.n:
+            return sum(self.add_pose(T, A, C) for T, A, C in zip(poses, alternatives, covariances))
+        other = np.where(swap[:, None, None], poses, alternatives)
+        self.n += k
+        self.pos_sum += chosen[ok, :3, 3].sum(axis=0)
+        self.rot_sum += chosen[ok, :3, :3].sum(axis=0)
+        self.alt_rot_sum += other[ok, :3, :3].sum(axis=0)
+        self.cov_sum += covariances[ok].sum(axis=0)
+        self.primary_in_alt += int(swap[ok].sum())
+        self.rejected += len(ok) - k
+        self.dirty = self.dirty or k > 0
+        if self.n >= 3 and 2 * self.primary_in_alt > self.n:  # as in _take
+            self.rot_sum, self.alt_rot_sum = self.alt_rot_sum, self.rot_sum
+            self.primary_in_alt = self.n - self.primary_in_alt
+            self._cached = None
+        return k
 
 
 @dataclass
@@ -239,13 +275,17 @@ class Estimator:
             values.insert(key, gtsam.Pose3(self.anchors[a.marker_id]))
         return graph, values
 
-    def add_frame(self, camera_id: str, stamp_ns: int, observations: list[Observation]) -> None:
-        """All observations of one camera frame (possibly none: the camera is alive)."""
+    def add_frame(self, camera_id: str, stamp_ns: int, observations: list[Observation]) -> bool:
+        """All observations of one camera frame (possibly none: the camera is alive).
+
+        Returns True if the frame joined the camera's current segment (False: ignored, or held
+        back because the camera moves or may have moved).
+        """
         track = self.tracks.setdefault(camera_id, CameraTrack(camera_id))
         if stamp_ns < track.last_stamp_ns:
             self.counters.rejected += len(observations)
             log.warning("%s: frame stamp went backwards (%d < %d); frame ignored", camera_id, stamp_ns, track.last_stamp_ns)
-            return
+            return False
         track.last_stamp_ns = stamp_ns
         static: list[Observation] = []
         track.latest = {}
@@ -261,7 +301,7 @@ class Estimator:
                 static.append(obs)
         track.markers_seen = len(track.latest)
         if not self._camera_is_still(track, static):
-            return
+            return False
         seg = (camera_id, track.segment)
         for obs in static:
             pair = self.pairs.setdefault((seg, obs.marker_id), Pair())
@@ -269,6 +309,70 @@ class Estimator:
                 self.counters.observations += 1
             else:
                 self.counters.rejected += 1
+        return True
+
+    def add_frames(self, camera_id: str, stamps: np.ndarray, a: MarkerArrays) -> list[int | None]:
+        """Consecutive frames of one camera at once (offline): stamps (F,) ns, ``a.frame`` indexes them.
+
+        The same as ``add_frame`` per frame, vectorised for the common case of a still camera whose
+        pairs have settled: the motion test and the pair means run over the whole batch against the
+        means before it. Anything else (a new or young pair, a suspect or moving camera, an unknown
+        marker, stamps out of order) goes frame by frame. Returns each frame's segment, None where
+        the frame did not join one.
+        """
+        track = self.tracks.get(camera_id)
+        seg_key = (camera_id, track.segment) if track else None
+        static = ~np.isin(a.ids, list(self.object_markers)) if self.object_markers else np.ones(len(a.ids), bool)
+        sa = a.rows(static)  # the static markers' rows
+        marker_ids, row_pair = np.unique(sa.ids, return_inverse=True)
+        pairs = [self.pairs.get((seg_key, int(mk))) for mk in marker_ids]
+        fast = (
+            track is not None and not track.moving and track.suspect == 0 and len(stamps) > 0
+            and stamps[0] >= track.last_stamp_ns and bool(np.all(np.diff(stamps) >= 0))
+            and (self.known is None or bool(np.isin(a.ids, list(self.known)).all()))
+            and all(p is not None and p.n >= YOUNG_PAIR for p in pairs)
+        )  # fmt: skip
+        if fast and pairs:
+            fast = not self._any_frame_moved(sa, np.stack([p.mean() for p in pairs])[row_pair], len(stamps))
+        if not fast:
+            out = []
+            for f, stamp in enumerate(stamps):
+                joined = self.add_frame(camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f)))
+                out.append(self.tracks[camera_id].segment if joined else None)
+            return out
+        for j, pair in enumerate(pairs):
+            rows = row_pair == j
+            k = pair.add_many(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows])
+            self.counters.observations += k
+            self.counters.rejected += int(rows.sum()) - k
+        last = len(stamps) - 1
+        track.last_stamp_ns = int(stamps[last])
+        latest = observations_of(camera_id, track.last_stamp_ns, a.rows(a.frame == last))
+        track.latest = {o.marker_id: o for o in latest}
+        track.markers_seen = len(track.latest)
+        track.last_positions = {o.marker_id: o for o in latest if o.marker_id not in self.object_markers}
+        return [track.segment] * len(stamps)
+
+    def _any_frame_moved(self, s: MarkerArrays, expected: np.ndarray, frames: int) -> bool:
+        """``_camera_is_still``'s residual test for many frames at once (static rows ``s``, their
+        pairs' means ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise?"""
+        if len(s.ids) == 0:
+            return False
+        D = s.poses[:, :3, 3] - expected[:, :3, 3]
+        R = expected[:, :3, :3]
+        covs = R @ s.covariances[:, :3, :3] @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3)
+        d2 = np.einsum("ij,ij->i", D, np.linalg.solve(covs, D[:, :, None])[:, :, 0])
+        shifts = np.linalg.norm(D, axis=1)
+        # A median above a threshold needs at least half of the frame's values above it: only
+        # frames that pass this count can have moved, and only they get an exact median.
+        high = (d2 > MOVE_CHI2) & (shifts > self.config.bump_position_m)
+        n_rows = np.bincount(s.frame, minlength=frames)
+        n_high = np.bincount(s.frame, weights=high, minlength=frames)
+        for f in np.flatnonzero((n_rows > 0) & (2 * n_high >= n_rows)):
+            rows = s.frame == f
+            if np.median(d2[rows]) > MOVE_CHI2 and np.median(shifts[rows]) > self.config.bump_position_m:
+                return True
+        return False
 
     def _camera_is_still(self, track: CameraTrack, static: list[Observation]) -> bool:
         """Residual test on marker positions in the camera frame (rotation flips cannot fool it).

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schemas.codec import MarkerArrays
+
 
 @dataclass(frozen=True)
 class Observation:
@@ -22,3 +24,11 @@ class Observation:
     covariance: np.ndarray
     alternative: np.ndarray | None = None
     ambiguous: bool = False
+
+
+def observations_of(camera_id: str, stamp_ns: int, a: MarkerArrays) -> list[Observation]:
+    """Rows of marker arrays (one frame's) as estimator observations."""
+    return [
+        Observation(camera_id, stamp_ns, int(a.ids[i]), a.poses[i], a.covariances[i], a.alternatives[i], bool(a.ambiguous[i]))
+        for i in range(len(a.ids))
+    ]

@@ -20,11 +20,19 @@ import numpy as np
 
 from estimator.config import EstimatorConfig
 from estimator.graph import Estimator, camera_symbol, marker_symbol
-from estimator.observation import Observation
-from schemas.codec import cov_gtsam_to_ros, cov_ros_to_gtsam
+from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam
 
 log = logging.getLogger(__name__)
 UPDATE_EVERY_NS = 200_000_000  # incremental updates while streaming (segments need a map to test against)
+
+
+@dataclass(frozen=True)
+class FrameBlock:
+    """Consecutive marker frames of one camera: stamps (F,) int ns; ``arrays.frame`` indexes them."""
+
+    camera_id: str
+    stamps: np.ndarray
+    arrays: MarkerArrays
 
 
 @dataclass(frozen=True)
@@ -63,25 +71,31 @@ class ResolveResult:
 
 
 def resolve(
-    frames: Iterable[tuple[str, int, list[Observation]]],
+    blocks: Iterable[FrameBlock],
     config: EstimatorConfig,
     progress: Callable[[int], None] | None = None,
 ) -> ResolveResult:
-    """Batch-solve a stream of (camera id, stamp_ns, observations) frames, in capture order per camera."""
+    """Batch-solve a stream of frame blocks, in capture order per camera.
+
+    Blocks of a few dozen frames let the estimator fold a settled camera's observations in with
+    numpy (``Estimator.add_frames``) instead of one Python call per marker.
+    """
     est = Estimator(config)
     last_update = None
     n_frames = n_obs = 0
     stamps: dict[str, list[tuple[int, int]]] = {}
     seg_span: dict[tuple[str, int], list[int]] = {}
-    for cam, stamp, obs in frames:
-        est.add_frame(cam, stamp, obs)
-        track = est.tracks[cam]
-        if not track.moving and track.suspect == 0 and track.last_stamp_ns == stamp:
-            stamps.setdefault(cam, []).append((stamp, track.segment))
-            span = seg_span.setdefault((cam, track.segment), [stamp, stamp, 0])
+    for block in blocks:
+        cam = block.camera_id
+        for stamp, seg in zip(block.stamps.tolist(), est.add_frames(cam, block.stamps, block.arrays)):
+            if seg is None:
+                continue
+            stamps.setdefault(cam, []).append((stamp, seg))
+            span = seg_span.setdefault((cam, seg), [stamp, stamp, 0])
             span[1], span[2] = stamp, span[2] + 1
-        n_frames += 1
-        n_obs += len(obs)
+        n_frames += len(block.stamps)
+        n_obs += len(block.arrays.ids)
+        stamp = int(block.stamps[-1])
         if last_update is None or stamp - last_update >= UPDATE_EVERY_NS:
             est.update(stamp)
             last_update = stamp

@@ -17,7 +17,7 @@ import zenoh
 from estimator.config import EstimatorConfig
 from estimator.errors import StateFileError
 from estimator.graph import CameraState, Estimate, Estimator
-from estimator.observation import Observation
+from estimator.observation import Observation, observations_of
 from estimator.state import SavedMarker, load_state, save_state, set_aside
 from schemas import codec, keys
 from schemas import messages as m
@@ -36,11 +36,7 @@ _STATE = {
 def observations_from_msg(msg: m.MarkerObservations) -> list[Observation]:
     """Wire observations as estimator input. ``msg`` must come from ``codec.decode`` (every
     subscription and log reader does), which validated it: converting is all that is left."""
-    a = codec.marker_arrays(msg, check=False)
-    return [
-        Observation(msg.camera_id, msg.stamp_ns, int(a.ids[i]), a.poses[i], a.covariances[i], a.alternatives[i], msg.markers[i].ambiguous)
-        for i in range(len(a.ids))
-    ]
+    return observations_of(msg.camera_id, msg.stamp_ns, codec.marker_arrays(msg, check=False))
 
 
 def marker_frame(marker_id: int) -> str:

@@ -128,8 +128,12 @@ def read_log(
     key_filter: set[str] | None = None,
     report: ReadReport | None = None,
     progress: Callable[[int, int], None] | None = None,
+    deferred: frozenset[type[Message]] = frozenset(),
 ) -> Iterator[LogMessage]:
     """Stream a log in file order, decoding and validating each message.
+
+    Messages of a ``deferred`` type are checked against the schema only: the caller validates
+    their content itself, many at once (``codec.marker_batch``), and must not trust them before.
 
     A truncated or damaged file yields everything before the damage; ``report.stopped_early``
     says why it stopped. Undecodable messages are counted and skipped.
@@ -157,7 +161,7 @@ def read_log(
                         continue
                     try:
                         msg_type = keys.message_type(ch.topic)
-                        msg = codec.decode(record.data, msg_type)
+                        msg = codec.decode(record.data, msg_type, semantic=msg_type not in deferred)
                     except SchemaError:
                         report.undecodable += 1
                         if ch.topic.startswith(keys.ROOT):
