@@ -160,16 +160,12 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
     # TUM trajectories: "t tx ty tz qx qy qz qw" per frame of a solved static segment.
     tdir = out / "trajectories"
     tdir.mkdir(exist_ok=True)
-    by_seg = {(s.camera_id, s.segment): s for s in result.segments}
+    pose_text = {}  # a segment's pose, formatted once: an hour's log has 100,000 frames per camera
+    for s in result.segments:
+        q, t = codec.quat_from_matrix(s.world_T_camera[:3, :3]), s.world_T_camera[:3, 3]
+        pose_text[(s.camera_id, s.segment)] = f"{t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
     for cam, rows in result.frame_stamps.items():
-        lines = []
-        for stamp, seg in rows:
-            s = by_seg.get((cam, seg))
-            if s is None:
-                continue
-            q = codec.quat_from_matrix(s.world_T_camera[:3, :3])
-            t = s.world_T_camera[:3, 3]
-            lines.append(f"{stamp / 1e9:.9f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}")
+        lines = [f"{stamp / 1e9:.9f} {pose_text[(cam, seg)]}" for stamp, seg in rows if (cam, seg) in pose_text]
         (tdir / f"{cam}.tum").write_text("\n".join(lines) + ("\n" if lines else ""))
     figures = evaluate(result, side)
     figures.update({

@@ -33,6 +33,41 @@ class ObjectMarkerConfig(BaseModel):
     object_T_marker: PoseSpec
 
 
+class BoardMarker(BaseModel):
+    """One marker of a capture board: its id and ``board_T_marker``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    marker_id: int = Field(ge=0)
+    board_T_marker: PoseSpec
+
+
+class BoardConfig(BaseModel):
+    """A marker board for capturing an object's model: the object stands on it, a camera walks round.
+
+    The board frame has z up out of the board; the object frame is the board frame moved by
+    ``board_T_object`` (default: the same). Points inside ``object_min``..``object_max`` (board
+    frame, m) belong to the object; the bottom of that box keeps clear of the board itself.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    markers: list[BoardMarker] = Field(min_length=3, description="at least three, not in a line: placed from their centres")
+    board_T_object: PoseSpec = Field(default_factory=PoseSpec)
+    object_min: tuple[float, float, float] = (-0.2, -0.2, 0.005)
+    object_max: tuple[float, float, float] = (0.2, 0.2, 0.4)
+    min_view_angle_deg: float = Field(default=10.0, ge=0, description="a view is kept if this far from every kept one")
+    max_views: int = Field(default=60, ge=1)
+
+    @model_validator(mode="after")
+    def _box(self) -> "BoardConfig":
+        if not all(a < b for a, b in zip(self.object_min, self.object_max)):
+            raise ValueError(f"object_min {self.object_min} must be below object_max {self.object_max}")
+        if len({mk.marker_id for mk in self.markers}) != len(self.markers):
+            raise ValueError("board marker ids must be distinct")
+        return self
+
+
 class RecognitionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 

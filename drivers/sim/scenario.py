@@ -101,13 +101,16 @@ class CameraMotion(_Strict):
     - ``sweep``: the motor sweeping: pitch ``amplitude_deg`` x sin(2 pi (t - start_s) / period_s).
     - ``slide``: translate by ``offset`` (world, m) linearly between ``start_s`` and ``end_s``.
     - ``bump``: at ``start_s`` the mount jumps by ``rotation_deg`` (rpy, camera frame) and ``offset`` (world, m).
+    - ``orbit``: from ``start_s`` the mount circles the vertical axis through ``centre`` (world, m)
+      once per ``period_s``, still looking the same way relative to the axis (a model capture).
     """
 
-    kind: Literal["tilt", "sweep", "slide", "bump"]
+    kind: Literal["tilt", "sweep", "slide", "bump", "orbit"]
     amplitude_deg: float = Field(default=10.0, ge=-27, le=27)
     period_s: float = Field(default=8.0, gt=0)
     offset: Vec3 = (0.0, 0.0, 0.0)
     rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    centre: Vec3 = (0.0, 0.0, 0.0)
     start_s: float = Field(default=0.0, ge=0)
     end_s: float = Field(default=1.0, ge=0)
 
@@ -125,6 +128,10 @@ class CameraMotion(_Strict):
         elif self.kind == "bump" and t_s >= self.start_s:
             T = T @ make_pose(rpy_matrix(*np.radians(self.rotation_deg)))
             T[:3, 3] += np.asarray(self.offset)
+        elif self.kind == "orbit" and t_s >= self.start_s:
+            Rz = rpy_matrix(0.0, 0.0, 2 * math.pi * (t_s - self.start_s) / self.period_s)
+            c = np.asarray(self.centre, dtype=float)
+            T = make_pose(Rz, c - Rz @ c) @ T
         return T
 
 
