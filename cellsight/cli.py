@@ -372,13 +372,15 @@ def model_build(
     demo: Annotated[bool, typer.Option("--demo", help="every object of the built-in demo cell")] = False,
     mesh: Annotated[Optional[list[str]], typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres")] = None,
     cloud: Annotated[Optional[list[str]], typer.Option("--cloud", help="ID=FILE: a point cloud (PCD/PLY), metres, captured from its origin")] = None,
+    recording: Annotated[Optional[list[str]], typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board")] = None,
+    board: Annotated[Optional[Path], typer.Option("--board", help="marker board TOML of the recordings (see drivers/sim/capture_board.toml)")] = None,
     distance: Annotated[float, typer.Option(help="virtual camera distance for rendered views, m")] = 2.0,
     cell_config: CellConfigOpt = None,
 ) -> None:
     """Build a recognition model database (views from a tessellated sphere; descriptors as configured)."""
     from rich.progress import Progress
 
-    from cellsight.model_build import VIEWS_PER_OBJECT, build_database
+    from cellsight.model_build import VIEWS_PER_OBJECT, build_database, load_board
     from drivers.errors import DriverError
     from drivers.sim.scenario import load_scenario
     from recognition.errors import RecognitionError
@@ -392,17 +394,18 @@ def model_build(
             out_[oid] = Path(path)
         return out_
 
-    meshes, clouds = pairs(mesh, "mesh"), pairs(cloud, "cloud")
-    if not (scenario or demo or meshes or clouds):
-        raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE or --cloud ID=FILE", 2)
+    meshes, clouds, recordings = pairs(mesh, "mesh"), pairs(cloud, "cloud"), pairs(recording, "recording")
+    if not (scenario or demo or meshes or clouds or recordings):
+        raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE, --cloud ID=FILE or --recording ID=LOG", 2)
     cfg = _load(cell_config)
     try:
         sc = load_scenario(scenario) if (scenario or demo) else None
-        total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds))
+        board_cfg = load_board(board) if board else None
+        total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds) + len(recordings))
         with Progress(console=_stderr(), transient=True) as bar:
             task = bar.add_task("rendering and describing views", total=total)
-            db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds,
-                                distance_m=distance, progress=lambda: bar.advance(task))
+            db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, recordings=recordings,
+                                board=board_cfg, distance_m=distance, progress=lambda: bar.advance(task))
         db.save(out)
     except (RecognitionError, DriverError) as exc:
         raise _fail(str(exc), 2) from None

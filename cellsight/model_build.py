@@ -1,4 +1,5 @@
-"""``cellsight model build``: a recognition model database from a scenario, meshes or point clouds."""
+"""``cellsight model build``: a recognition model database from a scenario, meshes, point clouds or
+recordings of an object on a marker board."""
 
 from __future__ import annotations
 
@@ -9,9 +10,10 @@ from pathlib import Path
 from drivers.sim.render import object_mesh
 from drivers.sim.scenario import Scenario
 from recognition.cloud import read_cloud
-from recognition.config import DescriptorConfig
+from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh, read_mesh
+from recognition.recording import model_from_recording
 
 log = logging.getLogger(__name__)
 #: Views rendered per object: an icosahedron subdivided once.
@@ -34,10 +36,13 @@ def build_database(
     scenario: Scenario | None = None,
     meshes: dict[str, Path] | None = None,
     clouds: dict[str, Path] | None = None,
+    recordings: dict[str, Path] | None = None,
+    board: BoardConfig | None = None,
     distance_m: float = 2.0,
     progress: Callable[[], None] | None = None,
 ) -> ModelDatabase:
-    """One database from any mix of sources; object ids must be unique across them."""
+    """One database from any mix of sources; object ids must be unique across them. Recordings
+    (MCAP logs of the object on ``board``) need the board."""
     db = database_from_scenario(scenario, params, progress, distance_m) if scenario else ModelDatabase(params, {})
     for oid, path in (meshes or {}).items():
         _check_new(db, oid)
@@ -45,7 +50,30 @@ def build_database(
     for oid, path in (clouds or {}).items():
         _check_new(db, oid)
         db.add(model_from_cloud(oid, read_cloud(path), params, progress=progress))
+    if recordings and board is None:
+        raise ModelError("a recording needs its marker board: give --board BOARD.toml")
+    for oid, path in (recordings or {}).items():
+        _check_new(db, oid)
+        db.add(model_from_recording(oid, path, board, params, progress))
     return db
+
+
+def load_board(path: Path) -> BoardConfig:
+    """A board TOML ([[markers]] with marker_id and board_T_marker; optional object box); ModelError
+    naming the file and field when it is wrong."""
+    import tomllib
+
+    from pydantic import ValidationError
+
+    try:
+        return BoardConfig.model_validate(tomllib.loads(path.read_text()))
+    except OSError as exc:
+        raise ModelError(f"board file {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelError(f"board file {path} is not valid TOML: {exc}") from None
+    except ValidationError as exc:
+        where = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ModelError(f"board file {path}: {where}") from None
 
 
 def _check_new(db: ModelDatabase, oid: str) -> None:

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from google.protobuf.message import Message
 
 from schemas import codec, keys
 from schemas import messages as m
@@ -19,6 +20,21 @@ CLI = [sys.executable, "-m", "cellsight.cli"]
 
 def run(args: list[str], timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(CLI + args, capture_output=True, text=True, timeout=timeout)
+
+
+def publish_until_exit(proc: subprocess.Popen, endpoint: str, cell: str, messages: dict[str, Message]) -> tuple[str, str]:
+    """Keep publishing ``messages`` (key -> message) until the CLI process, which must first
+    subscribe, has printed and exited; its (stdout, stderr)."""
+    try:
+        with Bus(TransportConfig(connect=[endpoint]), cell) as bus:
+            pubs = [(bus.publisher(key), msg) for key, msg in messages.items()]
+            while proc.poll() is None:
+                for pub, msg in pubs:
+                    pub.put(msg)
+                time.sleep(0.1)
+        return proc.communicate(timeout=10)
+    finally:
+        proc.kill()
 
 
 def test_help_lists_the_commands() -> None:
@@ -62,15 +78,7 @@ def test_bus_echo_prints_a_message_from_another_process(router_endpoint: str) ->
         CLI + ["bus", "echo", key, "--once", "--json", "--timeout", "20", "--connect", router_endpoint],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    try:
-        with Bus(TransportConfig(connect=[router_endpoint]), "demo") as bus:
-            pub = bus.publisher(key)
-            while proc.poll() is None:  # keep publishing until the echo process has subscribed and printed
-                pub.put(msg)
-                time.sleep(0.1)
-        out, err = proc.communicate(timeout=10)
-    finally:
-        proc.kill()
+    out, err = publish_until_exit(proc, router_endpoint, "demo", {key: msg})
     assert proc.returncode == 0, err
     line = json.loads(out.strip().splitlines()[0])
     assert line["key"] == key and line["type"] == "cellsight.MarkerObservations"
@@ -92,17 +100,8 @@ def test_status_shows_cameras_with_poses_and_objects(router_endpoint: str) -> No
     objects = m.ObjectDetections(stamp_ns=1)
     crate = objects.objects.add(object_id="crate", fitness=0.93, rmse_m=0.0052, camera_ids=["cam1"])
     codec.pose_to_msg(codec.make_pose(t=[0.1, 0.2, 0.75]), crate.world_T_object)
-    try:
-        with Bus(TransportConfig(connect=[router_endpoint]), "lab") as bus:
-            pubs = [(bus.publisher(keys.estimate_status("lab")), status), (bus.publisher(keys.estimate_cameras("lab")), cameras),
-                    (bus.publisher(keys.objects("lab")), objects)]  # fmt: skip
-            while proc.poll() is None:
-                for pub, msg in pubs:
-                    pub.put(msg)
-                time.sleep(0.1)
-        out, err = proc.communicate(timeout=10)
-    finally:
-        proc.kill()
+    out, err = publish_until_exit(proc, router_endpoint, "lab", {
+        keys.estimate_status("lab"): status, keys.estimate_cameras("lab"): cameras, keys.objects("lab"): objects})  # fmt: skip
     assert proc.returncode == 0, err
     cam1 = next(line for line in out.splitlines() if "cam1" in line and "localized" in line)
     assert "+1.250, -0.500, +2.000" in cam1 and "4.0" in cam1

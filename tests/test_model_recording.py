@@ -7,6 +7,8 @@ shape and must find the crate in the demo cell.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -91,3 +93,17 @@ def test_recorded_model_has_the_crates_shape_and_finds_it_in_the_demo_cell(captu
     # 2 cm as for the models built from shapes (their median error is 3-6 mm); yaw up to a half turn.
     assert_pose_close(T, crate.world_T_object(1.0), pos_tol_m=0.02, rot_tol_deg=180.0, what="crate")
     assert T[2, 2] > np.cos(np.radians(5))
+
+
+def test_model_build_command_reads_a_recording_and_names_a_bad_board(capture, tmp_path: Path) -> None:
+    path, _, _ = capture
+    example = Path(__file__).resolve().parents[1] / "examples" / "capture_board.toml"
+    cli = [sys.executable, "-m", "cellsight.cli", "model", "build", "--recording", f"crate={path}", "--out", str(tmp_path / "db")]
+    out = subprocess.run(cli + ["--board", str(example)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    db = ModelDatabase.load(tmp_path / "db")
+    assert db.models["crate"].source == "recording" and len(db.models["crate"].views) >= 15
+    bad = tmp_path / "board.toml"
+    bad.write_text("[[markers]]\nmarker_id = 10\nboard_T_marker = { position = [0, 0, 0] }\n")
+    out = subprocess.run(cli + ["--board", str(bad)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and str(bad) in out.stderr and "markers" in out.stderr and "at least 3" in out.stderr
