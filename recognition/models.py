@@ -158,7 +158,7 @@ def _object_T_view(centre: np.ndarray, direction: np.ndarray, distance_m: float)
     return make_pose(look_at_matrix(position, centre, up), position)
 
 
-def _views_of(
+def describe_views(
     clouds: Iterable[tuple[np.ndarray, np.ndarray]], params: DescriptorConfig, progress: Callable[[], None] | None
 ) -> Views:
     """Describe each (points in the view's camera frame, view_T_object) pair that has enough points."""
@@ -212,7 +212,7 @@ def model_from_mesh(
             depth = np.where(np.isfinite(t_hit), t_hit, 0.0)
             yield finite_points(depth_to_cloud(depth, camera.K, depth_scale=1.0)), view_T_object
 
-    views = _views_of(rendered(), params, progress)
+    views = describe_views(rendered(), params, progress)
     area = mesh.get_surface_area()
     sample = mesh.sample_points_uniformly(max(1000, int(4 * area / params.voxel_m**2)), use_triangle_normal=True)
     sample = sample.voxel_down_sample(params.voxel_m)
@@ -263,7 +263,7 @@ def model_from_cloud(
             view_T_object = invert_pose(object_T_view)
             yield pts[idx] @ view_T_object[:3, :3].T + view_T_object[:3, 3], view_T_object
 
-    views = _views_of(seen(), params, progress)
+    views = describe_views(seen(), params, progress)
     return ObjectModel(object_id, model_pts, model_normals, views, "cloud")
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from recognition.cloud import depth_to_cloud, estimate_normals, finite_points, voxel_downsample
 from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
-from recognition.models import MIN_VIEW_POINTS, ObjectModel, _views_of
+from recognition.models import MIN_VIEW_POINTS, ObjectModel, describe_views
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.log import ReadReport, read_log
@@ -111,7 +111,8 @@ def model_from_views(
     normals, _ = estimate_normals(pts, params.normal_radius_m, centre)
     ok = np.all(np.isfinite(normals), axis=1)
     # Faced to the centre by estimate_normals; a captured object is seen from outside: flip them.
-    model = ObjectModel(object_id, pts[ok], -normals[ok], _views_of(((v.points, v.camera_T_object) for v in views), params, progress), "recording")
+    described = describe_views(((v.points, v.camera_T_object) for v in views), params, progress)
+    model = ObjectModel(object_id, pts[ok], -normals[ok], described, "recording")
     log.info("%s: model from %d recorded views, %d points", object_id, len(model.views), len(model.points))
     return model
 
