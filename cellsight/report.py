@@ -88,8 +88,7 @@ class Timeline:
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(position error mm, rotation error deg)."""
-    dR = T_est[:3, :3].T @ T_true[:3, :3]
-    ang = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2))))
+    ang = math.degrees(codec.rotation_angle(T_est[:3, :3], T_true[:3, :3]))
     return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000), ang
 
 

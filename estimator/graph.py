@@ -29,7 +29,7 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, kabsch, place
 from estimator.observation import Observation, observations_of
-from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose
+from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, rotation_angle
 
 log = logging.getLogger(__name__)
 
@@ -54,12 +54,6 @@ def camera_symbol(index: int) -> int:
 
 def marker_symbol(marker_id: int) -> int:
     return gtsam.symbol("m", marker_id)
-
-
-def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle (rad) of R_a^T R_b."""
-    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, c)))
 
 
 def project_rotation(M: np.ndarray) -> np.ndarray:

@@ -279,8 +279,7 @@ class RecognitionWorker:
                 continue
             T = self.world_T_camera[d.camera_id]
             step = codec.invert_pose(d.world_T_camera) @ T
-            angle = np.degrees(np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1.0, 1.0)))
-            if np.linalg.norm(step[:3, 3]) <= MOVED_M and angle <= MOVED_DEG:
+            if np.linalg.norm(step[:3, 3]) <= MOVED_M and np.degrees(codec.rotation_angle(np.eye(3), step[:3, :3])) <= MOVED_DEG:
                 out.append(replace(d, world_T_object=T @ d.detection.camera_T_object, world_T_camera=T))
         return out
 

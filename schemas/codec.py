@@ -92,6 +92,12 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (rad) of R_a^T R_b: how far apart two rotations (3, 3) are."""
+    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
 def check_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarray:
     """Return ``T`` as float64 if it is a finite rigid 4x4 transform, else raise ``DecodeError``."""
     T = np.asarray(T, dtype=np.float64)
