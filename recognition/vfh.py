@@ -56,12 +56,16 @@ def vfh(
     centroid = (np.add.accumulate(p, axis=0)[-1] / _F32(len(p))).astype(_F32)
     normal_centroid = (np.add.accumulate(n, axis=0)[-1] / _F32(len(p))).astype(_F32)
 
-    f1, f2, f3, f4, valid = _pair_features(centroid, normal_centroid, p, n)
+    # Components as contiguous rows (3, N): column slices of (N, 3) are strided and slow.
+    pt, nt = np.ascontiguousarray(p.T), np.ascontiguousarray(n.T)
+    f1, f2, f3, f4, valid = _pair_features(centroid, normal_centroid, pt, nt)
     incr = _F32(100.0) / _F32(len(p) - 1) if normalize_bins else _F32(1.0)
+    # PCL bins in double: nr_bins * ((f + M_PI) * d_pi_).
     if binning == "pcl":
-        edges = [(f + np.pi) * _D_PI for f in (f1, f2, f3)]
+        edges = [(f.astype(np.float64) + np.pi) * _D_PI for f in (f1, f2, f3)]
     else:
-        edges = [(f1 + np.pi) * _D_PI, (f2 + 1.0) * 0.5, (f3 + 1.0) * 0.5]
+        edges = [(f1.astype(np.float64) + np.pi) * _D_PI, (f2.astype(np.float64) + 1.0) * 0.5,
+                 (f3.astype(np.float64) + 1.0) * 0.5]
     hists = [_accumulate(_bin_index(F_BINS * e, F_BINS)[valid], F_BINS, incr) for e in edges]
     if size_component:
         if normalize_distance:
@@ -77,41 +81,44 @@ def vfh(
     # Viewpoint component: the view direction is normalised as a 4-vector whose w is -1 (0 - 1).
     d = np.asarray(viewpoint, dtype=_F32).reshape(3) - centroid
     d = (d / _norm4(d, w=_F32(-1.0))).astype(_F32)
-    alpha = (_dot(n, d).astype(np.float64) + 1.0) * 0.5
+    alpha = (_dot(nt, d).astype(np.float64) + 1.0) * 0.5
     vp_incr = _F32(100.0 / len(p)) if normalize_bins else _F32(1.0)
     hists.append(_accumulate(_bin_index(alpha * VP_BINS, VP_BINS), VP_BINS, vp_incr))
     return np.concatenate(hists).astype(_F32)
 
 
 def _pair_features(c: np.ndarray, nc: np.ndarray, p: np.ndarray, n: np.ndarray):
-    """PCL's computePairFeatures between the centroid (c, nc) and every point (p, n), float32.
+    """PCL's computePairFeatures between the centroid (c, nc: (3,)) and every point (p, n: (3, N)), float32.
 
     Returns f1, f2, f3, f4 (N,) and valid (N,): False where PCL skips the pair (zero distance, or
     dp parallel to the chosen normal).
     """
-    dp = (p - c).astype(_F32)
+    dp = p - c[:, None]
     f4 = np.sqrt(_dot(dp, dp))
     with np.errstate(divide="ignore", invalid="ignore"):
-        angle1 = _dot(np.broadcast_to(nc, n.shape), dp) / f4
+        angle1 = _dot(dp, nc) / f4
         angle2 = _dot(n, dp) / f4
         swap = np.arccos(np.abs(angle1)) > np.arccos(np.abs(angle2))
-        u = np.where(swap[:, None], n, nc)
-        nt = np.where(swap[:, None], nc, n)
-        dp = np.where(swap[:, None], -dp, dp)
+        u = np.where(swap, n, nc[:, None])
+        n_t = np.where(swap, nc[:, None], n)
+        dp *= np.where(swap, _F32(-1), _F32(1))  # exact: a sign flip
         f3 = np.where(swap, -angle2, angle1)
         v = _cross(dp, u)
         v_norm = np.sqrt(_dot(v, v))
-        v = v / v_norm[:, None]
+        v /= v_norm
         w = _cross(u, v)
-        f2 = _dot(v, nt)
-        f1 = np.arctan2(_dot(w, nt), _dot(u, nt))
+        f2 = _dot(v, n_t)
+        f1 = np.arctan2(_dot(w, n_t), _dot(u, n_t))
     valid = (f4 != 0) & (v_norm != 0)
     return f1, f2, f3, f4, valid
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Eigen's SSE dot of 4-vectors with w = 0: (a0 b0 + a2 b2) + (a1 b1 + 0), in float32."""
-    return ((a[..., 0] * b[..., 0] + a[..., 2] * b[..., 2]) + a[..., 1] * b[..., 1]).astype(_F32)
+    """Eigen's SSE dot of 4-vectors with w = 0, (a0 b0 + a2 b2) + (a1 b1 + 0), in float32.
+
+    a, b: (3, N) rows or (3,) vectors.
+    """
+    return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
 
 
 def _norm4(a: np.ndarray, w: np.float32) -> np.float32:
@@ -125,10 +132,8 @@ def _norm3(a: np.ndarray) -> np.ndarray:
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.stack(
-        [a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]],
-        axis=1,
-    ).astype(_F32)
+    """a x b of (3, N) rows."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def _bin_index(x: np.ndarray, bins: int, floor: bool = True) -> np.ndarray:
