@@ -22,10 +22,14 @@ def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | 
     When a and b are opposite every axis normal to them will do: the half turn is about
     half_turn_axis (unit, normal to a; default x, which suits a = -z).
     """
-    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
-    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    s, c = np.linalg.norm(axis), float(a @ b)
+    # Plain arithmetic on 3-vectors: np.cross and np.linalg.norm cost tens of microseconds each here,
+    # and this runs for every start of every cluster.
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    a = a / np.sqrt(a @ a)
+    b = b / np.sqrt(b @ b)
+    axis = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+    s, c = float(np.sqrt(axis @ axis)), float(a @ b)
     if s < 1e-12:
         if c > 0:
             return np.eye(3)
@@ -56,23 +60,33 @@ def roll_histogram(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return hist / total if total > 0 else hist
 
 
-def roll_candidates(scene_hist: np.ndarray, view_hist: np.ndarray, peaks: int = 3, ratio: float = 0.7) -> list[float]:
-    """Roll angles (rad) that turn the view's histogram into the scene's, best first.
+def roll_correlations(scene_hist: np.ndarray, view_hists: np.ndarray) -> np.ndarray:
+    """Circular cross-correlation (by FFT) of the scene's roll histogram (90,) with each view's (V, 90):
+    (V, 90), entry k the match when the view is rolled by k bins."""
+    scene = np.fft.fft(scene_hist)
+    return np.real(np.fft.ifft(scene[None, :] * np.conj(np.fft.fft(np.atleast_2d(view_hists), axis=1)), axis=1))
 
-    The circular cross-correlation (by FFT) is searched for local maxima at least ``ratio`` of the
-    best; each is refined to sub-bin precision with a parabola through its neighbours.
-    """
-    corr = np.real(np.fft.ifft(np.fft.fft(scene_hist) * np.conj(np.fft.fft(view_hist))))
-    left, right = np.roll(corr, 1), np.roll(corr, -1)
-    is_peak = (corr >= left) & (corr > right) & (corr >= ratio * corr.max())
-    order = [int(k) for k in np.argsort(-corr) if is_peak[k]][:peaks]
-    step = 2 * np.pi / ROLL_BINS
-    out = []
-    for k in order:
-        denom = left[k] - 2 * corr[k] + right[k]
-        offset = 0.5 * (left[k] - right[k]) / denom if denom < 0 else 0.0
-        out.append((k + offset) * step)
-    return out or [0.0]
+
+def roll_peaks(corr: np.ndarray, peaks: int = 3, ratio: float = 0.7) -> list[list[float]]:
+    """Roll angles (rad) at the local maxima of each correlation row (V, 90) that are at least
+    ``ratio`` of that row's best, best first, each refined to sub-bin precision with a parabola
+    through its neighbours; [0.0] for a row with none."""
+    corr = np.atleast_2d(corr)
+    left, right = np.roll(corr, 1, axis=1), np.roll(corr, -1, axis=1)
+    is_peak = (corr >= left) & (corr > right) & (corr >= ratio * corr.max(axis=1, keepdims=True))
+    k = np.argsort(np.where(is_peak, -corr, np.inf), axis=1, kind="stable")[:, :peaks]
+    c, lft, rgt = (np.take_along_axis(a, k, axis=1) for a in (corr, left, right))
+    denom = lft - 2 * c + rgt
+    with np.errstate(divide="ignore", invalid="ignore"):
+        offset = np.where(denom < 0, 0.5 * (lft - rgt) / denom, 0.0)
+    angles = (k + offset) * (2 * np.pi / ROLL_BINS)
+    found = np.take_along_axis(is_peak, k, axis=1)
+    return [row[ok].tolist() or [0.0] for row, ok in zip(angles, found)]
+
+
+def roll_candidates(scene_hist: np.ndarray, view_hist: np.ndarray, peaks: int = 3, ratio: float = 0.7) -> list[float]:
+    """Roll angles (rad) that turn the view's histogram into the scene's, best first."""
+    return roll_peaks(roll_correlations(scene_hist, view_hist), peaks, ratio)[0]
 
 
 def rot_z(angle: float) -> np.ndarray:
@@ -80,17 +94,24 @@ def rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def view_to_scene(scene_centroid: np.ndarray, view_centroid: np.ndarray, roll: float) -> np.ndarray:
-    """camera_T_view (4, 4): puts a model view's cloud (in its virtual camera) onto the scene cluster.
+def views_to_scene(
+    scene_centroid: np.ndarray, view_centroids: np.ndarray, view_to_z: np.ndarray, rolls: np.ndarray
+) -> np.ndarray:
+    """camera_T_view (K, 4, 4): puts each model view's cloud (in its virtual camera) onto the scene cluster.
 
-    Both clusters are turned so that their centroids lie on +z, the view is rolled by ``roll`` about
-    z, and the centroids are made to coincide.
+    Both clusters are turned so that their centroids lie on +z (view_to_z (K, 3, 3) is
+    ``align_to_z`` of each view centroid (K, 3), m), the view is rolled by rolls (K,) rad about z,
+    and the centroids are made to coincide.
     """
-    A_s, A_v = align_to_z(scene_centroid), align_to_z(view_centroid)
-    R = A_s.T @ rot_z(roll) @ A_v
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(scene_centroid) - R @ np.asarray(view_centroid)
+    A_s = align_to_z(scene_centroid)
+    c, s = np.cos(rolls), np.sin(rolls)
+    Rz = np.zeros((len(rolls), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    R = A_s.T @ Rz @ view_to_z
+    T = np.zeros((len(rolls), 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = np.asarray(scene_centroid) - np.einsum("kij,kj->ki", R, view_centroids)
+    T[:, 3, 3] = 1.0
     return T
 
 
@@ -111,6 +132,27 @@ def visible_points(model_points: np.ndarray, model_normals: np.ndarray, camera_T
     return model_points[np.einsum("ij,ij->i", n_cam, -p_cam) > 0]
 
 
+def icp_pass(
+    model_points: np.ndarray,
+    model_normals: np.ndarray,
+    scene: o3d.geometry.PointCloud,
+    camera_T_object: np.ndarray,
+    distance_m: float,
+    iterations: int = 30,
+) -> IcpResult:
+    """One point-to-plane ICP of the model points facing the camera at the start pose onto the scene
+    (which must have normals). Fitness and RMSE are ICP's own, at distance_m, over those points."""
+    pose = np.asarray(camera_T_object, dtype=np.float64)
+    src = _cloud(visible_points(model_points, model_normals, pose))
+    if len(src.points) < 3:
+        return IcpResult(pose, 0.0, float("inf"))
+    est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+    crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
+    reg = o3d.pipelines.registration.registration_icp(src, scene, distance_m, pose, est, crit)
+    return IcpResult(np.asarray(reg.transformation), float(reg.fitness),
+                     float(reg.inlier_rmse) if reg.fitness > 0 else float("inf"))
+
+
 def refine_icp(
     model_points: np.ndarray,
     model_normals: np.ndarray,
@@ -119,27 +161,33 @@ def refine_icp(
     max_distance_m: float,
     iterations: int = 30,
     max_shift_m: float = np.inf,
+    passes: tuple[float, ...] = (2.0, 1.0),
 ) -> IcpResult:
-    """Point-to-plane ICP of the camera-facing model points onto the scene (which must have normals).
-
-    The visible set is chosen at the initial pose, refined, then chosen again at the refined pose for
-    the final score, so that the fitness counts the surface the camera should actually see. A result
-    that moved more than max_shift_m from the start (ICP sliding off a degenerate cluster) scores 0.
+    """Point-to-plane ICP passes (``icp_pass``) with correspondence distances these multiples of
+    max_distance_m (default: coarse then fine), then scored again at max_distance_m with the model
+    points facing the camera at the refined pose, so that the fitness counts the surface the camera
+    should actually see. A result that moved more than max_shift_m from the start (ICP sliding off
+    a degenerate cluster) scores 0.
     """
-    est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
-    crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
-    pose = np.asarray(camera_T_object, dtype=np.float64)
-    for distance in (2.0 * max_distance_m, max_distance_m):  # coarse then fine
-        src = _cloud(visible_points(model_points, model_normals, pose))
-        if len(src.points) < 3:
-            return IcpResult(pose, 0.0, float("inf"))
-        pose = o3d.pipelines.registration.registration_icp(src, scene, distance, pose, est, crit).transformation
     start = np.asarray(camera_T_object, dtype=np.float64)
+    pose = start
+    for k in passes:
+        pose = icp_pass(model_points, model_normals, scene, pose, k * max_distance_m, iterations).camera_T_object
     if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
         return IcpResult(start, 0.0, float("inf"))
     src = _cloud(visible_points(model_points, model_normals, pose))
+    if len(src.points) < 3:
+        return IcpResult(pose, 0.0, float("inf"))
     ev = o3d.pipelines.registration.evaluate_registration(src, scene, max_distance_m, pose)
-    return IcpResult(np.asarray(pose), float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))
+    return IcpResult(pose, float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))
+
+
+def model_to_scene_rmse(model_points: np.ndarray, camera_T_object: np.ndarray, scene_points: np.ndarray) -> float:
+    """RMS distance (m) from each posed model point (object frame, (M, 3)) to its nearest scene point
+    ((N, 3), camera frame): PCL's acceptance measure for a recognised pose."""
+    model = _cloud(model_points).transform(np.asarray(camera_T_object, dtype=np.float64))
+    d = np.asarray(model.compute_point_cloud_distance(_cloud(scene_points)))
+    return float(np.sqrt(np.mean(d**2)))
 
 
 def _cloud(points: np.ndarray) -> o3d.geometry.PointCloud:

@@ -120,7 +120,8 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 def radius_neighbours(points: np.ndarray, radius_m: float, queries: np.ndarray | None = None):
-    """Indices of the points within radius_m of each query (default: every point, itself included).
+    """Indices of the points within radius_m of each query (default: every point, itself included),
+    in no particular order.
 
     Returns (indices (E,) int64, row_splits (Q + 1,) int64): query q's neighbours are
     indices[row_splits[q]:row_splits[q + 1]], a CSR layout for vectorised per-point reductions.
@@ -129,8 +130,32 @@ def radius_neighbours(points: np.ndarray, radius_m: float, queries: np.ndarray |
     q = pts if queries is None else o3d.core.Tensor(np.ascontiguousarray(queries, dtype=np.float32))
     search = nns.NearestNeighborSearch(pts)
     search.fixed_radius_index(radius_m)
-    idx, _, splits = search.fixed_radius_search(q, radius_m)
+    idx, _, splits = search.fixed_radius_search(q, radius_m, sort=False)
     return idx.numpy().astype(np.int64), splits.numpy().astype(np.int64)
+
+
+def smallest_eigenpair(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest eigenvalue (N,) and its unit eigenvector (N, 3) of symmetric 3x3 matrices (N, 3, 3).
+
+    Closed form (the trigonometric solution of the characteristic cubic), ~10x faster than a batched
+    np.linalg.eigh on small matrices. The vector is the largest cross product of two rows of
+    A - lambda I, which are orthogonal to it.
+    """
+    q = np.trace(cov, axis1=1, axis2=2) / 3.0
+    shifted = cov - q[:, None, None] * np.eye(3)
+    p = np.sqrt(np.einsum("nij,nij->n", shifted, shifted) / 6.0)
+    safe = np.where(p > 0, p, 1.0)
+    r = np.clip(np.linalg.det(shifted / safe[:, None, None]) / 2.0, -1.0, 1.0)
+    smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
+    m = cov - smallest[:, None, None] * np.eye(3)
+    crosses = np.stack([np.cross(m[:, 0], m[:, 1]), np.cross(m[:, 0], m[:, 2]), np.cross(m[:, 1], m[:, 2])], axis=1)
+    norms = np.linalg.norm(crosses, axis=2)
+    pick = np.argmax(norms, axis=1)
+    rows = np.arange(len(cov))
+    best = norms[rows, pick]
+    vec = crosses[rows, pick] / np.where(best > 0, best, 1.0)[:, None]
+    vec[best == 0] = (0.0, 0.0, 1.0)  # isotropic or degenerate: every direction is an eigenvector
+    return smallest, vec
 
 
 def estimate_normals(
@@ -160,12 +185,11 @@ def estimate_normals(
         for b in range(a, 3):
             second = np.bincount(rows, nbr[:, a] * nbr[:, b], minlength=len(pts)) / n
             cov[:, a, b] = cov[:, b, a] = second - mean[:, a] * mean[:, b]
-    evals, evecs = np.linalg.eigh(cov)
-    normals = evecs[:, :, 0]
+    smallest, normals = smallest_eigenpair(cov)
     flip = np.einsum("ij,ij->i", normals, np.asarray(viewpoint, dtype=np.float64) - pts) < 0
     normals[flip] *= -1.0
-    total = evals.sum(axis=1)
-    curvature = np.divide(np.abs(evals[:, 0]), total, out=np.zeros(len(pts)), where=total > 0)
+    total = np.trace(cov, axis1=1, axis2=2)  # the sum of the eigenvalues
+    curvature = np.divide(np.abs(smallest), total, out=np.zeros(len(pts)), where=total > 0)
     bad = counts < MIN_NORMAL_NEIGHBOURS
     normals[bad] = np.nan
     curvature[bad] = np.nan

@@ -18,6 +18,7 @@ import json
 import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -62,7 +63,7 @@ class ObjectModel:
     views: Views
     source: str
 
-    @property
+    @cached_property
     def diameter_m(self) -> float:
         """Largest distance between two model points (bounded from the axis-aligned box)."""
         lo, hi = self.points.min(axis=0), self.points.max(axis=0)
@@ -81,12 +82,14 @@ class ModelDatabase:
             raise ModelError(f"object {model.object_id!r}: no usable view (too few points seen from every viewpoint)")
         self.models[model.object_id] = model
 
-    def view_table(self) -> tuple[np.ndarray, list[tuple[str, int]]]:
-        """All views stacked: descriptors (V, 308) and, per row, (object id, view index)."""
-        rows = [(oid, i) for oid, mdl in self.models.items() for i in range(len(mdl.views))]
-        if not rows:
-            return np.zeros((0, SIZE), dtype=np.float32), []
-        return np.concatenate([mdl.views.vfh for mdl in self.models.values()]), rows
+    def view_table(self) -> tuple[Views, list[str]]:
+        """Every object's views stacked into one ``Views`` (V rows), and each row's object id."""
+        owners = [oid for oid, mdl in self.models.items() for _ in range(len(mdl.views))]
+        if not owners:
+            return Views(np.zeros((0, SIZE), np.float32), np.zeros((0, ROLL_BINS)), np.zeros((0, 3)), np.zeros((0, 4, 4))), []
+        fields = [np.concatenate([getattr(mdl.views, f) for mdl in self.models.values()])
+                  for f in ("vfh", "roll", "centroid", "view_T_object")]
+        return Views(*fields), owners
 
     def save(self, directory: str | Path) -> Path:
         d = Path(directory)
@@ -214,6 +217,7 @@ def model_from_mesh(
 
     views = describe_views(rendered(), params, progress)
     area = mesh.get_surface_area()
+    o3d.utility.random.seed(0)  # the same mesh gives the same model, run after run
     sample = mesh.sample_points_uniformly(max(1000, int(4 * area / params.voxel_m**2)), use_triangle_normal=True)
     sample = sample.voxel_down_sample(params.voxel_m)
     normals = np.asarray(sample.normals)

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
 
-from recognition.align import IcpResult, refine_icp, roll_candidates, rotation_between, view_to_scene
-from recognition.cloud import estimate_normals, finite_points, voxel_downsample
+from recognition.align import (
+    IcpResult, align_to_z, icp_pass, refine_icp, roll_correlations, roll_peaks, rotation_between, views_to_scene,
+)
+from recognition.cloud import estimate_normals, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.descriptor import describe
 from recognition.errors import ModelError
@@ -30,6 +32,15 @@ MAX_OBJECTS_PER_CLUSTER = 3
 SPLIT_ABOVE = 1.2
 #: ... down to this many voxels (below it a surface falls apart into its samples).
 MIN_TOLERANCE_VOXELS = 1.5
+#: Model points in the coarse ICP that screens every start: enough to lock on an object's shape.
+SCREEN_POINTS = 100
+#: ... and its iterations: it need only fall into the right basin; the refinement converges.
+SCREEN_ITERATIONS = 8
+#: Screened starts per object refined with a denser model ...
+REFINED_STARTS = 2
+#: ... of this many points (a 1 cm voxel model of a 30 cm object has ~2000; ICP's precision is
+#: bounded by depth noise long before by this count).
+REFINE_POINTS = 500
 
 
 @dataclass(frozen=True)
@@ -55,11 +66,10 @@ class Detection:
 
 @dataclass
 class SceneCloud:
-    """The prepared scene: downsampled points and normals (N, 3), and which survive plane removal."""
+    """The prepared scene: the downsampled points off the dominant planes, with normals, (N, 3)."""
 
     points: np.ndarray
     normals: np.ndarray
-    foreground: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 class Recognizer:
@@ -73,26 +83,40 @@ class Recognizer:
             )
         self.db = database
         self.config = config
-        self._table, self._rows = database.view_table()
+        self._views, self._owners = database.view_table()
+        self._view_to_z = np.array([align_to_z(c) for c in self._views.centroid]).reshape(-1, 3, 3)
         self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
+        self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
+        self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
+        self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
 
     def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
         """Finite points within range (and the workspace, when the camera pose is known), downsampled,
-        with normals, and the non-plane mask."""
+        off the dominant planes, with normals."""
         c, d = self.config, self.config.descriptor
-        pts = finite_points(cloud)
-        pts = pts[np.linalg.norm(pts, axis=1) <= c.max_range_m]
+        empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+        pts = np.asarray(cloud, dtype=np.float32).reshape(-1, 3)
+        # One mask for range, workspace and NaN (every comparison with NaN is false), column by
+        # column: a 640x480 frame is 307k points and this runs on every frame.
+        x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+        keep = x * x + y * y + z * z <= np.float32(c.max_range_m**2)
         if world_T_camera is not None and c.workspace_min is not None:
-            world = pts @ world_T_camera[:3, :3].T.astype(np.float32) + world_T_camera[:3, 3].astype(np.float32)
-            pts = pts[np.all((world >= c.workspace_min) & (world <= c.workspace_max), axis=1)]
+            R, t = world_T_camera[:3, :3].astype(np.float32), world_T_camera[:3, 3].astype(np.float32)
+            for axis in range(3):
+                w = R[axis, 0] * x + R[axis, 1] * y + R[axis, 2] * z + t[axis]
+                keep &= (w >= np.float32(c.workspace_min[axis])) & (w <= np.float32(c.workspace_max[axis]))
+        pts = pts[keep]
         if len(pts) == 0:
-            return SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+            return empty
         pts = voxel_downsample(pts, d.voxel_m)
+        # Planes first, normals after: most of a scene is table, and an object's normals should not
+        # lean towards the table it stands on (the model's views have no table either).
+        pts = pts[remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)]
+        if len(pts) == 0:
+            return empty
         normals, _ = estimate_normals(pts, d.normal_radius_m)
         ok = np.all(np.isfinite(normals), axis=1)
-        pts, normals = pts[ok], normals[ok]
-        fg = remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)
-        return SceneCloud(pts, normals, fg)
+        return SceneCloud(pts[ok], normals[ok])
 
     def recognize(
         self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None
@@ -107,12 +131,12 @@ class Recognizer:
         # World up in the camera frame, when known: the upright test needs it.
         up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
         c = self.config
-        fg_idx = np.flatnonzero(scene.foreground)
-        clusters = [fg_idx[k] for k in euclidean_clusters(
-            scene.points[fg_idx], c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points)]
+        clusters = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points)
         clusters = split_oversized(scene.points, clusters, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
                                    MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points)
-        found: dict[str, Detection] = {}
+        # Candidates (part, detection): a part is a cluster, or what is left of one once a touching
+        # object is explained away, or a prior's own hint.
+        candidates: list[tuple[int, Detection]] = []
         used = np.zeros(len(clusters), dtype=bool)
         for prior in priors:
             model = self.db.models.get(prior.object_id)
@@ -124,49 +148,60 @@ class Recognizer:
             match = self._score(model, scene, clusters[k], [prior.camera_T_object], up, from_prior=True)
             if match is not None:
                 used[k] = match[0].coverage >= c.min_coverage
-                found[prior.object_id] = match[0]
+                candidates.append((-1 - len(candidates), match[0]))
+        part = 0
         for k, idx in enumerate(clusters):
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
             for _ in range(0 if used[k] else MAX_OBJECTS_PER_CLUSTER):
-                match = self._match_cluster(scene, rest, up)
-                if match is None:
+                matches = self._match_cluster(scene, rest, up)
+                if not matches:
                     break
-                det, explained = match
-                if det.object_id not in found or _better(det, found[det.object_id]):
-                    found[det.object_id] = det
+                candidates.extend((part, det) for det, _ in matches)
+                part += 1
+                det, explained = matches[0]
                 rest = rest[~explained]
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
+        # Each object is in the scene once, and each part is one object: best matches first, so that
+        # a part two objects fit goes to the one not found better elsewhere.
+        found: dict[str, Detection] = {}
+        taken: set[int] = set()
+        for p, det in sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True):
+            if p not in taken and det.object_id not in found:
+                taken.add(p)
+                found[det.object_id] = det
         return sorted(found.values(), key=lambda d: d.object_id)
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None
-    ) -> tuple[Detection, np.ndarray] | None:
-        """VFH nearest views -> roll candidates -> ICP; the best accepted hypothesis, if any."""
-        if len(self._rows) == 0:
-            return None
+    ) -> list[tuple[Detection, np.ndarray]]:
+        """VFH nearest views -> roll candidates -> ICP: every object's accepted hypothesis, best first,
+        each with the mask of the cluster points it explains."""
+        if len(self._owners) == 0:
+            return []
         desc = describe(scene.points[idx], scene.normals[idx], self.config.descriptor)
-        dist = np.abs(self._table - desc.vfh).sum(axis=1)  # L1 between histograms
-        best: tuple[Detection, np.ndarray] | None = None
-        by_object: dict[str, list[np.ndarray]] = {}
+        dist = np.abs(self._views.vfh - desc.vfh).sum(axis=1)  # L1 between histograms
+        rolls_of = roll_peaks(roll_correlations(desc.roll, self._views.roll), self.config.roll_peaks)
         # The nearest views of every object, not of the database as a whole: on noisy clusters the
         # descriptor ranks objects poorly, and ICP's fitness is the better judge between them.
+        want = self.config.candidates * self.config.roll_peaks
+        chosen: dict[str, tuple[list[int], list[float]]] = {}
         for row in np.argsort(dist, kind="stable"):
-            oid, v = self._rows[row]
-            starts = by_object.setdefault(oid, [])
-            if len(starts) >= self.config.candidates * self.config.roll_peaks:
+            rows, rolls = chosen.setdefault(self._owners[row], ([], []))
+            if len(rolls) >= want:
                 continue
-            views = self.db.models[oid].views
-            for roll in roll_candidates(desc.roll, views.roll[v], self.config.roll_peaks):
-                camera_T_view = view_to_scene(desc.centroid, views.centroid[v], roll)
-                starts.append(camera_T_view @ views.view_T_object[v])
-        for oid, starts in by_object.items():
-            match = self._score(self.db.models[oid], scene, idx, starts, up)
-            if match is not None and (best is None or _better(match[0], best[0])):
-                best = match
-        return best
+            for roll in rolls_of[row]:
+                rows.append(int(row))
+                rolls.append(roll)
+        matches = []
+        for oid, (rows, rolls) in chosen.items():
+            camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows], np.array(rolls))
+            match = self._score(self.db.models[oid], scene, idx, camera_T_view @ self._views.view_T_object[rows], up)
+            if match is not None:
+                matches.append(match)
+        return sorted(matches, key=lambda m: _rank(m[0]), reverse=True)
 
     def _score(
         self,
@@ -186,14 +221,24 @@ class Recognizer:
         c = self.config
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points[idx].astype(np.float64)))
         target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
-        best: IcpResult | None = None
+        # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
+        sparse_points, sparse_normals = self._sparse[model.object_id]
+        screened: list[IcpResult] = []
         for start in starts:
             if up is not None:
-                start = _stand_up(start, up, model.points.mean(axis=0))
-            res = refine_icp(model.points, model.normals, target, start, c.icp_distance_m, c.icp_iterations,
-                             max_shift_m=model.diameter_m)
+                start = _stand_up(start, up, self._centre[model.object_id])
+            res = icp_pass(sparse_points, sparse_normals, target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS)
+            shift = np.linalg.norm(res.camera_T_object[:3, 3] - start[:3, 3])
+            if res.fitness > 0 and shift <= model.diameter_m and (up is None or res.camera_T_object[:3, 2] @ up >= UPRIGHT_COS):
+                screened.append(res)  # else lying on its side or upside down: a symmetric shape's mirror image
+        screened.sort(key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
+        dense_points, dense_normals = self._dense[model.object_id]
+        best: IcpResult | None = None
+        for coarse in screened[:REFINED_STARTS]:
+            res = refine_icp(dense_points, dense_normals, target, coarse.camera_T_object, c.icp_distance_m,
+                             c.icp_iterations, max_shift_m=model.diameter_m, passes=(1.0,))
             if up is not None and res.camera_T_object[:3, 2] @ up < UPRIGHT_COS:
-                continue  # lying on its side or upside down: the mirror image of a symmetric shape
+                continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
                 best = res
         if best is None:
@@ -210,6 +255,12 @@ class Recognizer:
         det = Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m,
                         int(explained.sum()), from_prior)
         return det, explained
+
+
+def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n of the model's points and normals, evenly through its (voxel-ordered) list."""
+    keep = np.unique(np.linspace(0, len(model.points) - 1, min(n, len(model.points))).astype(np.int64))
+    return model.points[keep], model.normals[keep]
 
 
 def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -244,5 +295,6 @@ def _cluster_near(points: np.ndarray, clusters: list[np.ndarray], position: np.n
     return int(np.argmax(counts))
 
 
-def _better(a: Detection, b: Detection) -> bool:
-    return (a.fitness * a.coverage, -a.rmse_m) > (b.fitness * b.coverage, -b.rmse_m)
+def _rank(d: Detection) -> tuple[float, float]:
+    """Sort key of detections, better last: explained share of model times share of cluster, then RMSE."""
+    return d.fitness * d.coverage, -d.rmse_m
