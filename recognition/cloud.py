@@ -175,16 +175,19 @@ def estimate_normals(
         raise CloudError(f"normal radius must be positive, got {radius_m} m")
     idx, splits = radius_neighbours(pts, radius_m)
     counts = np.diff(splits)
-    rows = np.repeat(np.arange(len(pts)), counts)
-    nbr = pts[idx]
-    n = np.maximum(counts, 1)
-    # First and second moments per neighbourhood, one weighted bincount each (no (E, 3, 3) temporary).
-    mean = np.stack([np.bincount(rows, nbr[:, a], minlength=len(pts)) / n for a in range(3)], axis=1)
+    # First and second moments per neighbourhood in one pass over rows of components: each point's
+    # neighbours are one run of idx (every point is its own neighbour, so no run is empty).
+    g = np.ascontiguousarray(pts.T)[:, idx]  # (3, E)
+    a, b = [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]
+    terms = np.empty((9, len(idx)))
+    terms[:3] = g
+    for k, (i, j) in enumerate(zip(a, b)):
+        np.multiply(g[i], g[j], out=terms[3 + k])
+    sums = np.add.reduceat(terms, splits[:-1], axis=1) / np.maximum(counts, 1)
+    mean, second = sums[:3], sums[3:]
     cov = np.empty((len(pts), 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            second = np.bincount(rows, nbr[:, a] * nbr[:, b], minlength=len(pts)) / n
-            cov[:, a, b] = cov[:, b, a] = second - mean[:, a] * mean[:, b]
+    for k, (i, j) in enumerate(zip(a, b)):
+        cov[:, i, j] = cov[:, j, i] = second[k] - mean[i] * mean[j]
     smallest, normals = smallest_eigenpair(cov)
     flip = np.einsum("ij,ij->i", normals, np.asarray(viewpoint, dtype=np.float64) - pts) < 0
     normals[flip] *= -1.0

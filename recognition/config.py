@@ -88,8 +88,8 @@ class RecognitionConfig(BaseModel):
     cluster_tolerance_m: float = Field(default=0.035, gt=0, description="Euclidean clustering distance")
     cluster_min_points: int = Field(default=30, ge=3)
     cluster_max_points: int = Field(default=25000, ge=3)
-    candidates: int = Field(default=3, ge=1, description="nearest model views tried per object and cluster")
-    roll_peaks: int = Field(default=3, ge=1, description="roll angles tried per view")
+    candidates: int = Field(default=4, ge=1, description="nearest model views tried per object and cluster")
+    roll_peaks: int = Field(default=2, ge=1, description="roll angles tried per view")
     icp_distance_m: float = Field(default=0.015, gt=0, description="ICP correspondence distance (coarse pass: 2x)")
     icp_iterations: int = Field(default=15, ge=1, description="iterations of the ICP that refines the best screened starts")
     min_fitness: float = Field(default=0.5, ge=0, le=1, description="share of the visible model explained by the scene")
@@ -113,7 +113,7 @@ class RecognitionConfig(BaseModel):
         return self
 
     rate_hz: float = Field(
-        default=0.5, gt=0, description="worker: frames recognised per camera per second (one takes ~0.75 s of a core)"
+        default=1.0, gt=0, description="worker: frames recognised per camera per second (one takes ~0.1 s of a core)"
     )
     cloud_voxel_m: float = Field(
         default=0.03, ge=0, description="worker: voxel of the fused world point cloud it publishes on `points` (0: none)"

@@ -234,7 +234,9 @@ class Recognizer:
         screened.sort(key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
         dense_points, dense_normals = self._dense[model.object_id]
         best: IcpResult | None = None
-        for coarse in screened[:REFINED_STARTS]:
+        # A start that explains under min_fitness of the model even at twice the final distance is
+        # not refined: no refined start from that low has passed in the benchmark's frames.
+        for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= c.min_fitness]:
             res = refine_icp(dense_points, dense_normals, target, coarse.camera_T_object, c.icp_distance_m,
                              c.icp_iterations, max_shift_m=model.diameter_m, passes=(1.0,))
             if up is not None and res.camera_T_object[:3, 2] @ up < UPRIGHT_COS:
