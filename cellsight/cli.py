@@ -22,6 +22,8 @@ config_app = typer.Typer(help="Check and show cell configurations.", no_args_is_
 bus_app = typer.Typer(help="Look at the zenoh bus.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 app.add_typer(bus_app, name="bus")
+security_app = typer.Typer(help="The secure deployment profile: mutual TLS and access control.", no_args_is_help=True)
+app.add_typer(security_app, name="security")
 
 RECOGNITION_NICE = 5
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="debug logging")]
@@ -114,6 +116,34 @@ def config_show(file: Annotated[Optional[Path], typer.Argument(help="cell config
     typer.echo(_load(file).to_toml())
 
 
+# ---------------------------------------------------------------- security
+
+
+@security_app.command("init")
+def security_init(
+    directory: Annotated[Path, typer.Argument(help="new directory for the CA, certificates and zenoh configs")],
+    cell: CellOpt = None,
+    listen: Annotated[str, typer.Option("--listen", help="the router's TLS endpoint")] = "tls/127.0.0.1:7447",
+    host: Annotated[Optional[list[str]], typer.Option("--host", help="name or address clients reach the router by (repeatable; default 127.0.0.1 and localhost)")] = None,
+) -> None:
+    """Make a certificate authority, certificates for the router and each role, and their zenoh configs.
+
+    Then: `cellsight router --config DIR/router.json5`, and each process with `--config DIR/ROLE.json5`
+    (driver, estimator, recognition, recorder, viewer). Keep DIR/ca.key offline once done.
+    """
+    from schemas.errors import SchemaError
+    from schemas.security import PUBLISH, write_profile
+
+    try:
+        profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"))
+    except (SchemaError, OSError) as exc:
+        raise _fail(str(exc), 2) from None
+    typer.echo(f"router:      cellsight router --config {profile.router_config}")
+    for role, path in profile.role_configs.items():
+        may = ", ".join(PUBLISH[role]) or "nothing (subscribe and query only)"
+        typer.echo(f"{role + ':':12} --config {path}   publishes: {may}")
+
+
 # ---------------------------------------------------------------- bus
 
 
@@ -202,14 +232,15 @@ def router(
     from schemas.errors import SchemaError
 
     _setup_logging(verbose)
-    transport = TransportConfig.router(list(listen) if listen else [DEFAULT_ROUTER])
+    # A config file (the secure profile's router.json5) brings its own listen endpoints.
+    transport = TransportConfig.router(list(listen) if listen else ([] if config else [DEFAULT_ROUTER]))
     if config is not None:
         transport = transport.model_copy(update={"zenoh_config": config})
     try:
         session = open_session(transport)
     except SchemaError as exc:
         raise _fail(str(exc), 3) from None
-    logging.getLogger("cellsight.router").info("router listening on %s", ", ".join(transport.listen))
+    logging.getLogger("cellsight.router").info("router listening on %s", ", ".join(transport.listen) or f"the endpoints of {config}")
     try:
         while True:
             time.sleep(1.0)

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from cellsight.config import CellConfig, save_used
 from cellsight.errors import CellsightError
+from schemas.bus import DEFAULT_ROUTER
 
 log = logging.getLogger(__name__)
 CLI = [sys.executable, "-m", "cellsight.cli"]
@@ -130,9 +131,10 @@ class Supervisor:
 def router_endpoint(cfg: CellConfig) -> str | None:
     """The loopback router the launcher must start, or None when the config joins existing routers."""
     t = cfg.transport
-    if t.mode != "client" or t.zenoh_config is not None:
+    if t.mode not in (None, "client") or t.zenoh_config is not None:
         return None
-    loopback = [e for e in t.connect if "127.0.0.1" in e or "localhost" in e or "[::1]" in e]
+    loopback = [e for e in (t.connect if t.connect is not None else [DEFAULT_ROUTER])
+                if "127.0.0.1" in e or "localhost" in e or "[::1]" in e]
     return loopback[0] if loopback else None
 
 

@@ -42,8 +42,12 @@ class TransportConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    mode: Literal["client", "peer", "router"] = "client"
-    connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER], description="endpoints to connect to")
+    mode: Literal["client", "peer", "router"] | None = Field(
+        default=None, description="zenoh mode; unset: the zenoh config file's, else client"
+    )
+    connect: list[str] | None = Field(
+        default=None, description=f"endpoints to connect to; unset: the zenoh config file's, else {DEFAULT_ROUTER}"
+    )
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on")
     multicast_scouting: bool = False
     shared_memory: bool = True
@@ -55,18 +59,25 @@ class TransportConfig(BaseModel):
     )
 
     def to_zenoh(self) -> zenoh.Config:
-        """Build the ``zenoh.Config``; raise ``BusError`` naming the setting zenoh refused."""
+        """Build the ``zenoh.Config``; raise ``BusError`` naming the setting zenoh refused.
+
+        The file (``zenoh_config``) is loaded first; mode, connect and listen override it only where
+        they are set, so that a secure profile's TLS endpoints are not replaced by the defaults.
+        """
         try:
             cfg = zenoh.Config.from_file(str(self.zenoh_config)) if self.zenoh_config else zenoh.Config()
         except (zenoh.ZError, OSError) as exc:
             raise BusError(f"cannot load zenoh config {self.zenoh_config}: {exc}") from exc
         settings: dict[str, Any] = {
-            "mode": self.mode,
             "scouting/multicast/enabled": self.multicast_scouting,
             "transport/shared_memory/enabled": self.shared_memory,
         }
-        if self.mode != "router" or self.connect != [DEFAULT_ROUTER]:
-            settings["connect/endpoints"] = self.connect if self.mode != "router" else []
+        if self.mode is not None or self.zenoh_config is None:
+            settings["mode"] = self.mode or "client"
+        if self.connect is not None:
+            settings["connect/endpoints"] = self.connect
+        elif self.zenoh_config is None and self.mode != "router":
+            settings["connect/endpoints"] = [DEFAULT_ROUTER]
         if self.listen:
             settings["listen/endpoints"] = self.listen
         settings.update(self.overrides)

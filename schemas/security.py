@@ -1,0 +1,185 @@
+"""The secure deployment profile: mutual TLS between every process and the router, and access control.
+
+``write_profile`` makes a small certificate authority, a certificate for the router and one per
+role (the certificate's common name is the role), and one zenoh JSON5 config per process kind:
+the router's (TLS listen, client certificates required, access control) and each role's (TLS
+connect with its own certificate). Processes then take ``--config ROLE.json5``.
+
+Who may do what is decided at the router, by the common name of the client certificate:
+
+- ``driver`` publishes camera topics (images, camera_info, markers, status) and ``truth/`` (the
+  simulator's; a real driver has none);
+- ``estimator`` publishes ``tf`` and ``estimate/``, and answers ``estimate/map`` queries;
+- ``recognition`` publishes ``objects`` and ``points``;
+- ``recorder`` and ``viewer`` (robots, Foxglove, ``cellsight status``) only subscribe and query.
+
+Every role may subscribe, query and hold a liveliness token under its own cell. Anything else is
+denied (the ACL's default), and a client without a certificate from this authority never gets
+past the TLS handshake.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from schemas import keys
+from schemas.errors import BusError
+
+#: What each role may publish, as key expressions relative to ``cellsight/<cell>/``.
+PUBLISH: dict[str, list[str]] = {
+    "driver": [f"*/{topic}" for topic in keys.CAMERA_TOPICS] + ["truth/**"],
+    "estimator": ["tf", "estimate/**"],
+    "recognition": ["objects", "objects/scene", "points"],
+    "recorder": [],
+    "viewer": [],
+}
+ROLES = tuple(PUBLISH)
+VALID_DAYS = 825
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Where ``write_profile`` put things: the CA certificate, and the zenoh config of each process kind."""
+
+    directory: Path
+    endpoint: str  # the router's TLS endpoint, as clients connect to it
+    ca_certificate: Path
+    router_config: Path
+    role_configs: dict[str, Path]
+
+
+def _key() -> ec.EllipticCurvePrivateKey:
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+    path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()))
+    path.chmod(0o600)
+
+
+def _certificate(
+    subject: str, key: ec.EllipticCurvePrivateKey, issuer: x509.Certificate | None, issuer_key: ec.EllipticCurvePrivateKey,
+    *, ca: bool = False, hosts: tuple[str, ...] = (),
+) -> x509.Certificate:
+    now = dt.datetime.now(dt.timezone.utc)
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)])
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(issuer.subject if issuer else name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=VALID_DAYS))
+        .add_extension(x509.BasicConstraints(ca=ca, path_length=0 if ca else None), critical=True)
+    )
+    if ca:
+        builder = builder.add_extension(
+            x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True, content_commitment=False,
+                          key_encipherment=False, data_encipherment=False, key_agreement=False,
+                          encipher_only=False, decipher_only=False), critical=True)
+    else:
+        builder = builder.add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+        names: list[x509.GeneralName] = []
+        for host in hosts:
+            try:
+                names.append(x509.IPAddress(ipaddress.ip_address(host)))
+            except ValueError:
+                names.append(x509.DNSName(host))
+        names = names or [x509.DNSName(subject)]
+        builder = builder.add_extension(x509.SubjectAlternativeName(names), critical=False)
+    return builder.sign(issuer_key, hashes.SHA256())
+
+
+def _issue(directory: Path, name: str, ca: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey,
+           hosts: tuple[str, ...] = ()) -> tuple[Path, Path]:
+    key = _key()
+    cert = _certificate(name, key, ca, ca_key, hosts=hosts)
+    cert_path, key_path = directory / f"{name}.pem", directory / f"{name}.key"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    _write_key(key_path, key)
+    return cert_path, key_path
+
+
+def acl(cell: str) -> dict:
+    """The router's ``access_control`` section for one cell (zenoh 1.x schema)."""
+    base = f"{keys.ROOT}/{keys.check_name(cell, 'cell name')}"
+    rules = [
+        {"id": "read", "permission": "allow", "flows": ["ingress"],
+         "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query",
+                      "liveliness_token"],
+         "key_exprs": [f"{base}/**"]},
+        # What the router hands out to subscribers and queriers.
+        {"id": "deliver", "permission": "allow", "flows": ["egress"],
+         "messages": ["put", "delete", "reply", "query", "liveliness_token", "declare_subscriber",
+                      "declare_queryable", "declare_liveliness_subscriber", "liveliness_query"],
+         "key_exprs": [f"{base}/**"]},
+        {"id": "answer_map", "permission": "allow", "flows": ["ingress"],
+         "messages": ["declare_queryable", "reply"], "key_exprs": [keys.estimate_map(cell)]},
+    ]
+    for role, topics in PUBLISH.items():
+        if topics:
+            rules.append({"id": f"publish_{role}", "permission": "allow", "flows": ["ingress"],
+                          "messages": ["put", "delete"], "key_exprs": [f"{base}/{t}" for t in topics]})
+    subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
+    policies = [{"rules": ["read", "deliver"], "subjects": list(ROLES)}]
+    policies += [{"rules": [f"publish_{role}"], "subjects": [role]} for role, topics in PUBLISH.items() if topics]
+    policies.append({"rules": ["answer_map"], "subjects": ["estimator"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447", hosts: tuple[str, ...] = ("127.0.0.1", "localhost")) -> Profile:
+    """Write a CA, the router's and every role's certificate and zenoh config into ``directory``.
+
+    listen: the router's TLS endpoint; hosts: the names and addresses clients reach it by (they
+    go into its certificate). Refuses to overwrite an existing authority.
+    """
+    directory = Path(directory).resolve()  # the configs name their files by absolute path
+    if (directory / "ca.pem").exists():
+        raise BusError(f"{directory} already holds a certificate authority (ca.pem); use a new directory")
+    directory.mkdir(parents=True, exist_ok=True)
+    ca_key = _key()
+    ca = _certificate(f"cellsight {cell} CA", ca_key, None, ca_key, ca=True)
+    ca_path = directory / "ca.pem"
+    ca_path.write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    _write_key(directory / "ca.key", ca_key)
+
+    router_cert, router_key = _issue(directory, "router", ca, ca_key, hosts)
+    router = {
+        "mode": "router",
+        "listen": {"endpoints": [listen]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"protocols": ["tls"], "tls": {
+            "root_ca_certificate": str(ca_path), "listen_certificate": str(router_cert),
+            "listen_private_key": str(router_key), "enable_mtls": True}}},
+        "access_control": acl(cell),
+    }
+    router_config = directory / "router.json5"
+    router_config.write_text(json.dumps(router, indent=2))
+    endpoint = listen.replace("0.0.0.0", hosts[0]) if hosts else listen
+    role_configs = {}
+    for role in ROLES:
+        cert, key = _issue(directory, role, ca, ca_key)
+        cfg = {
+            "mode": "client",
+            "connect": {"endpoints": [endpoint]},
+            "scouting": {"multicast": {"enabled": False}},
+            "transport": {"link": {"protocols": ["tls"], "tls": {
+                "root_ca_certificate": str(ca_path), "connect_certificate": str(cert),
+                "connect_private_key": str(key), "enable_mtls": True}}},
+        }
+        role_configs[role] = directory / f"{role}.json5"
+        role_configs[role].write_text(json.dumps(cfg, indent=2))
+    return Profile(directory, endpoint, ca_path, router_config, role_configs)

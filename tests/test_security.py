@@ -1,0 +1,109 @@
+"""The secure deployment profile on loopback: real zenoh sessions, mutual TLS with generated
+certificates, access control at the router."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+import zenoh
+
+from cellsight.config import CellConfig
+from cellsight.launch import router_endpoint
+from schemas import keys
+from schemas import messages as m
+from schemas.bus import Bus, TransportConfig, open_session
+from schemas.errors import BusError
+from schemas.security import Profile, write_profile
+from tests.conftest import free_port
+from tests.helpers import wait_until
+
+CELL = "demo"
+
+
+@pytest.fixture()
+def profile(tmp_path: Path) -> Iterator[Profile]:
+    """A fresh authority and configs, and the router running from its own config."""
+    p = write_profile(tmp_path / "secure", CELL, listen=f"tls/127.0.0.1:{free_port()}")
+    router = open_session(TransportConfig(zenoh_config=p.router_config))
+    try:
+        yield p
+    finally:
+        router.close()
+
+
+def _as(p: Profile, role: str) -> Bus:
+    return Bus(TransportConfig(zenoh_config=p.role_configs[role]), CELL)
+
+
+def test_each_role_publishes_only_its_own_topics_and_everyone_reads(profile: Profile) -> None:
+    got: list[str] = []
+    lock = threading.Lock()
+
+    def seen(key: str, payload: bytes, _ns: int) -> None:
+        with lock:
+            got.append(key)
+
+    viewer, driver, estimator, recognition, other_viewer = (
+        _as(profile, r) for r in ("viewer", "driver", "estimator", "recognition", "viewer"))
+    try:
+        viewer.subscribe_raw(f"{keys.ROOT}/{CELL}/**", seen)
+        estimator.session.declare_queryable(keys.estimate_map(CELL), lambda q: q.reply(q.key_expr, m.Map().SerializeToString()))
+        driver.session.declare_queryable(keys.estimate_map(CELL), lambda q: q.reply(q.key_expr, m.Map().SerializeToString()))
+        estimator.declare_alive("estimator", "main")
+        wait_until(lambda: len(viewer.alive()) == 1, 5.0, "the estimator's liveliness token")
+        # Each session puts what it may not before what it may: zenoh keeps one session's order, so
+        # a denied message that got through would arrive before the last allowed one.
+        denied = {
+            driver: [keys.estimate_cameras(CELL), keys.objects(CELL)],
+            recognition: [keys.tf(CELL), keys.markers(CELL, "cam1")],
+            other_viewer: [keys.tf(CELL), keys.objects(CELL)],
+        }
+        allowed = {
+            driver: [keys.markers(CELL, "cam1")],
+            estimator: [keys.estimate_cameras(CELL), keys.tf(CELL)],
+            recognition: [keys.objects(CELL)],
+        }
+        for bus, ks in denied.items():
+            for k in ks:
+                bus.session.put(k, b"not allowed")
+        for bus, ks in allowed.items():
+            for k in ks:
+                bus.session.put(k, b"allowed")
+        expected = sorted(k for ks in allowed.values() for k in ks)
+        wait_until(lambda: len(got) >= len(expected), 5.0, "every allowed message")
+        with lock:
+            assert sorted(got) == expected, f"received {sorted(got)}, expected only the allowed {expected}"
+        replies = viewer.query(keys.estimate_map(CELL), timeout_s=2.0)
+        assert len(replies) == 1, "only the estimator may answer estimate/map"
+    finally:
+        for bus in (viewer, driver, estimator, recognition, other_viewer):
+            bus.close()
+
+
+def test_a_client_without_a_certificate_is_refused(profile: Profile) -> None:
+    """Server-side TLS alone (it trusts the router) is not enough: the router wants a client certificate."""
+    transport = TransportConfig(connect=[profile.endpoint], overrides={
+        "transport/link/tls/root_ca_certificate": str(profile.ca_certificate), "connect/timeout_ms": 500})
+    with pytest.raises(BusError, match="cannot open zenoh session"):
+        open_session(transport)
+
+
+def test_a_certificate_from_another_authority_is_refused(profile: Profile, tmp_path: Path) -> None:
+    stranger = write_profile(tmp_path / "stranger", CELL, listen=profile.endpoint)
+    transport = TransportConfig(zenoh_config=stranger.role_configs["estimator"], overrides={"connect/timeout_ms": 500})
+    with pytest.raises(BusError, match="cannot open zenoh session"):
+        open_session(transport)
+
+
+def test_the_default_local_profile_stays_on_loopback() -> None:
+    """`cellsight run` starts its router on loopback, and every other process is a client (which
+    never listens) of that router."""
+    endpoint = router_endpoint(CellConfig())
+    assert endpoint == "tcp/127.0.0.1:7447"
+    assert TransportConfig.router([endpoint]).to_zenoh().get_json("listen/endpoints") == '["tcp/127.0.0.1:7447"]'
+    client = TransportConfig().to_zenoh()
+    assert client.get_json("mode") == '"client"'
+    assert client.get_json("connect/endpoints") == '["tcp/127.0.0.1:7447"]'
