@@ -161,18 +161,14 @@ def refine_icp(
     max_distance_m: float,
     iterations: int = 30,
     max_shift_m: float = np.inf,
-    passes: tuple[float, ...] = (2.0, 1.0),
 ) -> IcpResult:
-    """Point-to-plane ICP passes (``icp_pass``) with correspondence distances these multiples of
-    max_distance_m (default: coarse then fine), then scored again at max_distance_m with the model
-    points facing the camera at the refined pose, so that the fitness counts the surface the camera
-    should actually see. A result that moved more than max_shift_m from the start (ICP sliding off
-    a degenerate cluster) scores 0.
+    """An ``icp_pass`` at max_distance_m, then scored again with the model points facing the camera
+    at the refined pose, so that the fitness counts the surface the camera should actually see. A
+    result that moved more than max_shift_m from the start (ICP sliding off a degenerate cluster)
+    scores 0.
     """
     start = np.asarray(camera_T_object, dtype=np.float64)
-    pose = start
-    for k in passes:
-        pose = icp_pass(model_points, model_normals, scene, pose, k * max_distance_m, iterations).camera_T_object
+    pose = icp_pass(model_points, model_normals, scene, start, max_distance_m, iterations).camera_T_object
     if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
         return IcpResult(start, 0.0, float("inf"))
     src = _cloud(visible_points(model_points, model_normals, pose))

@@ -91,7 +91,9 @@ class RecognitionConfig(BaseModel):
     candidates: int = Field(default=4, ge=1, description="nearest model views tried per object and cluster")
     roll_peaks: int = Field(default=2, ge=1, description="roll angles tried per view")
     icp_distance_m: float = Field(default=0.015, gt=0, description="ICP correspondence distance (coarse pass: 2x)")
-    icp_iterations: int = Field(default=15, ge=1, description="iterations of the ICP that refines the best screened starts")
+    icp_iterations: int = Field(
+        default=15, ge=1, description="iterations of the ICP that refines the best screened starts"
+    )
     min_fitness: float = Field(default=0.5, ge=0, le=1, description="share of the visible model explained by the scene")
     min_coverage: float = Field(default=0.5, ge=0, le=1, description="share of the cluster explained by the model")
     min_fitness_shared: float = Field(

@@ -86,7 +86,8 @@ class ModelDatabase:
         """Every object's views stacked into one ``Views`` (V rows), and each row's object id."""
         owners = [oid for oid, mdl in self.models.items() for _ in range(len(mdl.views))]
         if not owners:
-            return Views(np.zeros((0, SIZE), np.float32), np.zeros((0, ROLL_BINS)), np.zeros((0, 3)), np.zeros((0, 4, 4))), []
+            empty = Views(np.zeros((0, SIZE), np.float32), np.zeros((0, ROLL_BINS)), np.zeros((0, 3)), np.zeros((0, 4, 4)))
+            return empty, []
         fields = [np.concatenate([getattr(mdl.views, f) for mdl in self.models.values()])
                   for f in ("vfh", "roll", "centroid", "view_T_object")]
         return Views(*fields), owners

@@ -197,7 +197,8 @@ class Recognizer:
                 rolls.append(roll)
         matches = []
         for oid, (rows, rolls) in chosen.items():
-            camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows], np.array(rolls))
+            camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
+                                           np.array(rolls))
             match = self._score(self.db.models[oid], scene, idx, camera_T_view @ self._views.view_T_object[rows], up)
             if match is not None:
                 matches.append(match)
@@ -228,9 +229,10 @@ class Recognizer:
             if up is not None:
                 start = _stand_up(start, up, self._centre[model.object_id])
             res = icp_pass(sparse_points, sparse_normals, target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS)
-            shift = np.linalg.norm(res.camera_T_object[:3, 3] - start[:3, 3])
-            if res.fitness > 0 and shift <= model.diameter_m and (up is None or res.camera_T_object[:3, 2] @ up >= UPRIGHT_COS):
-                screened.append(res)  # else lying on its side or upside down: a symmetric shape's mirror image
+            slid = np.linalg.norm(res.camera_T_object[:3, 3] - start[:3, 3]) > model.diameter_m
+            upright = up is None or res.camera_T_object[:3, 2] @ up >= UPRIGHT_COS
+            if res.fitness > 0 and not slid and upright:  # not upright: a symmetric shape's mirror image
+                screened.append(res)
         screened.sort(key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
         dense_points, dense_normals = self._dense[model.object_id]
         best: IcpResult | None = None
@@ -238,7 +240,7 @@ class Recognizer:
         # not refined: no refined start from that low has passed in the benchmark's frames.
         for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= c.min_fitness]:
             res = refine_icp(dense_points, dense_normals, target, coarse.camera_T_object, c.icp_distance_m,
-                             c.icp_iterations, max_shift_m=model.diameter_m, passes=(1.0,))
+                             c.icp_iterations, max_shift_m=model.diameter_m)
             if up is not None and res.camera_T_object[:3, 2] @ up < UPRIGHT_COS:
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
