@@ -17,6 +17,9 @@ from typing import Callable
 from rich.console import Console
 from rich.table import Table
 
+#: PCL's real clouds in the shared data beside the repository (../shared/data/pcl).
+PCL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
+
 
 def machine() -> str:
     cpu = "unknown cpu"

@@ -30,13 +30,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 from dataclasses import dataclass
 
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 
-from benchmarks.common import main  # noqa: E402
+from benchmarks.common import PCL_DATA, main  # noqa: E402
 from cellsight.model_build import database_from_scenario  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
@@ -48,7 +47,6 @@ from recognition.pipeline import Recognizer  # noqa: E402
 from schemas.codec import invert_pose, make_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
 
-PCL_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "pcl"
 
 TABLE_HALF = (0.45, 0.28)  # where object centres may go on the demo table, m
 WORKSPACE = ((-0.6, -0.4, 0.7), (0.6, 0.4, 1.3))

@@ -24,12 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import main
+from benchmarks.common import PCL_DATA, main
 from recognition.cloud import read_cloud
 from recognition.vfh import vfh
 
 HERE = Path(__file__).resolve().parent
-PCL_DATA = HERE.parent.parent / "shared" / "data" / "pcl"
 PCL_HEADER = Path("/usr/include/pcl-1.13/pcl/features/vfh.h")
 SETTINGS = {"default": (False, False), "normalize_distance_and_size_component": (True, True)}
 

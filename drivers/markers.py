@@ -26,7 +26,7 @@ import numpy as np
 
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
-from schemas.codec import CameraInfo, make_pose
+from schemas.codec import CameraInfo, make_pose, rotation_between
 
 # Kinect v1: depth noise sigma_z = K z^2 (Khoshelham & Elberink 2012) plus 1/8 px disparity
 # quantisation over a 7.5 cm baseline; and a bias floor per fitted plane.
@@ -149,17 +149,6 @@ def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrin
     n = vt[2] if vt[2] @ c < 0 else -vt[2]
     extent = float(np.sqrt(s[0] ** 2 / keep.sum()) * 2 * math.sqrt(3))
     return PlaneFit(n, float(n @ c), int(keep.sum()), float(np.sqrt(np.mean(((pts[keep] - c) @ n) ** 2))), extent)
-
-
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotation taking unit vector a onto unit vector b."""
-    v = np.cross(a, b)
-    c = float(a @ b)
-    s = np.linalg.norm(v)
-    if s < 1e-12:
-        return np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx * ((1 - c) / s**2)
 
 
 @dataclass(frozen=True)
@@ -312,7 +301,7 @@ class MarkerDetector:
         _, plane_tilt = plane_sigmas(z, f, plane)
         # Rotate the face normal toward the plane's by the inverse-variance weight of the plane.
         weight = pnp.tilt**2 / (pnp.tilt**2 + plane_tilt**2)
-        full = _rotation_between(chosen[:3, 2], plane.normal)
+        full = rotation_between(chosen[:3, 2], plane.normal)
         rvec = cv2.Rodrigues(full)[0] * weight
         R = cv2.Rodrigues(rvec)[0] @ chosen[:3, :3]
         # Range: intersect the ray through the marker centre's image with the plane.

@@ -27,9 +27,9 @@ import gtsam
 import numpy as np
 
 from estimator.config import EstimatorConfig
-from estimator.init import CameraKey, kabsch, place
+from estimator.init import CameraKey, place
 from estimator.observation import Observation, observations_of
-from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, rotation_angle
+from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, rotation_angle
 
 log = logging.getLogger(__name__)
 
@@ -567,7 +567,7 @@ class Estimator:
             return None
         world = np.array([self._pose(marker_symbol(k))[:3, 3] for k in mapped])
         cam = np.array([o.camera_T_marker[:3, 3] for o in mapped.values()])
-        T = kabsch(world, cam)
+        T = kabsch(cam, world)
         if T is None:
             k, o = next(iter(mapped.items()))
             T = self._pose(marker_symbol(k)) @ invert_pose(o.camera_T_marker)

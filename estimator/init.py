@@ -12,23 +12,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from schemas.codec import invert_pose, make_pose
+from schemas.codec import invert_pose, kabsch, make_pose
 
 CameraKey = tuple[str, int]  # (camera id, segment)
-
-
-def kabsch(world_pts: np.ndarray, camera_pts: np.ndarray) -> np.ndarray | None:
-    """world_T_camera minimising sum |world - T camera|^2 over (N, 3) points; None if degenerate."""
-    if len(world_pts) < 3:
-        return None
-    cw, cc = world_pts.mean(0), camera_pts.mean(0)
-    H = (camera_pts - cc).T @ (world_pts - cw)
-    U, S, Vt = np.linalg.svd(H)
-    if S[1] < 1e-4 * max(S[0], 1e-12):  # collinear centres: rotation about the line is free
-        return None
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return make_pose(R, cw - R @ cc)
 
 
 def place(
@@ -57,7 +43,7 @@ def place(
             known = [mk for mk in seen if mk in marks]
             if not known:
                 continue
-            T = kabsch(np.array([marks[k][:3, 3] for k in known]), np.array([seen[k][:3, 3] for k in known]))
+            T = kabsch(np.array([seen[k][:3, 3] for k in known]), np.array([marks[k][:3, 3] for k in known]))
             if T is None:  # one or two markers: compose through the nearest one
                 k = min(known, key=lambda mk: np.linalg.norm(seen[mk][:3, 3]))
                 T = marks[k] @ invert_pose(seen[k])

@@ -14,30 +14,7 @@ import numpy as np
 import open3d as o3d
 
 from recognition.vfh import ROLL_BINS
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | None = None) -> np.ndarray:
-    """Smallest rotation R (3, 3) with R @ a/|a| = b/|b| (Rodrigues).
-
-    When a and b are opposite every axis normal to them will do: the half turn is about
-    half_turn_axis (unit, normal to a; default x, which suits a = -z).
-    """
-    # Plain arithmetic on 3-vectors: np.cross and np.linalg.norm cost tens of microseconds each here,
-    # and this runs for every start of every cluster.
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    a = a / np.sqrt(a @ a)
-    b = b / np.sqrt(b @ b)
-    axis = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-    s, c = float(np.sqrt(axis @ axis)), float(a @ b)
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        axis, s = np.asarray(half_turn_axis if half_turn_axis is not None else (1.0, 0.0, 0.0), dtype=np.float64), 0.0
-    else:
-        axis = axis / s
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + s * K + (1 - c) * K @ K
+from schemas.codec import rotation_between
 
 
 def align_to_z(direction: np.ndarray) -> np.ndarray:
@@ -139,18 +116,24 @@ def icp_pass(
     camera_T_object: np.ndarray,
     distance_m: float,
     iterations: int = 30,
+    max_shift_m: float = np.inf,
 ) -> IcpResult:
     """One point-to-plane ICP of the model points facing the camera at the start pose onto the scene
-    (which must have normals). Fitness and RMSE are ICP's own, at distance_m, over those points."""
-    pose = np.asarray(camera_T_object, dtype=np.float64)
-    src = _cloud(visible_points(model_points, model_normals, pose))
+    (which must have normals). Fitness and RMSE are ICP's own, at distance_m, over those points. A
+    result that moved more than max_shift_m from the start (ICP sliding off a degenerate cluster)
+    scores 0 at the start pose."""
+    start = np.asarray(camera_T_object, dtype=np.float64)
+    failed = IcpResult(start, 0.0, float("inf"))
+    src = _cloud(visible_points(model_points, model_normals, start))
     if len(src.points) < 3:
-        return IcpResult(pose, 0.0, float("inf"))
+        return failed
     est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
-    reg = o3d.pipelines.registration.registration_icp(src, scene, distance_m, pose, est, crit)
-    return IcpResult(np.asarray(reg.transformation), float(reg.fitness),
-                     float(reg.inlier_rmse) if reg.fitness > 0 else float("inf"))
+    reg = o3d.pipelines.registration.registration_icp(src, scene, distance_m, start, est, crit)
+    pose = np.asarray(reg.transformation)
+    if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
+        return failed
+    return IcpResult(pose, float(reg.fitness), float(reg.inlier_rmse) if reg.fitness > 0 else float("inf"))
 
 
 def refine_icp(
@@ -163,19 +146,15 @@ def refine_icp(
     max_shift_m: float = np.inf,
 ) -> IcpResult:
     """An ``icp_pass`` at max_distance_m, then scored again with the model points facing the camera
-    at the refined pose, so that the fitness counts the surface the camera should actually see. A
-    result that moved more than max_shift_m from the start (ICP sliding off a degenerate cluster)
-    scores 0.
-    """
-    start = np.asarray(camera_T_object, dtype=np.float64)
-    pose = icp_pass(model_points, model_normals, scene, start, max_distance_m, iterations).camera_T_object
-    if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
-        return IcpResult(start, 0.0, float("inf"))
-    src = _cloud(visible_points(model_points, model_normals, pose))
+    at the refined pose, so that the fitness counts the surface the camera should actually see."""
+    first = icp_pass(model_points, model_normals, scene, camera_T_object, max_distance_m, iterations, max_shift_m)
+    if first.fitness == 0:
+        return first
+    src = _cloud(visible_points(model_points, model_normals, first.camera_T_object))
     if len(src.points) < 3:
-        return IcpResult(pose, 0.0, float("inf"))
-    ev = o3d.pipelines.registration.evaluate_registration(src, scene, max_distance_m, pose)
-    return IcpResult(pose, float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))
+        return IcpResult(first.camera_T_object, 0.0, float("inf"))
+    ev = o3d.pipelines.registration.evaluate_registration(src, scene, max_distance_m, first.camera_T_object)
+    return IcpResult(first.camera_T_object, float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))
 
 
 def model_to_scene_rmse(model_points: np.ndarray, camera_T_object: np.ndarray, scene_points: np.ndarray) -> float:

@@ -15,7 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from recognition.align import (
-    IcpResult, align_to_z, icp_pass, refine_icp, roll_correlations, roll_peaks, rotation_between, views_to_scene,
+    IcpResult, align_to_z, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
 )
 from recognition.cloud import estimate_normals, voxel_downsample
 from recognition.config import RecognitionConfig
@@ -23,6 +23,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import euclidean_clusters, remove_planes, split_oversized
+from schemas.codec import rotation_between
 
 log = logging.getLogger(__name__)
 UPRIGHT_COS = float(np.cos(np.radians(45.0)))
@@ -121,7 +122,8 @@ class Recognizer:
     def recognize(
         self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None
     ) -> list[Detection]:
-        """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), best per object.
+        """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), at most one
+        per object and one per cluster.
 
         world_T_camera (4, 4), when known, crops the scene to the configured workspace.
         """
@@ -213,11 +215,12 @@ class Recognizer:
         up: np.ndarray | None,
         from_prior: bool = False,
     ) -> tuple[Detection, np.ndarray] | None:
-        """ICP from each start onto the cluster; the best result if it passes the acceptance tests,
-        with the mask of the cluster points it explains.
+        """Coarse ICP from each start onto the cluster, fine ICP from the best few; the best result if
+        it passes the acceptance tests, with the mask of the cluster points it explains.
 
-        up: world up in the camera frame (None: no upright test). Accepted: fitness, coverage and RMSE within bounds; or, for a cluster several objects share,
-        a fitness of at least min_fitness_shared with enough explained points to be a cluster itself.
+        up: world up in the camera frame (None: no upright test). Accepted: fitness, coverage and RMSE
+        within bounds; or, for a cluster several objects share, a fitness of at least
+        min_fitness_shared with enough explained points to be a cluster itself.
         """
         c = self.config
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points[idx].astype(np.float64)))
@@ -228,10 +231,9 @@ class Recognizer:
         for start in starts:
             if up is not None:
                 start = _stand_up(start, up, self._centre[model.object_id])
-            res = icp_pass(sparse_points, sparse_normals, target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS)
-            slid = np.linalg.norm(res.camera_T_object[:3, 3] - start[:3, 3]) > model.diameter_m
-            upright = up is None or res.camera_T_object[:3, 2] @ up >= UPRIGHT_COS
-            if res.fitness > 0 and not slid and upright:  # not upright: a symmetric shape's mirror image
+            res = icp_pass(sparse_points, sparse_normals, target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
+                           max_shift_m=model.diameter_m)
+            if res.fitness > 0 and _upright(res.camera_T_object, up):  # else a symmetric shape's mirror image
                 screened.append(res)
         screened.sort(key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
         dense_points, dense_normals = self._dense[model.object_id]
@@ -241,7 +243,7 @@ class Recognizer:
         for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= c.min_fitness]:
             res = refine_icp(dense_points, dense_normals, target, coarse.camera_T_object, c.icp_distance_m,
                              c.icp_iterations, max_shift_m=model.diameter_m)
-            if up is not None and res.camera_T_object[:3, 2] @ up < UPRIGHT_COS:
+            if not _upright(res.camera_T_object, up):
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
                 best = res
@@ -267,13 +269,18 @@ def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
     return model.points[keep], model.normals[keep]
 
 
+def _upright(camera_T_object: np.ndarray, up: np.ndarray | None) -> bool:
+    """Whether the object's +z is within 45 deg of world up (always, when up is unknown)."""
+    return up is None or camera_T_object[:3, 2] @ up >= UPRIGHT_COS
+
+
 def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """The pose turned, about the object's centre (object frame, m), so that its +z is world up.
 
     A symmetric shape matched from the VFH of a single view is as likely upside down as not; for
     objects that stand on their base the upright twin is the physical one.
     """
-    if camera_T_object[:3, 2] @ up >= UPRIGHT_COS:
+    if _upright(camera_T_object, up):
         return camera_T_object
     # Exactly upside down: turn about the object's own x axis.
     R = rotation_between(camera_T_object[:3, 2], up, half_turn_axis=camera_T_object[:3, 0])

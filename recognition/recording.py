@@ -43,15 +43,6 @@ class BoardView:
     camera_T_object: np.ndarray
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """The rigid transform T (4, 4) minimising sum |T src_i - dst_i|^2; src, dst (N, 3), N >= 3."""
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return codec.make_pose(R, cd - R @ cs)
-
-
 def board_pose(ids: np.ndarray, camera_T_markers: np.ndarray, board: BoardConfig) -> np.ndarray | None:
     """camera_T_board from the board markers among ``ids`` (their poses (N, 4, 4)); None with fewer
     than three or when their centres do not fit the board."""
@@ -61,7 +52,9 @@ def board_pose(ids: np.ndarray, camera_T_markers: np.ndarray, board: BoardConfig
         return None
     on_board = np.array([where[int(ids[i])] for i in seen])
     in_camera = camera_T_markers[seen, :3, 3]
-    camera_T_board = kabsch(on_board, in_camera)
+    camera_T_board = codec.kabsch(on_board, in_camera)
+    if camera_T_board is None:  # markers in a line
+        return None
     moved = on_board @ camera_T_board[:3, :3].T + camera_T_board[:3, 3]
     rms = float(np.sqrt(np.mean(np.sum((moved - in_camera) ** 2, axis=1))))
     return camera_T_board if rms <= MAX_BOARD_RMS_M else None

@@ -98,6 +98,44 @@ def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return math.acos(max(-1.0, min(1.0, c)))
 
 
+def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | None = None) -> np.ndarray:
+    """Smallest rotation R (3, 3) with R @ a/|a| = b/|b| (Rodrigues).
+
+    When a and b are opposite every axis normal to them will do: the half turn is about
+    half_turn_axis (unit, normal to a; default x, which suits a = -z).
+    """
+    # Plain arithmetic on 3-vectors: np.cross and np.linalg.norm cost tens of microseconds each, and
+    # recognition calls this for every start of every cluster.
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    a = a / math.sqrt(a @ a)
+    b = b / math.sqrt(b @ b)
+    axis = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+    s, c = math.sqrt(axis @ axis), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis, s = np.asarray(half_turn_axis if half_turn_axis is not None else (1.0, 0.0, 0.0), dtype=np.float64), 0.0
+    else:
+        axis = axis / s
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
+    """The rigid transform T (4, 4) minimising sum |T src_i - dst_i|^2 over (N, 3) point pairs;
+    None with fewer than three or (nearly) collinear points, where a rotation about the line is free."""
+    if len(src) < 3:
+        return None
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, S, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    if S[1] < 1e-4 * max(S[0], 1e-12):
+        return None
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make_pose(R, cd - R @ cs)
+
+
 def check_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarray:
     """Return ``T`` as float64 if it is a finite rigid 4x4 transform, else raise ``DecodeError``."""
     T = np.asarray(T, dtype=np.float64)
