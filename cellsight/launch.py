@@ -26,6 +26,9 @@ from schemas.bus import DEFAULT_ROUTER
 log = logging.getLogger(__name__)
 CLI = [sys.executable, "-m", "cellsight.cli"]
 GRACE_S = 5.0
+#: Shutdown order (name prefixes): what derives data stops while its inputs still flow, so that its
+#: last word is not "every camera stale"; the recorder then has everything, and the router goes last.
+STOP_ORDER = ("estimator", "recognition", "driver/", "recorder", "router")
 MAX_BACKOFF_S = 8.0
 HEALTHY_AFTER_S = 30.0
 
@@ -108,13 +111,21 @@ class Supervisor:
         return events
 
     def stop(self) -> None:
-        """SIGTERM every child, then SIGKILL (the whole process group) what is left after the grace period."""
+        """Stop the children in STOP_ORDER: SIGTERM each group, then SIGKILL (the whole process group)
+        what is left of it after the grace period."""
         self.stopping = True
-        for child in self.children:
+        rank = {c.name: next((i for i, p in enumerate(STOP_ORDER) if c.name.startswith(p)), len(STOP_ORDER))
+                for c in self.children}
+        for stage in sorted(set(rank.values())):
+            self._stop_group([c for c in self.children if rank[c.name] == stage])
+
+    @staticmethod
+    def _stop_group(children: list[Child]) -> None:
+        for child in children:
             if child.alive():
                 child.proc.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + GRACE_S
-        for child in self.children:
+        for child in children:
             if child.proc is None:
                 continue
             try:
