@@ -6,6 +6,7 @@ organised clouds are (H, W, 3) with NaN where the sensor returned nothing, as PC
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -119,19 +120,38 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.asarray(pcd.voxel_down_sample(voxel_m).points, dtype=np.float32)
 
 
-def radius_neighbours(points: np.ndarray, radius_m: float, queries: np.ndarray | None = None):
-    """Indices of the points within radius_m of each query (default: every point, itself included),
-    in no particular order.
+@dataclass(frozen=True)
+class Neighbours:
+    """Each point's neighbours within radius_m, itself included, in no particular order (CSR).
 
-    Returns (indices (E,) int64, row_splits (Q + 1,) int64): query q's neighbours are
-    indices[row_splits[q]:row_splits[q + 1]], a CSR layout for vectorised per-point reductions.
+    Point q's neighbours are index[splits[q]:splits[q + 1]], at squared distances sq_dist_m2 (m^2)
+    of the same slice. index (E,) int64, sq_dist_m2 (E,) float32, splits (N + 1,) int64.
     """
+
+    radius_m: float
+    index: np.ndarray
+    sq_dist_m2: np.ndarray
+    splits: np.ndarray
+
+    def within(self, radius_m: float) -> "Neighbours":
+        """The same neighbourhoods cut down to radius_m (at most this one's radius)."""
+        if radius_m > self.radius_m:
+            raise CloudError(f"neighbours were searched within {self.radius_m} m, not {radius_m} m")
+        if radius_m == self.radius_m:
+            return self
+        near = self.sq_dist_m2 <= np.float32(radius_m) ** 2
+        kept_before = np.concatenate([[0], np.cumsum(near, dtype=np.int64)])  # kept entries before each one
+        splits = kept_before[self.splits]
+        return Neighbours(radius_m, self.index[near], self.sq_dist_m2[near], splits)
+
+
+def radius_neighbours(points: np.ndarray, radius_m: float) -> Neighbours:
+    """Every point's neighbours within radius_m (itself included). points (N, 3) metres."""
     pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
-    q = pts if queries is None else o3d.core.Tensor(np.ascontiguousarray(queries, dtype=np.float32))
     search = nns.NearestNeighborSearch(pts)
     search.fixed_radius_index(radius_m)
-    idx, _, splits = search.fixed_radius_search(q, radius_m, sort=False)
-    return idx.numpy().astype(np.int64), splits.numpy().astype(np.int64)
+    idx, sq_dist, splits = search.fixed_radius_search(pts, radius_m, sort=False)
+    return Neighbours(radius_m, idx.numpy().astype(np.int64), sq_dist.numpy(), splits.numpy().astype(np.int64))
 
 
 def smallest_eigenpair(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,21 +179,28 @@ def smallest_eigenpair(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def estimate_normals(
-    points: np.ndarray, radius_m: float, viewpoint: np.ndarray | tuple = (0.0, 0.0, 0.0)
+    points: np.ndarray,
+    radius_m: float,
+    viewpoint: np.ndarray | tuple = (0.0, 0.0, 0.0),
+    neighbours: Neighbours | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normals as PCL's NormalEstimation computes them, vectorised.
 
     For each point: the covariance of its neighbours within radius_m, the eigenvector of the smallest
     eigenvalue as the normal, flipped to face the viewpoint (n . (viewpoint - p) >= 0); curvature is
     lambda_min / sum(lambda). Points with fewer than 3 neighbours get NaN, as in PCL.
-    points (N, 3) metres -> normals (N, 3) float32, curvature (N,) float32.
+    points (N, 3) metres -> normals (N, 3) float32, curvature (N,) float32. neighbours: the points'
+    own, searched within at least radius_m, when the caller already has them.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) == 0:
         raise CloudError("cannot estimate normals of an empty cloud")
     if radius_m <= 0:
         raise CloudError(f"normal radius must be positive, got {radius_m} m")
-    idx, splits = radius_neighbours(pts, radius_m)
+    nb = radius_neighbours(pts, radius_m) if neighbours is None else neighbours.within(radius_m)
+    if len(nb.splits) != len(pts) + 1:
+        raise CloudError(f"neighbours of {len(nb.splits) - 1} points given for a cloud of {len(pts)}")
+    idx, splits = nb.index, nb.splits
     counts = np.diff(splits)
     # First and second moments per neighbourhood in one pass over rows of components: each point's
     # neighbours are one run of idx (every point is its own neighbour, so no run is empty).

@@ -13,16 +13,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from open3d.core import nns
 
 from recognition.align import (
     IcpResult, align_to_z, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
 )
-from recognition.cloud import estimate_normals, voxel_downsample
+from recognition.cloud import estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
-from recognition.segment import euclidean_clusters, remove_planes, split_oversized
+from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
 from schemas.codec import rotation_between
 
 log = logging.getLogger(__name__)
@@ -42,6 +43,9 @@ REFINED_STARTS = 2
 #: ... of this many points (a 1 cm voxel model of a 30 cm object has ~2000; ICP's precision is
 #: bounded by depth noise long before by this count).
 REFINE_POINTS = 500
+#: Screened starts closer than this are one start: refining both would repeat the same work.
+SAME_POSE_M = 0.01
+SAME_POSE_COS = float(np.cos(np.radians(10.0)))
 
 
 @dataclass(frozen=True)
@@ -67,10 +71,12 @@ class Detection:
 
 @dataclass
 class SceneCloud:
-    """The prepared scene: the downsampled points off the dominant planes, with normals, (N, 3)."""
+    """The prepared scene: the downsampled points off the dominant planes, with normals, (N, 3), and
+    their pairs within the clustering tolerance (found with the normals' neighbours, in one search)."""
 
     points: np.ndarray
     normals: np.ndarray
+    graph: PointGraph
 
 
 class Recognizer:
@@ -90,12 +96,20 @@ class Recognizer:
         self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
         self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
         self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
+        # Each whole model's point index, built once: which cluster points a pose explains is asked
+        # of every accepted hypothesis.
+        self._model_index: dict[str, nns.NearestNeighborSearch] = {}
+        for oid, mdl in database.models.items():
+            self._model_index[oid] = nns.NearestNeighborSearch(o3d.core.Tensor(mdl.points.astype(np.float32)))
+            self._model_index[oid].hybrid_index(config.icp_distance_m)
 
     def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
         """Finite points within range (and the workspace, when the camera pose is known), downsampled,
         off the dominant planes, with normals."""
         c, d = self.config, self.config.descriptor
-        empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+        none = np.zeros(0, np.int64)
+        empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                           PointGraph(0, c.cluster_tolerance_m, none, none, np.zeros(0, np.float32)))
         pts = np.asarray(cloud, dtype=np.float32).reshape(-1, 3)
         # One mask for range, workspace and NaN (every comparison with NaN is false), column by
         # column: a 640x480 frame is 307k points and this runs on every frame.
@@ -115,9 +129,11 @@ class Recognizer:
         pts = pts[remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)]
         if len(pts) == 0:
             return empty
-        normals, _ = estimate_normals(pts, d.normal_radius_m)
-        ok = np.all(np.isfinite(normals), axis=1)
-        return SceneCloud(pts[ok], normals[ok])
+        neighbours = radius_neighbours(pts, max(d.normal_radius_m, c.cluster_tolerance_m))
+        normals, _ = estimate_normals(pts, d.normal_radius_m, neighbours=neighbours)
+        ok = np.flatnonzero(np.all(np.isfinite(normals), axis=1))
+        graph = PointGraph.from_neighbours(neighbours).subgraph(ok, c.cluster_tolerance_m)
+        return SceneCloud(pts[ok], normals[ok], graph)
 
     def recognize(
         self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None
@@ -133,9 +149,10 @@ class Recognizer:
         # World up in the camera frame, when known: the upright test needs it.
         up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
         c = self.config
-        clusters = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points)
+        clusters = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
+                                      scene.graph)
         clusters = split_oversized(scene.points, clusters, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
-                                   MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points)
+                                   MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
         # Candidates (part, detection): a part is a cluster, or what is left of one once a touching
         # object is explained away, or a prior's own hint.
         candidates: list[tuple[int, Detection]] = []
@@ -240,7 +257,11 @@ class Recognizer:
         best: IcpResult | None = None
         # A start that explains under min_fitness of the model even at twice the final distance is
         # not refined: no refined start from that low has passed in the benchmark's frames.
+        refined: list[np.ndarray] = []
         for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= c.min_fitness]:
+            if any(_same_pose(coarse.camera_T_object, done) for done in refined):
+                continue  # two starts that screened into one pose refine into one pose
+            refined.append(coarse.camera_T_object)
             res = refine_icp(dense_points, dense_normals, target, coarse.camera_T_object, c.icp_distance_m,
                              c.icp_iterations, max_shift_m=model.diameter_m)
             if not _upright(res.camera_T_object, up):
@@ -249,7 +270,7 @@ class Recognizer:
                 best = res
         if best is None:
             return None
-        explained = _explained(model, best.camera_T_object, target, c.icp_distance_m)
+        explained = self._explained(model.object_id, best.camera_T_object, scene.points[idx])
         coverage = float(explained.mean()) if len(explained) else 0.0
         whole = best.fitness >= c.min_fitness and coverage >= c.min_coverage
         shared = best.fitness >= c.min_fitness_shared and explained.sum() >= c.cluster_min_points
@@ -263,6 +284,15 @@ class Recognizer:
         return det, explained
 
 
+    def _explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Mask (N,) of the cluster points (N, 3), camera frame, within icp_distance_m of the posed model."""
+        object_T_camera = np.linalg.inv(camera_T_object)
+        local = (points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]).astype(np.float32)
+        _, _, counts = self._model_index[object_id].hybrid_search(
+            o3d.core.Tensor(local), self.config.icp_distance_m, 1)
+        return counts.numpy() > 0
+
+
 def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n of the model's points and normals, evenly through its (voxel-ordered) list."""
     keep = np.unique(np.linspace(0, len(model.points) - 1, min(n, len(model.points))).astype(np.int64))
@@ -272,6 +302,12 @@ def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
 def _upright(camera_T_object: np.ndarray, up: np.ndarray | None) -> bool:
     """Whether the object's +z is within 45 deg of world up (always, when up is unknown)."""
     return up is None or camera_T_object[:3, 2] @ up >= UPRIGHT_COS
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two poses (4, 4) are within SAME_POSE_M and SAME_POSE_DEG of each other."""
+    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+    return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and cos >= SAME_POSE_COS)
 
 
 def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -289,13 +325,6 @@ def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -
     out[:3, :3] = R @ camera_T_object[:3, :3]
     out[:3, 3] = R @ (camera_T_object[:3, 3] - pivot) + pivot
     return out
-
-
-def _explained(model: ObjectModel, camera_T_object: np.ndarray, target: o3d.geometry.PointCloud, dist: float) -> np.ndarray:
-    """Mask of the cluster's points within dist of the posed model."""
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points.astype(np.float64)))
-    src.transform(camera_T_object)
-    return np.asarray(target.compute_point_cloud_distance(src)) <= dist
 
 
 def _cluster_near(points: np.ndarray, clusters: list[np.ndarray], position: np.ndarray, radius: float) -> int | None:

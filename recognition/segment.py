@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import open3d as o3d
+
+from recognition.cloud import Neighbours, radius_neighbours
+from recognition.errors import CloudError
 
 #: RANSAC hypotheses are scored on at most this many points (a seeded random sample): a plane that
 #: holds a tenth of the scene holds a tenth of the sample, and a frame's table has ~10k voxels.
@@ -49,25 +54,92 @@ def remove_planes(
     return keep
 
 
-def euclidean_clusters(points: np.ndarray, tolerance_m: float, min_points: int, max_points: int) -> list[np.ndarray]:
+@dataclass(frozen=True)
+class PointGraph:
+    """A cloud's point pairs closer than radius_m: edges (i, j) with i < j, (E,) int64 each, and
+    their squared lengths (E,) float32, m^2; size points."""
+
+    size: int
+    radius_m: float
+    i: np.ndarray
+    j: np.ndarray
+    sq_len_m2: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, radius_m: float) -> "PointGraph":
+        """The graph of points (N, 3) closer than radius_m (m)."""
+        return cls.from_neighbours(radius_neighbours(points, radius_m))
+
+    @classmethod
+    def from_neighbours(cls, nb: Neighbours) -> "PointGraph":
+        rows = np.repeat(np.arange(len(nb.splits) - 1), np.diff(nb.splits))
+        once = rows < nb.index  # each pair once, no self-loops
+        return cls(len(nb.splits) - 1, nb.radius_m, rows[once], nb.index[once], nb.sq_dist_m2[once])
+
+    def subgraph(self, members: np.ndarray, radius_m: float | None = None) -> "PointGraph":
+        """The graph among the points members (M,) (renumbered 0..M-1 in that order), optionally
+        only the edges up to radius_m."""
+        radius = self.radius_m if radius_m is None else radius_m
+        if radius > self.radius_m:
+            raise CloudError(f"the graph holds pairs up to {self.radius_m} m, not {radius} m")
+        local = np.full(self.size, -1, dtype=np.int64)
+        local[members] = np.arange(len(members))
+        a, b = local[self.i], local[self.j]
+        keep = (a >= 0) & (b >= 0)
+        if radius < self.radius_m:
+            keep &= self.sq_len_m2 <= np.float32(radius) ** 2
+        a, b = a[keep], b[keep]
+        return PointGraph(len(members), radius, np.minimum(a, b), np.maximum(a, b), self.sq_len_m2[keep])
+
+
+def components(size: int, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Connected components of the graph on size nodes with edges (i, j): each node's label is the
+    smallest node of its component, (size,) int64.
+
+    Vectorised union-find: every round hooks the larger root of each edge that still joins two
+    components under the smaller one, then points every node straight at its root. Roots only
+    ever point down, so there are no cycles, and the smallest node of a component stays its root.
+    """
+    parent = np.arange(size, dtype=np.int64)
+    while len(i):
+        a, b = parent[i], parent[j]
+        joins = a != b
+        i, j, a, b = i[joins], j[joins], a[joins], b[joins]
+        parent[np.maximum(a, b)] = np.minimum(a, b)
+        while True:
+            grand = parent[parent]
+            if np.array_equal(grand, parent):
+                break
+            parent = grand
+    return parent
+
+
+def euclidean_clusters(
+    points: np.ndarray, tolerance_m: float, min_points: int, max_points: int, graph: PointGraph | None = None
+) -> list[np.ndarray]:
     """Index arrays of the connected components of the tolerance_m neighbour graph, largest first.
 
-    PCL's EuclideanClusterExtraction: DBSCAN with one point per core is exactly that graph's
-    components. Clusters outside [min_points, max_points] are dropped.
+    PCL's EuclideanClusterExtraction. Clusters outside [min_points, max_points] are dropped. graph:
+    the points' pairs up to at least tolerance_m, when the caller has them (they cost a radius search).
     """
     if len(points) == 0:
         return []
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
-    labels = np.asarray(pcd.cluster_dbscan(tolerance_m, min_points=1))
+    if graph is None:
+        graph = PointGraph.of(points, tolerance_m)
+    elif graph.size != len(points):
+        raise CloudError(f"a graph of {graph.size} points given for a cloud of {len(points)}")
+    elif graph.radius_m != tolerance_m:
+        graph = graph.subgraph(np.arange(graph.size), tolerance_m)
+    labels = components(graph.size, graph.i, graph.j)
     order = np.argsort(labels, kind="stable")  # one pass, not one scan per label: fine tolerances give many
-    clusters = np.split(order, np.cumsum(np.bincount(labels))[:-1])
+    clusters = np.split(order, np.flatnonzero(np.diff(labels[order])) + 1)
     clusters = [c for c in clusters if min_points <= len(c) <= max_points]
     return sorted(clusters, key=len, reverse=True)
 
 
 def split_oversized(
     points: np.ndarray, clusters: list[np.ndarray], max_extent_m: float, tolerance_m: float, min_tolerance_m: float,
-    min_points: int,
+    min_points: int, graph: PointGraph | None = None,
 ) -> list[np.ndarray]:
     """Clusters larger than any object (2-98 % bounding-box diagonal over max_extent_m) re-clustered with a
     tighter tolerance, down to min_tolerance_m: objects standing close together merge at the
@@ -75,6 +147,7 @@ def split_oversized(
 
     A split also sheds crumbs, pieces of one noisy surface under SPLIT_CRUMB of the cluster: they are
     dropped, not made clusters of their own (too small to match, they cost a full match each).
+    graph: the points' pairs up to at least tolerance_m, when the caller has them.
     """
     out: list[np.ndarray] = []
     todo = [(c, tolerance_m) for c in clusters]
@@ -87,7 +160,8 @@ def split_oversized(
         if extent <= max_extent_m or finer < min_tolerance_m:
             out.append(idx)
             continue
-        parts = euclidean_clusters(pts, finer, 1, len(idx))
+        sub = None if graph is None else graph.subgraph(idx, finer)
+        parts = euclidean_clusters(pts, finer, 1, len(idx), sub)
         real = [p for p in parts if len(p) >= max(min_points, SPLIT_CRUMB * len(idx))]
         if not real:
             out.append(idx)  # shattered: a single noisy surface, not several objects

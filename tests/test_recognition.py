@@ -11,11 +11,12 @@ import open3d as o3d
 import pytest
 
 from recognition.align import align_to_z, model_to_scene_rmse, roll_candidates, roll_histogram, rot_z
-from recognition.cloud import smallest_eigenpair, depth_to_cloud, estimate_normals, read_cloud
+from recognition.cloud import depth_to_cloud, estimate_normals, radius_neighbours, read_cloud, smallest_eigenpair
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.errors import CloudError, ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
+from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
 from tests.helpers import assert_pose_close
 
@@ -61,6 +62,42 @@ def test_normals_are_nan_where_too_few_neighbours() -> None:
     assert np.isnan(normals[:3]).all() and np.isfinite(normals[3:]).all()
     np.testing.assert_allclose(np.abs(normals[3:, 2]), 1.0, atol=1e-6)
     assert (normals[3:, 2] < 0).all(), "normals must face the viewpoint at the origin"
+
+
+def test_normals_from_a_wider_search_equal_their_own_search(milk: np.ndarray) -> None:
+    """The recogniser searches once at the clustering tolerance and cuts down to the normal radius."""
+    own, _ = estimate_normals(milk, radius_m=0.02)
+    shared, _ = estimate_normals(milk, radius_m=0.02, neighbours=radius_neighbours(milk, 0.035))
+    np.testing.assert_allclose(shared, own, atol=1e-5, equal_nan=True)
+    with pytest.raises(CloudError, match="searched within"):
+        estimate_normals(milk, radius_m=0.05, neighbours=radius_neighbours(milk, 0.035))
+
+
+@pytest.mark.parametrize("tolerance", [0.01, 0.02, 0.035])
+def test_euclidean_clusters_are_open3ds_single_linkage_components(milk: np.ndarray, tolerance: float) -> None:
+    """Clusters from the union-find over the radius graph equal Open3D's DBSCAN with one point per
+    core (the same components, independently computed), on the milk scene thinned to islands."""
+    scene = read_cloud(PCL / "milk_cartoon_all_small_clorox.pcd")
+    pts = scene[np.random.default_rng(0).random(len(scene)) < 0.05]
+    ours = euclidean_clusters(pts, tolerance, 1, len(pts))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.astype(np.float64)))
+    labels = np.asarray(pcd.cluster_dbscan(tolerance, min_points=1))
+    theirs = [np.flatnonzero(labels == k) for k in range(labels.max() + 1)]
+    assert len(ours) > 10, "the thinned scene should fall apart into many islands"
+    assert sorted(map(tuple, map(np.sort, ours))) == sorted(map(tuple, theirs))
+    # A finer tolerance from the shared graph equals a search at that tolerance.
+    graph = PointGraph.of(pts, 0.035)
+    assert [c.tolist() for c in euclidean_clusters(pts, tolerance, 1, len(pts), graph)] == [c.tolist() for c in ours]
+
+
+def test_components_of_a_path_in_scrambled_order() -> None:
+    """Worst case for naive label propagation: a long chain, plus an isolated node; labels are the
+    smallest node of each component."""
+    rng = np.random.default_rng(1)
+    order = rng.permutation(1000)
+    i, j = order[:-1], order[1:]  # one path visiting every node, numbered at random
+    labels = components(1001, i, j)
+    assert (labels[:1000] == 0).all() and labels[1000] == 1000
 
 
 def test_closed_form_normals_match_lapack_on_random_neighbourhoods() -> None:
