@@ -101,35 +101,35 @@ class IcpResult:
     rmse_m: float
 
 
-def visible_points(model_points: np.ndarray, model_normals: np.ndarray, camera_T_object: np.ndarray) -> np.ndarray:
-    """Model points (object frame) whose normal faces the camera at this pose: a cheap visibility cull."""
-    R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
-    p_cam = model_points @ R.T + t
-    n_cam = model_normals @ R.T
-    return model_points[np.einsum("ij,ij->i", n_cam, -p_cam) > 0]
+def facing_camera(model_points: np.ndarray, model_normals: np.ndarray, camera_T_objects: np.ndarray) -> np.ndarray:
+    """Mask (S, N) of the model points (N, 3), object frame, whose normal faces the camera at each
+    pose (S, 4, 4): a cheap visibility cull."""
+    T = np.asarray(camera_T_objects, dtype=np.float64).reshape(-1, 4, 4)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    # n_cam . -p_cam = -(R n) . (R p + t) = -(n . p) - (R n) . t
+    n_dot_p = np.einsum("ij,ij->i", model_normals, model_points)
+    return -n_dot_p[None, :] - np.einsum("sij,nj,si->sn", R, model_normals, t) > 0
 
 
 def icp_pass(
-    model_points: np.ndarray,
-    model_normals: np.ndarray,
+    source_points: np.ndarray,
     scene: o3d.geometry.PointCloud,
     camera_T_object: np.ndarray,
     distance_m: float,
     iterations: int = 30,
     max_shift_m: float = np.inf,
 ) -> IcpResult:
-    """One point-to-plane ICP of the model points facing the camera at the start pose onto the scene
-    (which must have normals). Fitness and RMSE are ICP's own, at distance_m, over those points. A
-    result that moved more than max_shift_m from the start (ICP sliding off a degenerate cluster)
-    scores 0 at the start pose."""
+    """One point-to-plane ICP of model points (M, 3), object frame, from the start pose onto the scene
+    (which must have normals). Fitness and RMSE are ICP's own, at distance_m, over those points: pass
+    the ones facing the camera. A result that moved more than max_shift_m from the start (ICP sliding
+    off a degenerate cluster) scores 0 at the start pose."""
     start = np.asarray(camera_T_object, dtype=np.float64)
     failed = IcpResult(start, 0.0, float("inf"))
-    src = _cloud(visible_points(model_points, model_normals, start))
-    if len(src.points) < 3:
+    if len(source_points) < 3:
         return failed
     est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
-    reg = o3d.pipelines.registration.registration_icp(src, scene, distance_m, start, est, crit)
+    reg = o3d.pipelines.registration.registration_icp(_cloud(source_points), scene, distance_m, start, est, crit)
     pose = np.asarray(reg.transformation)
     if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
         return failed
@@ -145,15 +145,18 @@ def refine_icp(
     iterations: int = 30,
     max_shift_m: float = np.inf,
 ) -> IcpResult:
-    """An ``icp_pass`` at max_distance_m, then scored again with the model points facing the camera
-    at the refined pose, so that the fitness counts the surface the camera should actually see."""
-    first = icp_pass(model_points, model_normals, scene, camera_T_object, max_distance_m, iterations, max_shift_m)
+    """An ``icp_pass`` of the model points facing the camera at the start, at max_distance_m, then
+    scored again with those facing it at the refined pose, so that the fitness counts the surface
+    the camera should actually see."""
+    facing = facing_camera(model_points, model_normals, camera_T_object)[0]
+    first = icp_pass(model_points[facing], scene, camera_T_object, max_distance_m, iterations, max_shift_m)
     if first.fitness == 0:
         return first
-    src = _cloud(visible_points(model_points, model_normals, first.camera_T_object))
-    if len(src.points) < 3:
+    facing = facing_camera(model_points, model_normals, first.camera_T_object)[0]
+    if facing.sum() < 3:
         return IcpResult(first.camera_T_object, 0.0, float("inf"))
-    ev = o3d.pipelines.registration.evaluate_registration(src, scene, max_distance_m, first.camera_T_object)
+    ev = o3d.pipelines.registration.evaluate_registration(_cloud(model_points[facing]), scene, max_distance_m,
+                                                          first.camera_T_object)
     return IcpResult(first.camera_T_object, float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))
 
 

@@ -16,7 +16,7 @@ import open3d as o3d
 from open3d.core import nns
 
 from recognition.align import (
-    IcpResult, align_to_z, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
+    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
 )
 from recognition.cloud import estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
@@ -244,11 +244,12 @@ class Recognizer:
         target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
         # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
         sparse_points, sparse_normals = self._sparse[model.object_id]
+        poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
+        if up is not None:
+            poses = _stand_up(poses, up, self._centre[model.object_id])
         screened: list[IcpResult] = []
-        for start in starts:
-            if up is not None:
-                start = _stand_up(start, up, self._centre[model.object_id])
-            res = icp_pass(sparse_points, sparse_normals, target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
+        for start, facing in zip(poses, facing_camera(sparse_points, sparse_normals, poses)):
+            res = icp_pass(sparse_points[facing], target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
                            max_shift_m=model.diameter_m)
             if res.fitness > 0 and _upright(res.camera_T_object, up):  # else a symmetric shape's mirror image
                 screened.append(res)
@@ -310,20 +311,24 @@ def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and cos >= SAME_POSE_COS)
 
 
-def _stand_up(camera_T_object: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """The pose turned, about the object's centre (object frame, m), so that its +z is world up.
+def _stand_up(camera_T_objects: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The poses (S, 4, 4) that are not upright turned, about the object's centre (object frame, m),
+    so that their +z is world up (the smallest turn; a half turn about the object's x axis when
+    exactly upside down).
 
     A symmetric shape matched from the VFH of a single view is as likely upside down as not; for
     objects that stand on their base the upright twin is the physical one.
     """
-    if _upright(camera_T_object, up):
-        return camera_T_object
-    # Exactly upside down: turn about the object's own x axis.
-    R = rotation_between(camera_T_object[:3, 2], up, half_turn_axis=camera_T_object[:3, 0])
-    pivot = camera_T_object[:3, :3] @ centre + camera_T_object[:3, 3]
-    out = camera_T_object.copy()
-    out[:3, :3] = R @ camera_T_object[:3, :3]
-    out[:3, 3] = R @ (camera_T_object[:3, 3] - pivot) + pivot
+    out = np.array(camera_T_objects, dtype=np.float64)
+    down = out[:, :3, 2] @ up < UPRIGHT_COS
+    if not down.any():
+        return out
+    T = out[down]
+    R = rotation_between(T[:, :3, 2], up, half_turn_axis=T[:, :3, 0])
+    pivot = T[:, :3, :3] @ centre + T[:, :3, 3]
+    T[:, :3, :3] = R @ T[:, :3, :3]
+    T[:, :3, 3] = np.einsum("sij,sj->si", R, T[:, :3, 3] - pivot) + pivot
+    out[down] = T
     return out
 
 

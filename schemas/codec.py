@@ -99,27 +99,43 @@ def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | None = None) -> np.ndarray:
-    """Smallest rotation R (3, 3) with R @ a/|a| = b/|b| (Rodrigues).
+    """Smallest rotation R (3, 3) with R @ a/|a| = b/|b|; batched over leading axes: a and b
+    (..., 3) broadcast, R (..., 3, 3).
 
-    When a and b are opposite every axis normal to them will do: the half turn is about
-    half_turn_axis (unit, normal to a; default x, which suits a = -z).
+    With v = a x b and c = a . b (unit a, b): R = c I + [v]x + v v^T / (1 + c). When a and b are
+    opposite every axis normal to them will do: the half turn is about half_turn_axis (unit, normal
+    to a, (..., 3)); by default about the coordinate axis most normal to a, made normal to it (x for
+    a = -z).
     """
-    # Plain arithmetic on 3-vectors: np.cross and np.linalg.norm cost tens of microseconds each, and
-    # recognition calls this for every start of every cluster.
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    a = a / math.sqrt(a @ a)
-    b = b / math.sqrt(b @ b)
-    axis = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-    s, c = math.sqrt(axis @ axis), float(a @ b)
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        axis, s = np.asarray(half_turn_axis if half_turn_axis is not None else (1.0, 0.0, 0.0), dtype=np.float64), 0.0
-    else:
-        axis = axis / s
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + s * K + (1 - c) * K @ K
+    a = a / np.sqrt(np.sum(a * a, axis=-1, keepdims=True))
+    b = b / np.sqrt(np.sum(b * b, axis=-1, keepdims=True))
+    a, b = np.broadcast_arrays(a, b)
+    v = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                  a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    c = np.sum(a * b, axis=-1)
+    # 1 + c as |a + b|^2 / 2: accurate to the last bits however close to opposite a and b are. Nearer
+    # than ~1e-8 rad to opposite, the half turn is closer than the formula's own rounding.
+    one_plus_c = 0.5 * np.sum((a + b) ** 2, axis=-1)
+    opposite = one_plus_c < 1e-16
+    R = v[..., :, None] * v[..., None, :] / np.where(opposite, 1.0, one_plus_c)[..., None, None]
+    R += c[..., None, None] * np.eye(3)
+    R[..., 0, 1] -= v[..., 2]
+    R[..., 0, 2] += v[..., 1]
+    R[..., 1, 2] -= v[..., 0]
+    R[..., 1, 0] += v[..., 2]
+    R[..., 2, 0] -= v[..., 1]
+    R[..., 2, 1] += v[..., 0]
+    if np.any(opposite):
+        if half_turn_axis is None:  # the coordinate axis most normal to a, made normal to it
+            e = np.eye(3)[np.argmin(np.abs(a[opposite]), axis=-1)]
+            h = e - np.sum(e * a[opposite], axis=-1, keepdims=True) * a[opposite]
+            h /= np.linalg.norm(h, axis=-1, keepdims=True)
+        else:
+            h = np.broadcast_to(np.asarray(half_turn_axis, dtype=np.float64), v.shape)[opposite]
+        R[opposite] = 2.0 * h[..., :, None] * h[..., None, :] - np.eye(3)
+    return R
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:

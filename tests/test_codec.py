@@ -158,3 +158,32 @@ def test_keys_build_parse_and_reject() -> None:
             keys.markers("demo", bad)
     with pytest.raises(KeyError_):
         keys.parse("cellsight/demo/cam1/nonsense")
+
+
+vec3 = hnp.arrays(np.float64, 3, elements=st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 1e-3)
+
+
+@settings(max_examples=200, deadline=None)
+@given(vec3, vec3)
+def test_rotation_between_turns_a_onto_b_by_the_smallest_angle(a: np.ndarray, b: np.ndarray) -> None:
+    R = codec.rotation_between(a, b)
+    ua, ub = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    # Turning onto the exact opposite is ill-conditioned: ~1e-8 is the best double precision allows.
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-7)
+    assert np.linalg.det(R) > 0
+    np.testing.assert_allclose(R @ ua, ub, atol=1e-7)
+    # The smallest such rotation turns by the angle between them, no more.
+    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    assert angle == pytest.approx(np.arccos(np.clip(ua @ ub, -1, 1)), abs=1e-6)
+
+
+def test_rotation_between_batches_and_turns_opposites_about_the_given_axis() -> None:
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(20, 3))
+    a[7] = (0.0, 0.0, -2.0)  # exactly opposite to b
+    axes = np.tile([0.0, 1.0, 0.0], (20, 1))
+    R = codec.rotation_between(a, np.array([0.0, 0.0, 1.0]), half_turn_axis=axes)
+    assert R.shape == (20, 3, 3)
+    for k in range(20):
+        np.testing.assert_allclose(R[k], codec.rotation_between(a[k], [0.0, 0.0, 1.0], half_turn_axis=axes[k]), atol=1e-12)
+    np.testing.assert_allclose(R[7], np.diag([-1.0, 1.0, -1.0]), atol=1e-12)  # half turn about y
