@@ -77,6 +77,8 @@ def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
         raise CloudError(f"cloud file {path} does not exist")
     if path.suffix.lower() not in (".pcd", ".ply"):
         raise CloudError(f"cloud file {path}: use a .pcd or .ply file")
+    if path.suffix.lower() == ".pcd":
+        width, height = _pcd_size(path)
     try:
         pcd = o3d.t.io.read_point_cloud(str(path))
     except RuntimeError as exc:
@@ -89,26 +91,60 @@ def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
         if len(found) == 0:
             raise CloudError(f"cloud file {path} holds no finite points")
         return found
-    width, height = _pcd_size(path) if path.suffix.lower() == ".pcd" else (len(pts), 1)
+    if path.suffix.lower() == ".ply":
+        width, height = len(pts), 1
     if width * height != len(pts):
         raise CloudError(f"cloud file {path}: WIDTH x HEIGHT = {width}x{height} but {len(pts)} points")
     return pts.reshape(height, width, 3)
 
 
+#: PCD header lines in the order the format fixes, the ones our checks need.
+_PCD_FIELD_LINES = ("FIELDS", "SIZE", "TYPE", "COUNT")
+
+
 def _pcd_size(path: Path) -> tuple[int, int]:
-    """WIDTH and HEIGHT from a PCD header (Open3D flattens organised clouds)."""
-    width = height = None
+    """WIDTH and HEIGHT from a PCD header, after checking the header is consistent: Open3D's reader
+    crashes the process (SIGSEGV) on some damaged headers: more FIELDS than SIZEs, or normal_y
+    without normal_x."""
+    lines: dict[str, list[str]] = {}
     with path.open("rb") as f:
-        for _ in range(20):
-            words = f.readline().decode("ascii", "replace").split()
-            if words and words[0] == "WIDTH":
-                width = int(words[1])
-            elif words and words[0] == "HEIGHT":
-                height = int(words[1])
-            elif words and words[0] == "DATA":
+        for _ in range(30):
+            raw = f.readline()
+            if not raw:
                 break
-    if width is None or height is None:
-        raise CloudError(f"cloud file {path}: PCD header has no WIDTH/HEIGHT")
+            words = raw.decode("ascii", "replace").split()
+            if not words or words[0].startswith("#"):
+                continue
+            lines[words[0]] = words[1:]
+            if words[0] == "DATA":
+                break
+
+    def bad(what: str) -> CloudError:
+        return CloudError(f"cloud file {path}: damaged PCD header: {what}")
+
+    missing = [k for k in (*_PCD_FIELD_LINES, "WIDTH", "HEIGHT", "POINTS", "DATA") if k not in lines]
+    if missing:
+        raise bad(f"no {', '.join(missing)} line")
+    fields = lines["FIELDS"]
+    if not fields or any(len(lines[k]) != len(fields) for k in _PCD_FIELD_LINES):
+        raise bad(f"FIELDS, SIZE, TYPE and COUNT must list one entry per field ({len(fields)} fields)")
+    if not all(name.isascii() and name.isprintable() for name in fields):
+        raise bad(f"field names {fields!r} are not plain text")
+    if not {"x", "y", "z"} <= set(fields):
+        raise bad(f"fields {fields} lack x, y or z")
+    normals = {"normal_x", "normal_y", "normal_z"} & set(fields)
+    if normals and len(normals) != 3:  # Open3D crashes on a partial set
+        raise bad(f"fields {fields} hold only {sorted(normals)} of normal_x, normal_y, normal_z")
+    if not all(size in ("1", "2", "4", "8") for size in lines["SIZE"]) or not all(t in ("F", "I", "U") for t in lines["TYPE"]):
+        raise bad(f"SIZE {lines['SIZE']} / TYPE {lines['TYPE']} are not 1/2/4/8 bytes of F, I or U")
+    counts = [*lines["COUNT"], *lines["WIDTH"], *lines["HEIGHT"], *lines["POINTS"]]
+    if len(counts) != len(fields) + 3 or not all(c.isdigit() for c in counts):
+        raise bad("COUNT, WIDTH, HEIGHT and POINTS must be non-negative integers")
+    width, height, points = int(lines["WIDTH"][0]), int(lines["HEIGHT"][0]), int(lines["POINTS"][0])
+    if width * height != points:
+        raise bad(f"WIDTH x HEIGHT = {width}x{height} but POINTS {points}")
+    if lines["DATA"] not in (["ascii"], ["binary"], ["binary_compressed"]):
+        raise bad(f"DATA {' '.join(lines['DATA'])!r} is not ascii, binary or binary_compressed")
     return width, height
 
 

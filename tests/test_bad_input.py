@@ -1,0 +1,150 @@
+"""Damaged files at the entry points that read them: each gives the package's own error naming the
+file, or a valid result, and never another exception or a crash.
+
+Mutations are truncations, overwritten bytes and inserted bytes of real files (the demo cell's
+scenario and config, PCL's clouds, a saved state file).
+"""
+
+from __future__ import annotations
+
+import functools
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from cellsight.config import CellConfig, load_config
+from cellsight.errors import ConfigError
+from drivers.errors import ScenarioError
+from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
+from estimator.errors import StateFileError
+from estimator.state import SavedMarker, load_state, save_state
+from recognition.cloud import read_cloud
+from recognition.errors import CloudError
+from tests.test_config import EXAMPLE
+
+PCL = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
+HERE = Path(__file__).resolve().parent
+
+
+@st.composite
+def damaged(draw: st.DrawFn, original: bytes) -> bytes:
+    """original truncated, with bytes overwritten, or with bytes inserted."""
+    b = bytearray(original)
+    kind = draw(st.sampled_from(["truncate", "overwrite", "insert"]))
+    if kind == "truncate":
+        return bytes(b[: draw(st.integers(0, len(b) - 1))])
+    if kind == "overwrite":
+        for _ in range(draw(st.integers(1, 8))):
+            b[draw(st.integers(0, len(b) - 1))] = draw(st.integers(0, 255))
+        return bytes(b)
+    at = draw(st.integers(0, len(b)))
+    return bytes(b[:at] + draw(st.binary(min_size=1, max_size=16)) + b[at:])
+
+
+FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@FUZZ
+@given(data=damaged(EXAMPLE.encode()))
+def test_a_damaged_config_file_is_a_config_error_naming_the_file(tmp_path: Path, data: bytes) -> None:
+    path = tmp_path / "cell.toml"
+    path.write_bytes(data)
+    try:
+        assert isinstance(load_config(path, environ={}), CellConfig)
+    except ConfigError as exc:
+        assert str(path) in str(exc)
+
+
+@FUZZ
+@given(data=damaged(DEMO_CELL.read_bytes()))
+def test_a_damaged_scenario_file_is_a_scenario_error_naming_the_file(tmp_path: Path, data: bytes) -> None:
+    path = tmp_path / "cell.toml"
+    path.write_bytes(data)
+    try:
+        assert isinstance(load_scenario(path), Scenario)
+    except ScenarioError as exc:
+        assert str(path) in str(exc)
+
+
+@functools.cache
+def _state_file() -> bytes:
+    """One saved state (it holds its save time, so every example must damage the same one)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "state.json"
+        save_state(path, {3: SavedMarker(np.eye(4), np.eye(6) * 1e-4), 7: SavedMarker(np.eye(4), np.eye(6))}, "lab")
+        return path.read_bytes()
+
+
+@FUZZ
+@given(st.data())
+def test_a_damaged_state_file_is_a_state_file_error(tmp_path: Path, data: st.DataObject) -> None:
+    """The checksum catches every change; the estimator sets such a file aside and starts fresh."""
+    original = _state_file()
+    mutated = data.draw(damaged(original))
+    path = tmp_path / "state.json"
+    path.write_bytes(mutated)
+    if mutated == original:
+        assert set(load_state(path, "lab")) == {3, 7}
+        return
+    with pytest.raises(StateFileError, match="state"):
+        load_state(path, "lab")
+
+
+@pytest.mark.parametrize(
+    ("edit", "why"),
+    [
+        (("normal_x", "foo"), "only"),  # Open3D dies of SIGSEGV on normal_y without normal_x
+        (("FIELDS x y z", "FIELDS x y z w"), "one entry per field"),
+        (("WIDTH 397", "WIDTH 3x97"), "non-negative integers"),
+        (("POINTS 397", "POINTS 398"), "POINTS 398"),
+        (("DATA ascii", "DATA zip"), "DATA"),
+        (("FIELDS x y z", "FIELDS a y z"), "lack x"),
+    ],
+)
+def test_a_damaged_pcd_header_is_named(tmp_path: Path, edit: tuple[str, str], why: str) -> None:
+    path = tmp_path / "bun0.pcd"
+    path.write_text((PCL / "bun0.pcd").read_text().replace(*edit, 1))
+    with pytest.raises(CloudError, match=why):
+        read_cloud(path)
+
+
+FUZZ_CLOUDS = """
+import sys
+from pathlib import Path
+import numpy as np
+from recognition.cloud import read_cloud
+from recognition.errors import CloudError
+src, out = Path(sys.argv[1]), Path(sys.argv[2])
+original, rng = src.read_bytes(), np.random.default_rng(int(sys.argv[3]))
+for k in range(int(sys.argv[4])):
+    b = bytearray(original)
+    if k % 3 == 0:
+        b = b[: rng.integers(0, len(b))]
+    elif k % 3 == 1:
+        for _ in range(rng.integers(1, 20)):
+            b[rng.integers(0, len(b))] = rng.integers(0, 256)
+    else:  # inserted in or near the header, where the reader decides what to do
+        at = rng.integers(0, min(len(b), 400))
+        b[at:at] = rng.integers(0, 256, rng.integers(1, 30)).astype(np.uint8).tobytes()
+    out.write_bytes(bytes(b))
+    try:
+        pts = read_cloud(out, organised=bool(k % 2))
+        assert pts.dtype == np.float32 and pts.shape[-1] == 3
+    except CloudError as exc:
+        assert str(out) in str(exc)
+"""
+
+
+@pytest.mark.parametrize("cloud", ["bun0.pcd", "milk.pcd"])  # ascii with normals; binary_compressed
+def test_damaged_clouds_are_cloud_errors_never_a_crash(tmp_path: Path, cloud: str) -> None:
+    """In a child process: before the header checks, Open3D's reader killed the process (SIGSEGV)."""
+    out = tmp_path / f"damaged{Path(cloud).suffix}"
+    run = subprocess.run([sys.executable, "-c", FUZZ_CLOUDS, str(PCL / cloud), str(out), "3", "300"],
+                         capture_output=True, text=True, timeout=300, cwd=HERE.parent)
+    assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-2000:]}"
