@@ -24,7 +24,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
-from schemas.codec import rotation_between
+from schemas.codec import invert_pose, rotation_between
 
 log = logging.getLogger(__name__)
 UPRIGHT_COS = float(np.cos(np.radians(45.0)))
@@ -284,10 +284,9 @@ class Recognizer:
                         int(explained.sum()), from_prior)
         return det, explained
 
-
     def _explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Mask (N,) of the cluster points (N, 3), camera frame, within icp_distance_m of the posed model."""
-        object_T_camera = np.linalg.inv(camera_T_object)
+        object_T_camera = invert_pose(camera_T_object)
         local = (points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]).astype(np.float32)
         _, _, counts = self._model_index[object_id].hybrid_search(
             o3d.core.Tensor(local), self.config.icp_distance_m, 1)
@@ -306,7 +305,7 @@ def _upright(camera_T_object: np.ndarray, up: np.ndarray | None) -> bool:
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether two poses (4, 4) are within SAME_POSE_M and SAME_POSE_DEG of each other."""
+    """Whether two poses (4, 4) are within SAME_POSE_M and the angle of SAME_POSE_COS of each other."""
     cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
     return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and cos >= SAME_POSE_COS)
 
