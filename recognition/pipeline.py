@@ -107,9 +107,8 @@ class Recognizer:
         """Finite points within range (and the workspace, when the camera pose is known), downsampled,
         off the dominant planes, with normals."""
         c, d = self.config, self.config.descriptor
-        none = np.zeros(0, np.int64)
         empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                           PointGraph(0, c.cluster_tolerance_m, none, none, np.zeros(0, np.float32)))
+                           PointGraph.empty(c.cluster_tolerance_m))
         pts = np.asarray(cloud, dtype=np.float32).reshape(-1, 3)
         # One mask for range, workspace and NaN (every comparison with NaN is false), column by
         # column: a 640x480 frame is 307k points and this runs on every frame.

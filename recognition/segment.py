@@ -66,6 +66,12 @@ class PointGraph:
     sq_len_m2: np.ndarray
 
     @classmethod
+    def empty(cls, radius_m: float) -> "PointGraph":
+        """The graph of no points."""
+        none = np.zeros(0, dtype=np.int64)
+        return cls(0, radius_m, none, none, np.zeros(0, dtype=np.float32))
+
+    @classmethod
     def of(cls, points: np.ndarray, radius_m: float) -> "PointGraph":
         """The graph of points (N, 3) closer than radius_m (m)."""
         return cls.from_neighbours(radius_neighbours(points, radius_m))
