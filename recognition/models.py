@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -273,14 +276,31 @@ def model_from_cloud(
 
 
 def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
-    """A triangle mesh (PLY, OBJ, STL, OFF, glTF) in metres; clear error if unreadable or empty."""
+    """A triangle mesh (PLY, OBJ, STL, OFF, glTF) in metres; clear error if unreadable or empty.
+
+    Open3D's mesh readers trust the file: a damaged binary PLY (a face list whose count or vertex
+    index points past the data) kills the process with SIGSEGV. The read therefore runs in a fresh
+    child process (about a second to import Open3D there) and its death becomes a ModelError.
+    """
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"mesh file {path} does not exist")
-    mesh = o3d.io.read_triangle_mesh(str(path))
-    if len(mesh.triangles) == 0:
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        try:
+            vertices, triangles = pool.submit(_mesh_arrays, str(path)).result()
+        except BrokenProcessPool as exc:
+            raise ModelError(f"mesh file {path} is damaged: Open3D's reader crashed on it") from exc
+    if len(triangles) == 0:
         raise ModelError(f"mesh file {path} holds no triangles (unreadable, or a point cloud: use --cloud)")
-    if not np.all(np.isfinite(np.asarray(mesh.vertices))):
+    if not np.all(np.isfinite(vertices)):
         raise ModelError(f"mesh file {path} has non-finite vertices")
-    return mesh
+    if triangles.min() < 0 or triangles.max() >= len(vertices):
+        raise ModelError(f"mesh file {path} has faces indexing vertices that do not exist ({len(vertices)} vertices)")
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+
+
+def _mesh_arrays(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) float64 and triangles (T, 3) int32 of a mesh file (runs in read_mesh's child)."""
+    mesh = o3d.io.read_triangle_mesh(path)
+    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
 

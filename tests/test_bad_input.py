@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -25,7 +26,8 @@ from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
 from estimator.errors import StateFileError
 from estimator.state import SavedMarker, load_state, save_state
 from recognition.cloud import read_cloud
-from recognition.errors import CloudError
+from recognition.errors import CloudError, ModelError
+from recognition.models import read_mesh
 from tests.test_config import EXAMPLE
 
 PCL = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
@@ -124,7 +126,8 @@ import sys
 from pathlib import Path
 import numpy as np
 from recognition.cloud import read_cloud
-from recognition.errors import CloudError
+from recognition.errors import CloudError, ModelError
+from recognition.models import read_mesh
 src, out = Path(sys.argv[1]), Path(sys.argv[2])
 original, rng = src.read_bytes(), np.random.default_rng(int(sys.argv[3]))
 for k in range(int(sys.argv[4])):
@@ -153,3 +156,41 @@ def test_damaged_clouds_are_cloud_errors_never_a_crash(tmp_path: Path, cloud: st
     run = subprocess.run([sys.executable, "-c", FUZZ_CLOUDS, str(PCL / cloud), str(out), "3", "300"],
                          capture_output=True, text=True, timeout=300, cwd=HERE.parent)
     assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-2000:]}"
+
+
+def _box_mesh_file(path: Path) -> bytes:
+    """A 10 x 20 x 30 cm box with vertex normals, written by Open3D (binary PLY, STL or OBJ by suffix)."""
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.2, 0.3)
+    box.compute_vertex_normals()
+    o3d.io.write_triangle_mesh(str(path), box)
+    return path.read_bytes()
+
+
+def test_a_mesh_that_kills_open3d_is_a_model_error(tmp_path: Path) -> None:
+    """Four bytes inserted into the face list of a binary PLY: Open3D's reader dies of SIGSEGV on
+    this file when called in the test process (found by fuzzing); read_mesh reads in a child."""
+    data = _box_mesh_file(tmp_path / "box.ply")
+    at = data.index(b"end_header\n") + len(b"end_header\n") + 431
+    bad = tmp_path / "damaged.ply"
+    bad.write_bytes(data[:at] + bytes.fromhex("5b99dd50") + data[at:])
+    with pytest.raises(ModelError, match="damaged.ply"):
+        read_mesh(bad)
+    mesh = read_mesh(tmp_path / "box.ply")  # the intact file still reads, whole
+    assert len(mesh.triangles) == 12 and np.allclose(mesh.get_max_bound(), [0.1, 0.2, 0.3])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_a_damaged_mesh_is_a_model_error_or_a_valid_mesh(tmp_path: Path, suffix: str, data: st.DataObject) -> None:
+    """Few examples: every read starts a child process (about a second)."""
+    path = tmp_path / f"mesh{suffix}"
+    path.write_bytes(data.draw(damaged(_box_mesh_file(tmp_path / f"box{suffix}"))))
+    try:
+        mesh = read_mesh(path)
+    except ModelError as exc:
+        assert str(path) in str(exc)
+        return
+    triangles = np.asarray(mesh.triangles)
+    assert len(triangles) > 0 and triangles.min() >= 0 and triangles.max() < len(mesh.vertices)
