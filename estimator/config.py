@@ -40,6 +40,11 @@ class EstimatorConfig(BaseModel):
     )
     update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon")
     stale_after_s: float = Field(default=0.7, gt=0, description="a camera with no frames this long is stale")
+    clock_jump_s: float = Field(
+        default=5.0, gt=0,
+        description="a camera's stamps and their arrival times disagreeing by more than this between two frames is a jump of "
+        "that sensor's clock (an NTP step), which the daemon takes out; well above transport delay under load (~1 s)",
+    )
     bump_position_m: float = Field(default=0.01, gt=0, description="marker shift in the camera frame that signals a move")
     bump_frames: int = Field(default=2, ge=1, description="consecutive frames above the threshold before a camera counts as moved")
     settle_frames: int = Field(default=5, ge=1, description="consecutive still frames before a moved camera gets a new segment")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import Counter
 
 import numpy as np
 import zenoh
@@ -33,10 +34,11 @@ _STATE = {
 }
 
 
-def observations_from_msg(msg: m.MarkerObservations) -> list[Observation]:
-    """Wire observations as estimator input. ``msg`` must come from ``codec.decode`` (every
-    subscription and log reader does), which validated it: converting is all that is left."""
-    return observations_of(msg.camera_id, msg.stamp_ns, codec.marker_arrays(msg, check=False))
+def observations_from_msg(msg: m.MarkerObservations, stamp_ns: int | None = None) -> list[Observation]:
+    """Wire observations as estimator input, stamped ``stamp_ns`` (default: the message's, ns).
+    ``msg`` must come from ``codec.decode`` (every subscription and log reader does), which
+    validated it: converting is all that is left."""
+    return observations_of(msg.camera_id, msg.stamp_ns if stamp_ns is None else stamp_ns, codec.marker_arrays(msg, check=False))
 
 
 def marker_frame(marker_id: int) -> str:
@@ -61,12 +63,44 @@ class Clock:
         return self.stamp_ns + (time.time_ns() - self.received_ns) if self.stamp_ns else 0
 
 
+class ClockJumps:
+    """Takes jumps of each sensor's clock out of its stamps, so the daemon's timeline stays continuous.
+
+    Between two frames of one camera, the stamps (sensor clock) and the arrival times (this host's
+    clock) advance together, up to transport jitter. When they disagree by more than ``jump_ns``, the
+    sensor's clock was stepped: the step is added to that camera's correction, and its later stamps
+    continue where they were. Without it, a camera stepped an hour ahead drags the daemon's clock
+    with it (every other camera turns stale), and one stepped back has every frame refused as
+    going backwards until its clock catches up.
+    """
+
+    def __init__(self, jump_ns: int) -> None:
+        self.jump_ns = jump_ns
+        self.jumps: Counter[str] = Counter()
+        self._correction_ns: dict[str, int] = {}
+        self._last: dict[str, tuple[int, int]] = {}  # camera -> (raw stamp, arrival), ns
+
+    def correct(self, camera_id: str, stamp_ns: int, received_ns: int) -> int:
+        """The frame's stamp on the camera's continuous timeline (ns)."""
+        last = self._last.get(camera_id)
+        self._last[camera_id] = (stamp_ns, received_ns)
+        if last is not None:
+            step = (stamp_ns - last[0]) - (received_ns - last[1])
+            if abs(step) > self.jump_ns:
+                self._correction_ns[camera_id] = self._correction_ns.get(camera_id, 0) + step
+                self.jumps[camera_id] += 1
+                log.warning("the clock of camera %s jumped %+.3f s; its stamps are shifted back onto the timeline it had "
+                            "(check the time sync of its host)", camera_id, step / 1e9)  # fmt: skip
+        return stamp_ns - self._correction_ns.get(camera_id, 0)
+
+
 class EstimatorService:
     def __init__(self, bus: Bus, config: EstimatorConfig) -> None:
         self.bus = bus
         self.config = config
         self.estimator = Estimator(config)
         self.clock = Clock()
+        self.clock_jumps = ClockJumps(int(config.clock_jump_s * 1e9))
         self._lock = threading.Lock()  # the queryable answers from zenoh's thread
         self._map: m.Map | None = None
         self._last_save = time.monotonic()
@@ -112,9 +146,10 @@ class EstimatorService:
 
     def ingest(self, items: list[Received[m.MarkerObservations]]) -> None:
         for item in items:
-            obs = observations_from_msg(item.msg)  # validated on receipt by the subscription
-            self.clock.observe(item.msg.stamp_ns, item.receive_ns)
-            self.estimator.add_frame(item.msg.camera_id, item.msg.stamp_ns, obs)
+            stamp_ns = self.clock_jumps.correct(item.msg.camera_id, item.msg.stamp_ns, item.receive_ns)
+            obs = observations_from_msg(item.msg, stamp_ns)  # validated on receipt by the subscription
+            self.clock.observe(stamp_ns, item.receive_ns)
+            self.estimator.add_frame(item.msg.camera_id, stamp_ns, obs)
 
     def step(self) -> Estimate:
         """Ingest what arrived, update, publish. One call per update period."""

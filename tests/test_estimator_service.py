@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -28,20 +29,24 @@ def scene() -> Scenario:
     )
 
 
-def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = False) -> None:
-    """Publish observations of camera a at 30 Hz (real time / 3 to keep the test short)."""
-    pub = bus.publisher(keys.markers(CELL, "a"))
+def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = False, clock_step_ns: Callable[[str, int], int] | None = None) -> None:
+    """Publish observations of every camera at 30 Hz (real time / 3 to keep the test short);
+    ``clock_step_ns(camera, frame)`` sets how far that camera's clock is off at that frame."""
+    pubs = {c.id: bus.publisher(keys.markers(CELL, c.id)) for c in s.cameras}
     raw = bus.session.declare_publisher(keys.markers(CELL, "a"))
     rng = np.random.default_rng(0)
     for k in range(int(seconds * 30)):
         stamp = start_ns + int(k * 1e9 / 30)
-        pub.put(observations_msg("a", stamp, frame_observations(s, "a", 0.0, stamp, rng, NoiseSettings())))
+        for cam, pub in pubs.items():
+            off = clock_step_ns(cam, k) if clock_step_ns else 0
+            pub.put(observations_msg(cam, stamp + off, frame_observations(s, cam, 0.0, stamp, rng, NoiseSettings())))
         if garbage and k % 5 == 0:
             raw.put(b"\x0a\x03cam\x10" + bytes(rng.integers(0, 256, 40, dtype=np.uint8)))
         time.sleep(1 / 90)
 
 
-def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: float, start_ns: int, garbage: bool = False) -> tuple[EstimatorService, list]:
+def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: float, start_ns: int, garbage: bool = False,
+                clock_step_ns: Callable[[str, int], int] | None = None) -> tuple[EstimatorService, list]:
     cfg = estimator_config(s, state_file=state, update_hz=20.0)
     statuses: list[m.EstimatorStatus] = []
     with Bus(transport, CELL) as svc_bus, Bus(transport, CELL) as client:
@@ -52,7 +57,7 @@ def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: f
         thread.start()
         try:
             time.sleep(0.5)  # routes
-            feed(client, s, seconds, start_ns, garbage)
+            feed(client, s, seconds, start_ns, garbage, clock_step_ns)
             wait_until(lambda: svc.estimator.counters.observations > 0, 5.0, "observations to arrive")
             time.sleep(0.3)
             replies = client.query(keys.estimate_map(CELL))
@@ -94,3 +99,21 @@ def test_corrupt_state_is_set_aside_not_trusted(client_transport: TransportConfi
     assert svc.restored == 0
     assert list(tmp_path.glob("state.json.corrupt-*")), "the corrupt file was not kept aside"
     assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED  # started from the anchors
+
+
+def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(client_transport: TransportConfig, tmp_path: Path) -> None:
+    """Camera a's clock steps an hour ahead after 1 s, then two hours back after 2 s (an NTP step
+    each way); camera b's clock stays put. Both must stay localized throughout: without the
+    correction the first step makes b stale (the daemon's clock follows a) and the second makes a
+    stale (its frames go backwards and are refused)."""
+    s = scene()
+    s.cameras.append(CameraSpec(id="b", pose=PoseSpec(position=(0.6, 0.0, 1.2), look_at=(0.3, 2.0, 1.0))))
+    hour = 3600 * 10**9
+    step = lambda cam, k: 0 if cam == "b" or k < 30 else (hour if k < 60 else -hour)  # noqa: E731
+    svc, statuses, _ = run_service(client_transport, s, tmp_path / "state.json", 3.0, 10**18, clock_step_ns=step)
+    assert dict(svc.clock_jumps.jumps) == {"a": 2}
+    assert len(statuses) > 20
+    late = statuses[len(statuses) // 2:]  # after the first jump (1 s of 3 s; statuses from 0.5 s on)
+    for st_ in late:
+        assert {c.camera_id: c.state for c in st_.cameras} == {"a": m.CameraState.LOCALIZED, "b": m.CameraState.LOCALIZED}
+    assert abs(late[-1].stamp_ns - (10**18 + 3 * 10**9)) < 2 * 10**9  # published on the timeline it started with

@@ -115,3 +115,17 @@ def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(ce
     assert back - first < 1.0, f"localized {back - first:.2f} s after the restarted estimator's first status"
     log = (run_dir / "logs" / "estimator.log").read_text()
     assert "restored" in log, "the restarted estimator did not restore its map"
+
+
+def test_killed_router_restarts_and_every_process_reconnects(cell) -> None:
+    run_dir, states, _ = cell
+    wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
+    old = pid_of(run_dir, "router")
+    os.kill(old, signal.SIGKILL)
+    killed = time.monotonic()
+    wait_until(lambda: pid_of(run_dir, "router") != old, 10, "the supervisor to restart the router")
+    wait_until(lambda: any(t > killed + 1.0 for t, _ in states), 30, "status over the restarted router")
+    wait_until(lambda: localized(states, "a") and localized(states, "b"), 10, "both cameras localized after the restart")
+    restarted = {p["name"]: p["restarts"] for p in json.loads((run_dir / "processes.json").read_text())}
+    assert restarted.pop("router") == 1
+    assert not any(restarted.values()), f"processes restarted instead of reconnecting: {restarted}"
