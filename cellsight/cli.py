@@ -517,7 +517,7 @@ def markers_detect(
 
 @app.command("record")
 def record(
-    out: Annotated[Path, typer.Option("--out", help="MCAP file to write")],
+    out: Annotated[Path, typer.Option("--out", help="MCAP file to write (never overwritten: if it exists, the recording goes to NAME.1.mcap, NAME.2.mcap, ...)")],
     keys_: Annotated[Optional[list[str]], typer.Option("--keys", help="key expressions to record (default: the whole cell)")] = None,
     max_image_hz: Annotated[Optional[float], typer.Option(help="record images at most this often per camera")] = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
@@ -530,18 +530,23 @@ def record(
     verbose: VerboseOpt = False,
 ) -> None:
     """Record bus traffic to MCAP (lz4 chunks, Foxglove schemas embedded) until Ctrl-C / SIGTERM."""
+    from cellsight.errors import CellsightError
     from cellsight.record import Recorder
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
     stop = _stop_event()
     with _bus(cfg, cell, mode, connect, listen, config) as bus:
-        rec = Recorder(bus, out, keys_, max_image_hz, {"config": cfg.to_toml()})
+        try:
+            rec = Recorder(bus, out, keys_, max_image_hz, {"config": cfg.to_toml()})
+        except CellsightError as exc:
+            raise _fail(str(exc), 1) from None
         stop.wait(duration)
         rec.close()
-    _stderr().print(f"{out}: {rec.messages} messages ({rec.thinned} images thinned, {sum(rec.bad.values())} malformed skipped)")
-    if rec.failed:
-        raise _fail(f"recording stopped early: {rec.failed}", 1)
+    parts = ", ".join(str(p) for p in rec.parts)
+    _stderr().print(f"{parts}: {rec.messages} messages ({rec.thinned} images thinned, {sum(rec.bad.values())} malformed skipped)")
+    if rec.failures:
+        raise _fail(f"recording interrupted {len(rec.failures)} time(s), {rec.lost} messages not recorded; last error: {rec.failures[-1]}", 1)
 
 
 def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_image_hz: float | None, live: bool, foxglove_port: int | None = None) -> None:

@@ -1,17 +1,21 @@
-"""The recorder: every key of a cell (or the ones asked for) into an MCAP log.
+"""The recorder: every key of a cell (or the ones asked for) into MCAP logs.
 
 Payloads are validated before they are written (the log holds only what decodes), images can be
-thinned to ``max_image_hz`` per key so a long run stays a reasonable size, and a failing disk
-stops the recording with an error while keeping every chunk already written.
+thinned to ``max_image_hz`` per key so a long run stays a reasonable size. A recording is never
+overwritten: a restarted recorder writes ``NAME.1.mcap``, ``NAME.2.mcap``, ... beside the first
+part. A failing disk ends the current part (readable up to its last complete chunk); every
+``retry_s`` the recorder tries a new part, so recording resumes once there is space again.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
 from pathlib import Path
 
+from cellsight.errors import CellsightError
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
@@ -19,20 +23,58 @@ from schemas.errors import SchemaError
 from schemas.log import LogWriter, stamp_of
 
 log = logging.getLogger(__name__)
+#: Seconds between attempts to start a new part after a write failed.
+RETRY_S = 5.0
+
+
+def free_part(path: Path) -> Path:
+    """``path`` if nothing is there yet, else the first free ``path.N.mcap`` (N = 1, 2, ...)."""
+    candidate, n = path, 0
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.stem}.{n}{path.suffix}")
+    return candidate
 
 
 class Recorder:
-    def __init__(self, bus: Bus, path: Path, key_exprs: list[str] | None = None, max_image_hz: float | None = None, metadata: dict[str, str] | None = None) -> None:
-        self.writer = LogWriter(path, metadata=metadata)
+    """Records bus traffic into ``parts`` (the first at ``path`` or the next free name)."""
+
+    def __init__(self, bus: Bus, path: Path, key_exprs: list[str] | None = None, max_image_hz: float | None = None,
+                 metadata: dict[str, str] | None = None, retry_s: float = RETRY_S) -> None:  # fmt: skip
         self.path = path
         self.max_image_hz = max_image_hz
+        self.retry_s = retry_s
+        self.metadata = metadata
+        self.parts: list[Path] = []
+        self.failures: list[str] = []  # one per part a write error ended
+        self.messages = 0
+        self.lost = 0  # valid messages that arrived while no part could be written
         self.bad: Counter[str] = Counter()
         self.thinned = 0
-        self.failed: str | None = None
+        self._writer: LogWriter | None = None
+        self._retry_at = 0.0
         self._last_image: dict[str, int] = {}
         self._lock = threading.Lock()
+        if not self._new_part():
+            raise CellsightError(f"cannot record to {path}: {self.failures[-1]}")
         self._subs = [bus.subscribe_raw(k, self._on_sample) for k in (key_exprs or [keys.everything(bus.cell)])]
         bus.declare_alive("recorder", "main")
+
+    def _new_part(self) -> bool:
+        path = free_part(self.path)
+        try:
+            self._writer = LogWriter(path, metadata=self.metadata)
+        except OSError as exc:
+            path.unlink(missing_ok=True)  # it holds nothing recorded
+            self.failures.append(str(exc))
+            self._retry_at = time.monotonic() + self.retry_s
+            return False
+        if self.parts:
+            log.warning("recording resumed in %s", path)
+        elif path != self.path:
+            log.warning("%s exists (an earlier recording): recording to %s", self.path, path)
+        self.parts.append(path)
+        return True
 
     def _on_sample(self, key: str, payload: bytes, receive_ns: int) -> None:
         try:
@@ -51,24 +93,30 @@ class Recorder:
                 return
             self._last_image[key] = stamp
         with self._lock:
-            if self.failed is not None:
+            if self._writer is None and (time.monotonic() < self._retry_at or not self._new_part()):
+                self.lost += 1
                 return
             try:
-                self.writer.write_raw(key, msg_type, payload, receive_ns, stamp)
-            except OSError as exc:  # e.g. disk full: stop writing, keep what is on disk
-                self.failed = str(exc)
-                log.error("recording to %s stopped: %s (the file is readable up to the last complete chunk)", self.path, exc)
-
-    @property
-    def messages(self) -> int:
-        return self.writer.messages
+                self._writer.write_raw(key, msg_type, payload, receive_ns, stamp)
+                self.messages += 1
+            except OSError as exc:  # e.g. disk full: end this part, keep what is on disk, retry later
+                self._writer.abandon()
+                self._writer = None
+                self.failures.append(str(exc))
+                self._retry_at = time.monotonic() + self.retry_s
+                self.lost += 1
+                log.error("recording to %s stopped: %s (readable up to its last complete chunk; a new part is tried "
+                          "every %.0f s)", self.parts[-1], exc, self.retry_s)  # fmt: skip
 
     def close(self) -> None:
         for sub in self._subs:
             sub.undeclare()
         with self._lock:
-            if self.failed is None:
+            if self._writer is not None:
                 try:
-                    self.writer.close()
+                    self._writer.close()
                 except OSError as exc:
-                    log.error("could not finish %s: %s (readable up to the last complete chunk)", self.path, exc)
+                    self._writer.abandon()
+                    self.failures.append(str(exc))
+                    log.error("could not finish %s: %s (readable up to its last complete chunk)", self.parts[-1], exc)
+                self._writer = None

@@ -104,6 +104,7 @@ class EstimatorService:
         self._lock = threading.Lock()  # the queryable answers from zenoh's thread
         self._map: m.Map | None = None
         self._last_save = time.monotonic()
+        self.save_failures = 0  # consecutive, so a full disk is reported once, not every period
         self.restored = self._restore()
         cell = bus.cell
         self._sub = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192)
@@ -140,7 +141,13 @@ class EstimatorService:
         try:
             save_state(path, markers, self.bus.cell)
         except OSError as exc:  # a full disk must not stop the estimator; the old file stays intact
-            log.error("cannot save state to %s: %s (previous state kept)", path, exc)
+            if not self.save_failures:
+                log.error("cannot save state to %s: %s (previous state kept; retrying every %.0f s)", path, exc, SAVE_PERIOD_S)
+            self.save_failures += 1
+            return
+        if self.save_failures:
+            log.warning("state saved to %s again after %d failed attempts", path, self.save_failures)
+            self.save_failures = 0
 
     # ------------------------------------------------------------ loop
 

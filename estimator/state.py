@@ -38,11 +38,15 @@ def save_state(path: Path, markers: dict[int, SavedMarker], cell: str) -> None:
     payload = json.dumps({"sha256": hashlib.sha256(text.encode()).hexdigest(), "body": body}, sort_keys=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w") as f:
-        f.write(payload)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # on a full disk, a half-written copy would hold the space the next try needs
+        raise
 
 
 def load_state(path: Path, cell: str) -> dict[int, SavedMarker]:

@@ -103,6 +103,11 @@ class LogWriter:
         self._writer.finish()
         self._file.close()
 
+    def abandon(self) -> None:
+        """Close the file without a footer, after a failed write: it stays readable up to its last
+        complete chunk, as after a crash."""
+        self._file.close()
+
 
 @dataclass(frozen=True)
 class LogMessage:

@@ -117,3 +117,27 @@ def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(client_
     for st_ in late:
         assert {c.camera_id: c.state for c in st_.cameras} == {"a": m.CameraState.LOCALIZED, "b": m.CameraState.LOCALIZED}
     assert abs(late[-1].stamp_ns - (10**18 + 3 * 10**9)) < 2 * 10**9  # published on the timeline it started with
+
+
+def test_a_full_disk_keeps_the_saved_state_and_saving_resumes(client_transport: TransportConfig, small_disk: Path, caplog) -> None:
+    s = scene()
+    state = small_disk / "state.json"
+    run_service(client_transport, s, state, 1.0, 10**18)
+    saved = state.read_bytes()
+    filler = small_disk / "filler"
+    with open(filler, "wb") as f:  # fill the disk to the last byte
+        try:
+            while True:
+                f.write(bytes(1 << 16))
+                f.flush()
+        except OSError:
+            pass
+    svc, statuses, _ = run_service(client_transport, s, state, 1.0, 2 * 10**18)
+    assert svc.save_failures >= 1 and "cannot save state" in caplog.text
+    assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED  # it kept running
+    assert state.read_bytes() == saved, "the saved state was damaged by the failed save"
+    assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "state.json"]  # no half-written copy left
+    filler.unlink()
+    svc, _, _ = run_service(client_transport, s, state, 0.3, 3 * 10**18)
+    assert svc.restored == 4 and svc.save_failures == 0
+    assert state.read_bytes() != saved  # saved again

@@ -1,7 +1,8 @@
-"""Faults on a running cell (slow): processes SIGKILLed under ``cellsight run``'s supervisor.
+"""Faults (slow): processes SIGKILLed under ``cellsight run``'s supervisor, and a full disk.
 
 A small simulated cell (two 320x240 cameras, a wall with an anchor and three markers) runs as
 separate processes; the checks watch the estimator's status over zenoh, as an operator would.
+The disk that fills is a small tmpfs (``small_disk``).
 """
 
 from __future__ import annotations
@@ -14,11 +15,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from schemas import keys
+from cellsight.record import Recorder
+from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
+from schemas.log import ReadReport, read_log
 from tests.conftest import free_port
 from tests.helpers import wait_until
 
@@ -129,3 +133,51 @@ def test_killed_router_restarts_and_every_process_reconnects(cell) -> None:
     restarted = {p["name"]: p["restarts"] for p in json.loads((run_dir / "processes.json").read_text())}
     assert restarted.pop("router") == 1
     assert not any(restarted.values()), f"processes restarted instead of reconnecting: {restarted}"
+
+
+def _frame(i: int, rng: np.random.Generator) -> m.RawImage:
+    """A 320x240 16-bit frame of noise (lz4 cannot shrink it: ~150 KB on disk), stamped i ns."""
+    return codec.image_to_msg(rng.integers(0, 65536, (240, 320), dtype=np.uint16), 1 + i, "cam1", "16UC1")
+
+
+def _stamps(path: Path) -> tuple[list[int], ReadReport]:
+    report = ReadReport()
+    return [x.publish_time_ns - 1 for x in read_log(path, None, report)], report
+
+
+def test_recorder_on_a_full_disk_keeps_its_chunks_and_resumes_in_a_new_part(router_endpoint: str, small_disk: Path) -> None:
+    """16 MiB disk, 4 MiB taken: two 4 MiB chunks fit, the third fails. Freeing the 4 MiB lets the
+    recorder start a second part; the first keeps every frame up to its last complete chunk."""
+    filler = small_disk / "filler"
+    filler.write_bytes(bytes(4 << 20))
+    path, rng, sent = small_disk / "rec.mcap", np.random.default_rng(0), 0
+    transport = TransportConfig(connect=[router_endpoint])
+    with Bus(transport, "disk") as rec_bus, Bus(transport, "disk") as pub_bus:
+        rec = Recorder(rec_bus, path, retry_s=0.5)
+        pub = pub_bus.publisher(keys.depth("disk", "cam1"), frames=True)
+
+        def publish_until(done, what: str) -> None:
+            nonlocal sent
+            deadline = time.monotonic() + 30
+            while not done():
+                assert time.monotonic() < deadline, f"timed out waiting for {what}"
+                pub.put(_frame(sent, rng))
+                sent += 1
+                time.sleep(0.01)
+
+        publish_until(lambda: rec.messages > 0, "the recorder to subscribe")
+        publish_until(lambda: rec.failures, "the disk to fill")
+        filler.unlink()
+        publish_until(lambda: len(rec.parts) == 2 and rec.messages > 0, "a second part")
+        resumed = sent
+        publish_until(lambda: sent >= resumed + 20, "20 more frames")
+        time.sleep(0.3)
+        rec.close()
+    assert "No space left" in rec.failures[0]
+    first, report = _stamps(rec.parts[0])
+    assert report.stopped_early is not None  # no footer: the part ended on the failed write
+    assert len(first) >= 40, f"only {len(first)} frames kept of the two complete 4 MiB chunks"
+    assert first == list(range(first[0], first[0] + len(first))), "frames missing inside the kept chunks"
+    second, report = _stamps(rec.parts[1])
+    assert report.stopped_early is None and len(second) >= 20
+    assert second == list(range(second[0], second[0] + len(second))) and second[0] > first[-1]

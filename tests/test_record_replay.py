@@ -85,3 +85,15 @@ def test_recorder_killed_with_sigkill_leaves_a_readable_file(router_endpoint: st
     n = sum(1 for _ in read_log(path, None, report))
     assert report.stopped_early is not None  # no footer: it was killed
     assert n >= 40, f"only {n} frames readable from a {path.stat().st_size} byte file"
+
+
+def test_a_restarted_recorder_never_overwrites_a_recording(client_transport: TransportConfig, tmp_path: Path) -> None:
+    path = tmp_path / "log.mcap"
+    with Bus(client_transport, CELL) as rec_bus:
+        first = Recorder(rec_bus, path)
+        first.close()
+        kept = path.read_bytes()
+        second = Recorder(rec_bus, path)
+        second.close()
+    assert first.parts == [path] and second.parts == [tmp_path / "log.1.mcap"]
+    assert path.read_bytes() == kept
