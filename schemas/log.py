@@ -9,6 +9,7 @@ receive time, publish_time the sensor stamp (both integer ns).
 from __future__ import annotations
 
 import logging
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
@@ -16,7 +17,7 @@ from typing import Callable, Iterator
 from google.protobuf.message import Message
 from mcap.exceptions import McapError
 from mcap.records import Channel, Footer, Message as McapMessage, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import MAGIC_SIZE, StreamReader
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
@@ -109,6 +110,19 @@ class LogWriter:
         self._file.close()
 
 
+class _Capped:
+    """A file opened for reading whose ``read(n)`` never asks for more than is left in it: a damaged
+    length field (up to 2^64) then reads as a truncation instead of allocating its size."""
+
+    def __init__(self, f, size: int) -> None:
+        self._f = f
+        self._size = size
+
+    def read(self, n: int = -1) -> bytes:
+        left = max(self._size - self._f.tell(), 0)
+        return self._f.read(left if n is None or n < 0 else min(n, left))
+
+
 @dataclass(frozen=True)
 class LogMessage:
     key: str
@@ -148,8 +162,10 @@ def read_log(
     total = Path(path).stat().st_size
     with open(path, "rb") as f:
         try:
-            for record in StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True).records:
+            for record in StreamReader(_Capped(f, total), skip_magic=False, emit_chunks=False, validate_crcs=True).records:
                 if isinstance(record, Footer):
+                    if f.tell() < total - MAGIC_SIZE:  # damage that reads as a footer, not the end of the file
+                        raise McapError(f"a footer record at byte {f.tell()} of {total}")
                     return  # a complete file: the summary section holds nothing we need
                 if progress is not None:
                     progress(f.tell(), total)
@@ -162,7 +178,10 @@ def read_log(
                     channels[record.id] = record
                 elif isinstance(record, McapMessage):
                     ch = channels.get(record.channel_id)
-                    if ch is None or (key_filter is not None and ch.topic not in key_filter):
+                    if ch is None:  # its channel record was damaged
+                        report.undecodable += 1
+                        continue
+                    if key_filter is not None and ch.topic not in key_filter:
                         continue
                     try:
                         msg_type = keys.message_type(ch.topic)
@@ -175,6 +194,7 @@ def read_log(
                         continue
                     report.messages += 1
                     yield LogMessage(ch.topic, msg, record.log_time, record.publish_time)
-        except (McapError, EOFError, ValueError, OSError, RuntimeError) as exc:  # RuntimeError: lz4 on a damaged chunk
+        # RuntimeError: lz4 on a damaged chunk; struct.error: a record cut short of its length field
+        except (McapError, EOFError, ValueError, OSError, RuntimeError, struct.error) as exc:
             report.stopped_early = f"{type(exc).__name__}: {exc}"
             log.warning("%s: stopped reading after %d messages: %s", path, report.messages, report.stopped_early)

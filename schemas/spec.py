@@ -99,6 +99,10 @@ def read_toml(path, error: type[Exception], what: str = "file") -> dict:
         return tomllib.loads(path.read_text())
     except FileNotFoundError as exc:
         raise error(f"{path}: no such {what}") from exc
+    except IsADirectoryError as exc:
+        raise error(f"{path}: a folder, not a {what}") from exc
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what}: {exc.strerror or exc}") from exc
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise error(f"{path}: not valid TOML: {exc}") from exc
 

@@ -1,0 +1,249 @@
+"""Soak: the demo cell under ``cellsight run --record`` for 30 minutes, with faults on a schedule.
+
+The first and last windows are fault-free; they give memory (resident set of every process of
+the cell, from /proc) and the estimator's update time (``EstimatorStatus.update_ms``) at the start
+and at the end. In between, one fault every period, cycling through: a driver SIGKILLed, the
+estimator SIGKILLed, the router SIGKILLed, the recorder SIGKILLed, the recognition worker
+SIGKILLed, a driver paused (SIGSTOP, so its camera stops sending) for 5 s. A fault is recovered when
+the killed process runs again under a new pid and every camera is ``localized`` again (for the
+recognition worker: objects published again). Afterwards the recording (every part) is checked
+for gaps: each camera's marker observations must be continuous apart from windows when a fault
+had the driver, the router or the recorder down.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import main
+from drivers.sim.scenario import DEMO_CELL, load_scenario
+from schemas import keys
+from schemas import messages as m
+from schemas.bus import Bus, TransportConfig
+from schemas.log import ReadReport, read_log
+
+CELL = "soak"
+CAMERAS = ("cam1", "cam2", "cam3", "cam4")
+#: (name, process to fault, how): the schedule cycles through these.
+FAULTS = (
+    ("driver killed", "driver/cam3", "kill"),
+    ("estimator killed", "estimator", "kill"),
+    ("router killed", "router", "kill"),
+    ("recorder killed", "recorder", "kill"),
+    ("recognition killed", "recognition", "kill"),
+    ("camera stops sending", "driver/cam4", "pause"),
+)
+PAUSE_S = 5.0
+RECOVER_TIMEOUT_S = 60.0
+#: A hole in a camera's recorded observations longer than this is a gap (frames come at several Hz).
+GAP_S = 2.0
+
+
+@dataclass
+class Schedule:
+    """Seconds since the cell started: warm-up, fault-free windows at both ends, fault period."""
+
+    duration_s: float
+    warmup_s: float
+    window_s: float
+    period_s: float
+    settle_s: float  # after the last fault, before the last window
+
+    def fault_times(self) -> list[float]:
+        first = self.warmup_s + self.window_s
+        last = self.duration_s - self.window_s - self.settle_s
+        return list(np.arange(first, max(last, first) + 1e-9, self.period_s))
+
+
+@dataclass
+class Fault:
+    name: str
+    process: str
+    at: float  # monotonic s
+    parts_before: int  # recording parts when it struck
+    recovered_at: float | None = None
+
+
+@dataclass
+class Watch:
+    """What the benchmark sees on the bus, stamped with time.monotonic() (s)."""
+
+    states: list[tuple[float, dict[str, int]]] = field(default_factory=list)
+    update_ms: list[tuple[float, float]] = field(default_factory=list)
+    objects: list[float] = field(default_factory=list)
+
+    def on_status(self, r) -> None:
+        now = time.monotonic()
+        self.states.append((now, {c.camera_id: c.state for c in r.msg.cameras}))
+        self.update_ms.append((now, r.msg.update_ms))
+
+    def all_localized_after(self, t: float) -> bool:
+        return any(at > t and all(s.get(c) == m.CameraState.LOCALIZED for c in CAMERAS) for at, s in self.states[-50:])
+
+
+def scenario_toml(path: Path, duration_s: float) -> None:
+    """The demo cell, running long enough for the soak (its camera motions happen in the warm-up)."""
+    text = DEMO_CELL.read_text().replace("duration_s = 30.0", f"duration_s = {duration_s + 120:.0f}.0")
+    path.write_text(text)
+    load_scenario(path)
+
+
+def processes(run_dir: Path) -> dict[str, int]:
+    try:
+        return {p["name"]: p["pid"] for p in json.loads((run_dir / "processes.json").read_text())}
+    except (OSError, ValueError):  # being replaced this instant
+        return {}
+
+
+def rss_mb(pids: list[int]) -> float:
+    """Resident memory of these processes, MiB, from /proc/PID/status (gone processes count 0)."""
+    total_kb = 0
+    for pid in pids:
+        try:
+            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total_kb += int(line.split()[1])
+        except OSError:
+            pass
+    return total_kb / 1024
+
+
+def inject(fault: Fault, pid: int) -> None:
+    if fault.process.startswith("driver") and fault.name == "camera stops sending":
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(PAUSE_S)
+        os.kill(pid, signal.SIGCONT)
+    else:
+        os.kill(pid, signal.SIGKILL)
+
+
+def recovered(fault: Fault, old_pid: int, run_dir: Path, watch: Watch) -> bool:
+    if fault.name != "camera stops sending" and processes(run_dir).get(fault.process, old_pid) == old_pid:
+        return False
+    if fault.process == "recognition":
+        return any(t > fault.at + 1.0 for t in watch.objects[-5:])
+    if fault.process == "recorder":  # the restarted recorder writes a new part beside the old
+        return len(list(run_dir.glob("log*.mcap"))) > fault.parts_before
+    return watch.all_localized_after(fault.at + (PAUSE_S if fault.name == "camera stops sending" else 1.0))
+
+
+def log_gaps(run_dir: Path, faults: list[Fault], t0_mono: float, t0_ns: int) -> tuple[int, int, int]:
+    """(parts, gaps, gaps not explained by a fault) in the recorded marker observations."""
+    parts = sorted(run_dir.glob("log*.mcap"))
+    seen: dict[str, list[int]] = {c: [] for c in CAMERAS}
+    wanted = {keys.markers(CELL, c): c for c in CAMERAS}
+    for part in parts:
+        for msg in read_log(part, set(wanted), ReadReport()):
+            seen[wanted[msg.key]].append(msg.log_time_ns)
+    down = [((f.at - t0_mono) * 1e9 + t0_ns, ((f.recovered_at or f.at + RECOVER_TIMEOUT_S) - t0_mono) * 1e9 + t0_ns)
+            for f in faults if f.process.split("/")[0] in ("driver", "router", "recorder")]  # fmt: skip
+    gaps = unexplained = 0
+    for stamps in seen.values():
+        t = np.sort(np.array(stamps, dtype=np.int64))
+        for k in np.flatnonzero(np.diff(t) > GAP_S * 1e9):
+            gaps += 1
+            a, b = t[k], t[k + 1]
+            unexplained += not any(a < hi + GAP_S * 1e9 and b > lo - GAP_S * 1e9 for lo, hi in down)
+    return len(parts), gaps, unexplained
+
+
+def window(samples: list[tuple[float, float]], lo: float, hi: float) -> np.ndarray:
+    return np.array([v for t, v in samples if lo <= t < hi] or [np.nan])
+
+
+def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]:
+    from tests.conftest import free_port
+
+    minutes = 0.75 if quick else (args.minutes if args is not None else 30.0)
+    sched = Schedule(minutes * 60, 10.0, 5.0, 5.0, 5.0) if quick else Schedule(minutes * 60, 60.0, 300.0, 90.0, 60.0)
+    port = free_port()
+    watch, faults, rss = Watch(), [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        run_dir = tmp / "run"
+        scenario_toml(tmp / "scenario.toml", sched.duration_s)
+        (tmp / "cell.toml").write_text(f'[cell]\nname = "{CELL}"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
+        proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(run_dir), "--record"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        bus = None
+        try:
+            deadline = time.monotonic() + 300  # the recognition models are built first
+            while not (run_dir / "processes.json").exists():
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise RuntimeError(f"the cell did not start (see {run_dir}/logs)")
+                time.sleep(0.5)
+            t0, t0_ns = time.monotonic(), time.time_ns()
+            bus = Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), CELL)
+            bus.subscribe(keys.estimate_status(CELL), m.EstimatorStatus, callback=watch.on_status)
+            bus.subscribe_raw(keys.objects(CELL), lambda k, p, t: watch.objects.append(time.monotonic()))
+            schedule = [t0 + s for s in sched.fault_times()]
+            pending: list[tuple[Fault, int]] = []
+            next_rss = t0
+            while time.monotonic() < t0 + sched.duration_s:
+                now = time.monotonic()
+                if now >= next_rss:
+                    rss.append((now - t0, rss_mb(list(processes(run_dir).values()))))
+                    next_rss = now + 5.0
+                if schedule and now >= schedule[0]:
+                    schedule.pop(0)
+                    name, target, _ = FAULTS[len(faults) % len(FAULTS)]
+                    pid = processes(run_dir)[target]
+                    fault = Fault(name, target, now, len(list(run_dir.glob("log*.mcap"))))
+                    faults.append(fault)
+                    inject(fault, pid)
+                    pending.append((fault, pid))
+                for fault, pid in list(pending):
+                    if recovered(fault, pid, run_dir, watch):
+                        fault.recovered_at = time.monotonic()
+                        pending.remove((fault, pid))
+                    elif time.monotonic() > fault.at + RECOVER_TIMEOUT_S:
+                        pending.remove((fault, pid))
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(120)
+        finally:
+            if bus is not None:
+                bus.close()
+            if proc.poll() is None:
+                proc.kill()
+        parts, gaps, unexplained = log_gaps(run_dir, faults, t0, t0_ns)
+    end = sched.duration_s
+    first = (sched.warmup_s, sched.warmup_s + sched.window_s)
+    last = (end - sched.window_s, end)
+    upd = [(t - t0, v) for t, v in watch.update_ms]
+    rec_s = [f.recovered_at - f.at for f in faults if f.recovered_at is not None]
+    return {
+        "minutes": minutes,
+        "faults_injected": len(faults),
+        "faults_recovered": len(rec_s),
+        "recovery_s_max": float(max(rec_s)) if rec_s else float("nan"),
+        "rss_mb_first": float(np.nanmedian(window(rss, *first))),
+        "rss_mb_last": float(np.nanmedian(window(rss, *last))),
+        "rss_growth_mb": float(np.nanmedian(window(rss, *last)) - np.nanmedian(window(rss, *first))),
+        "update_ms_p99_first": float(np.nanpercentile(window(upd, *first), 99)),
+        "update_ms_p99_last": float(np.nanpercentile(window(upd, *last), 99)),
+        "log_parts": parts,
+        "log_gaps": gaps,
+        "log_gaps_unexplained": unexplained,
+        **{f"recovery_s_max_{name.replace(' ', '_')}": max((f.recovered_at - f.at if f.recovered_at else float("inf")) for f in faults if f.name == name)
+           for name in dict.fromkeys(f.name for f in faults)},
+    }
+
+
+def _args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--minutes", type=float, default=30.0, help="length of the full run (default 30)")
+
+
+if __name__ == "__main__":
+    main("soak", __doc__.splitlines()[0], run, _args)
