@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -33,6 +35,7 @@ from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.log import ReadReport, read_log
 
+log = logging.getLogger("benchmarks.soak")
 CELL = "soak"
 CAMERAS = ("cam1", "cam2", "cam3", "cam4")
 #: (name, process to fault, how): the schedule cycles through these.
@@ -70,6 +73,7 @@ class Schedule:
 class Fault:
     name: str
     process: str
+    how: str  # "kill" (SIGKILL) or "pause" (SIGSTOP for PAUSE_S, then SIGCONT)
     at: float  # monotonic s
     parts_before: int  # recording parts when it struck
     recovered_at: float | None = None
@@ -106,21 +110,19 @@ def processes(run_dir: Path) -> dict[str, int]:
         return {}
 
 
-def rss_mb(pids: list[int]) -> float:
-    """Resident memory of these processes, MiB, from /proc/PID/status (gone processes count 0)."""
-    total_kb = 0
-    for pid in pids:
-        try:
-            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total_kb += int(line.split()[1])
-        except OSError:
-            pass
-    return total_kb / 1024
+def rss_mb(pid: int) -> float:
+    """Resident memory of a process, MiB, from /proc/PID/status (NaN once it is gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
 
 
 def inject(fault: Fault, pid: int) -> None:
-    if fault.process.startswith("driver") and fault.name == "camera stops sending":
+    if fault.how == "pause":
         os.kill(pid, signal.SIGSTOP)
         time.sleep(PAUSE_S)
         os.kill(pid, signal.SIGCONT)
@@ -129,13 +131,13 @@ def inject(fault: Fault, pid: int) -> None:
 
 
 def recovered(fault: Fault, old_pid: int, run_dir: Path, watch: Watch) -> bool:
-    if fault.name != "camera stops sending" and processes(run_dir).get(fault.process, old_pid) == old_pid:
+    if fault.how == "kill" and processes(run_dir).get(fault.process, old_pid) == old_pid:
         return False
     if fault.process == "recognition":
         return any(t > fault.at + 1.0 for t in watch.objects[-5:])
     if fault.process == "recorder":  # the restarted recorder writes a new part beside the old
         return len(list(run_dir.glob("log*.mcap"))) > fault.parts_before
-    return watch.all_localized_after(fault.at + (PAUSE_S if fault.name == "camera stops sending" else 1.0))
+    return watch.all_localized_after(fault.at + (PAUSE_S if fault.how == "pause" else 1.0))
 
 
 def log_gaps(run_dir: Path, faults: list[Fault], t0_mono: float, t0_ns: int) -> tuple[int, int, int]:
@@ -168,7 +170,8 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     minutes = 0.75 if quick else (args.minutes if args is not None else 30.0)
     sched = Schedule(minutes * 60, 10.0, 5.0, 5.0, 5.0) if quick else Schedule(minutes * 60, 60.0, 300.0, 90.0, 60.0)
     port = free_port()
-    watch, faults, rss = Watch(), [], []
+    watch, faults = Watch(), []
+    rss: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, MiB)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         run_dir = tmp / "run"
@@ -193,13 +196,14 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
             while time.monotonic() < t0 + sched.duration_s:
                 now = time.monotonic()
                 if now >= next_rss:
-                    rss.append((now - t0, rss_mb(list(processes(run_dir).values()))))
+                    for name, pid in processes(run_dir).items():
+                        rss.setdefault(name, []).append((now - t0, rss_mb(pid)))
                     next_rss = now + 5.0
                 if schedule and now >= schedule[0]:
                     schedule.pop(0)
-                    name, target, _ = FAULTS[len(faults) % len(FAULTS)]
+                    name, target, how = FAULTS[len(faults) % len(FAULTS)]
                     pid = processes(run_dir)[target]
-                    fault = Fault(name, target, now, len(list(run_dir.glob("log*.mcap"))))
+                    fault = Fault(name, target, how, now, len(list(run_dir.glob("log*.mcap"))))
                     faults.append(fault)
                     inject(fault, pid)
                     pending.append((fault, pid))
@@ -209,9 +213,14 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
                         pending.remove((fault, pid))
                     elif time.monotonic() > fault.at + RECOVER_TIMEOUT_S:
                         pending.remove((fault, pid))
+                        last = watch.states[-1][1] if watch.states else {}
+                        log.warning("%s at %.0f s: not recovered in %.0f s (camera states %s, processes %s)", fault.name,
+                                    fault.at - t0, RECOVER_TIMEOUT_S, last, processes(run_dir))  # fmt: skip
                 time.sleep(0.2)
             proc.send_signal(signal.SIGTERM)
             proc.wait(120)
+            if args is not None and args.keep is not None:
+                shutil.copytree(run_dir, args.keep, dirs_exist_ok=True)
         finally:
             if bus is not None:
                 bus.close()
@@ -223,14 +232,18 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     last = (end - sched.window_s, end)
     upd = [(t - t0, v) for t, v in watch.update_ms]
     rec_s = [f.recovered_at - f.at for f in faults if f.recovered_at is not None]
+    # Median per process in each window; a process restarted in between counts with its new self.
+    mb_first = {name: float(np.nanmedian(window(v, *first))) for name, v in rss.items()}
+    mb_last = {name: float(np.nanmedian(window(v, *last))) for name, v in rss.items()}
     return {
         "minutes": minutes,
         "faults_injected": len(faults),
         "faults_recovered": len(rec_s),
         "recovery_s_max": float(max(rec_s)) if rec_s else float("nan"),
-        "rss_mb_first": float(np.nanmedian(window(rss, *first))),
-        "rss_mb_last": float(np.nanmedian(window(rss, *last))),
-        "rss_growth_mb": float(np.nanmedian(window(rss, *last)) - np.nanmedian(window(rss, *first))),
+        "rss_mb_first": sum(mb_first.values()),
+        "rss_mb_last": sum(mb_last.values()),
+        "rss_growth_mb": sum(mb_last.values()) - sum(mb_first.values()),
+        **{f"rss_growth_mb_{name.replace('/', '_')}": mb_last[name] - mb_first[name] for name in sorted(rss)},
         "update_ms_p99_first": float(np.nanpercentile(window(upd, *first), 99)),
         "update_ms_p99_last": float(np.nanpercentile(window(upd, *last), 99)),
         "log_parts": parts,
@@ -243,6 +256,7 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
 
 def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--minutes", type=float, default=30.0, help="length of the full run (default 30)")
+    parser.add_argument("--keep", type=Path, help="copy the run folder (logs, recording, state) here at the end")
 
 
 if __name__ == "__main__":

@@ -66,32 +66,45 @@ class Clock:
 class ClockJumps:
     """Takes jumps of each sensor's clock out of its stamps, so the daemon's timeline stays continuous.
 
-    Between two frames of one camera, the stamps (sensor clock) and the arrival times (this host's
-    clock) advance together, up to transport jitter. When they disagree by more than ``jump_ns``, the
-    sensor's clock was stepped: the step is added to that camera's correction, and its later stamps
-    continue where they were. Without it, a camera stepped an hour ahead drags the daemon's clock
-    with it (every other camera turns stale), and one stepped back has every frame refused as
-    going backwards until its clock catches up.
+    Per camera, the offset = stamp - arrival time (ns) moves only with transport delay while the
+    clocks keep time (and steadily during a replay at another rate, so it is compared frame to
+    frame). An offset more than ``jump_ns`` ahead of the last one is a forward step of the sensor's
+    clock: nothing else puts stamps ahead. One that far behind is either a late frame (a stalled
+    driver publishing a frame it stamped before the stall) or a backward step; it counts as a step
+    once ``confirm_frames`` frames in a row are that late. A step is added to the camera's correction,
+    so its later stamps continue where they were. Without this, a camera stepped an hour ahead drags
+    the daemon's clock with it (every other camera turns stale), and one stepped back has every
+    frame refused as going backwards until its clock catches up.
     """
 
-    def __init__(self, jump_ns: int) -> None:
+    def __init__(self, jump_ns: int, confirm_frames: int = 5) -> None:
         self.jump_ns = jump_ns
+        self.confirm_frames = confirm_frames
         self.jumps: Counter[str] = Counter()
         self._correction_ns: dict[str, int] = {}
-        self._last: dict[str, tuple[int, int]] = {}  # camera -> (raw stamp, arrival), ns
+        self._offset_ns: dict[str, int] = {}  # camera -> offset of its last on-time frame, corrected
+        self._late: Counter[str] = Counter()  # camera -> consecutive frames far behind that offset
 
     def correct(self, camera_id: str, stamp_ns: int, received_ns: int) -> int:
         """The frame's stamp on the camera's continuous timeline (ns)."""
-        last = self._last.get(camera_id)
-        self._last[camera_id] = (stamp_ns, received_ns)
-        if last is not None:
-            step = (stamp_ns - last[0]) - (received_ns - last[1])
-            if abs(step) > self.jump_ns:
-                self._correction_ns[camera_id] = self._correction_ns.get(camera_id, 0) + step
-                self.jumps[camera_id] += 1
-                log.warning("the clock of camera %s jumped %+.3f s; its stamps are shifted back onto the timeline it had "
-                            "(check the time sync of its host)", camera_id, step / 1e9)  # fmt: skip
-        return stamp_ns - self._correction_ns.get(camera_id, 0)
+        stamp_ns -= self._correction_ns.get(camera_id, 0)
+        offset = stamp_ns - received_ns
+        last = self._offset_ns.setdefault(camera_id, offset)
+        step = offset - last
+        if step < -self.jump_ns:
+            self._late[camera_id] += 1
+            if self._late[camera_id] < self.confirm_frames:
+                return stamp_ns  # late, perhaps: the estimator refuses it if it goes backwards
+        elif step <= self.jump_ns:
+            self._late[camera_id] = 0
+            self._offset_ns[camera_id] = offset
+            return stamp_ns
+        self._late[camera_id] = 0
+        self._correction_ns[camera_id] = self._correction_ns.get(camera_id, 0) + step
+        self.jumps[camera_id] += 1
+        log.warning("the clock of camera %s jumped %+.3f s; its stamps are shifted back onto the timeline it had "
+                    "(check the time sync of its host)", camera_id, step / 1e9)  # fmt: skip
+        return stamp_ns - step
 
 
 class EstimatorService:

@@ -11,7 +11,7 @@ import numpy as np
 
 from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
-from estimator.service import EstimatorService
+from estimator.service import ClockJumps, EstimatorService
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
@@ -141,3 +141,31 @@ def test_a_full_disk_keeps_the_saved_state_and_saving_resumes(client_transport: 
     svc, _, _ = run_service(client_transport, s, state, 0.3, 3 * 10**18)
     assert svc.restored == 4 and svc.save_failures == 0
     assert state.read_bytes() != saved  # saved again
+
+
+def _corrected(jumps: ClockJumps, frames: list[tuple[int, int]]) -> list[int]:
+    return [jumps.correct("a", stamp, arrival) for stamp, arrival in frames]
+
+
+def test_a_late_frame_or_a_replay_at_another_rate_is_not_a_clock_jump() -> None:
+    ms = 10**6
+    jumps = ClockJumps(5000 * ms)
+    # A driver stalled 6 s after stamping frame 10 (SIGSTOP, a long first detection): that frame
+    # arrives 6 s late, the next ones are captured after the stall and arrive on time.
+    stall = 6000 * ms
+    stamps = [k * 33 * ms + (stall if k > 10 else 0) for k in range(30)]
+    arrivals = [k * 33 * ms + 20 * ms + (stall if k >= 10 else 0) for k in range(30)]
+    frames = list(zip(stamps, arrivals))
+    assert _corrected(jumps, frames) == [s for s, _ in frames] and not jumps.jumps
+    replay = [(k * 33 * ms, k * 3 * ms) for k in range(600)]  # 20 s of stamps in 1.8 s: --rate 11
+    assert _corrected(ClockJumps(5000 * ms), replay) == [s for s, _ in replay]
+
+
+def test_a_clock_step_back_is_taken_out_once_it_persists() -> None:
+    ms, hour = 10**6, 3600 * 10**9
+    jumps = ClockJumps(5000 * ms, confirm_frames=5)
+    frames = [(k * 33 * ms - (hour if k >= 10 else 0), k * 33 * ms) for k in range(30)]
+    out = _corrected(jumps, frames)
+    assert dict(jumps.jumps) == {"a": 1}
+    assert out[14:] == [k * 33 * ms for k in range(14, 30)]  # back on its timeline from the 5th frame
+    assert all(s < 0 for s in out[10:14])  # the first four still read an hour back (refused as backwards)

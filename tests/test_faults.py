@@ -92,12 +92,17 @@ def localized(states, cam: str) -> bool:
     return bool(states) and states[-1][1].get(cam) == m.CameraState.LOCALIZED
 
 
+def kill_once_localized(run_dir: Path, states, name: str) -> tuple[int, float]:
+    """Wait until both cameras are localized, SIGKILL process ``name``: its pid and when (monotonic s)."""
+    wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
+    pid = pid_of(run_dir, name)
+    os.kill(pid, signal.SIGKILL)
+    return pid, time.monotonic()
+
+
 def test_killed_driver_goes_stale_and_recovers_after_restart(cell) -> None:
     run_dir, states, _ = cell
-    wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
-    old = pid_of(run_dir, "driver/a")
-    os.kill(old, signal.SIGKILL)
-    killed = time.monotonic()
+    old, killed = kill_once_localized(run_dir, states, "driver/a")
     wait_until(lambda: states[-1][1].get("a") == m.CameraState.STALE, 5, "camera a to go stale")
     stale_at = next(t for t, s in states if t > killed and s.get("a") == m.CameraState.STALE)
     assert stale_at - killed < 1.0, f"stale only {stale_at - killed:.2f} s after the kill"
@@ -110,8 +115,7 @@ def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(ce
     run_dir, states, _ = cell
     wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
     wait_until(lambda: (run_dir / "estimator_state.json").exists(), 15, "the estimator to save its map")
-    os.kill(pid_of(run_dir, "estimator"), signal.SIGKILL)
-    killed = time.monotonic()
+    _, killed = kill_once_localized(run_dir, states, "estimator")
     wait_until(lambda: any(t > killed + 0.3 for t, _ in states), 30, "status from the restarted estimator")
     first = next(t for t, _ in states if t > killed + 0.3)
     wait_until(lambda: localized(states, "a") and localized(states, "b"), 10, "cameras localized after the restart")
@@ -123,10 +127,7 @@ def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(ce
 
 def test_killed_router_restarts_and_every_process_reconnects(cell) -> None:
     run_dir, states, _ = cell
-    wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
-    old = pid_of(run_dir, "router")
-    os.kill(old, signal.SIGKILL)
-    killed = time.monotonic()
+    old, killed = kill_once_localized(run_dir, states, "router")
     wait_until(lambda: pid_of(run_dir, "router") != old, 10, "the supervisor to restart the router")
     wait_until(lambda: any(t > killed + 1.0 for t, _ in states), 30, "status over the restarted router")
     wait_until(lambda: localized(states, "a") and localized(states, "b"), 10, "both cameras localized after the restart")
