@@ -71,7 +71,8 @@ class ClockJumps:
     frame). An offset more than ``jump_ns`` ahead of the last one is a forward step of the sensor's
     clock: nothing else puts stamps ahead. One that far behind is either a late frame (a stalled
     driver publishing a frame it stamped before the stall) or a backward step; it counts as a step
-    once ``confirm_frames`` frames in a row are that late. A step is added to the camera's correction,
+    once ``confirm_frames`` frames in a row are that late. A frame more than half of ``jump_ns``
+    late never becomes the reference. A step is added to the camera's correction,
     so its later stamps continue where they were. Without this, a camera stepped an hour ahead drags
     the daemon's clock with it (every other camera turns stale), and one stepped back has every
     frame refused as going backwards until its clock catches up.
@@ -95,6 +96,11 @@ class ClockJumps:
             self._late[camera_id] += 1
             if self._late[camera_id] < self.confirm_frames:
                 return stamp_ns  # late, perhaps: the estimator refuses it if it goes backwards
+        elif step < -self.jump_ns // 2:
+            # Seconds late but not a step: a frame held up by a stalled driver. It is no reference:
+            # a few such frames either side of the threshold would walk the reference down until the
+            # on-time frame after them read as a step ahead. A slower replay drifts by milliseconds.
+            return stamp_ns
         elif step <= self.jump_ns:
             self._late[camera_id] = 0
             self._offset_ns[camera_id] = offset

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import pytest
 
 from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
@@ -147,18 +148,25 @@ def _corrected(jumps: ClockJumps, frames: list[tuple[int, int]]) -> list[int]:
     return [jumps.correct("a", stamp, arrival) for stamp, arrival in frames]
 
 
-def test_a_late_frame_or_a_replay_at_another_rate_is_not_a_clock_jump() -> None:
+@pytest.mark.parametrize("stall_ms", [2000, 4990, 5010, 6000, 30000])
+def test_a_late_frame_or_a_replay_at_another_rate_is_not_a_clock_jump(stall_ms: int) -> None:
     ms = 10**6
     jumps = ClockJumps(5000 * ms)
-    # A driver stalled 6 s after stamping frame 10 (SIGSTOP, a long first detection): that frame
-    # arrives 6 s late, the next ones are captured after the stall and arrive on time.
-    stall = 6000 * ms
-    stamps = [k * 33 * ms + (stall if k > 10 else 0) for k in range(30)]
-    arrivals = [k * 33 * ms + 20 * ms + (stall if k >= 10 else 0) for k in range(30)]
+    # A driver stalled after stamping frames 9 and 10 (SIGSTOP, a long first detection): they
+    # arrive late, by a little less and a little more than the stall; the next ones are captured
+    # after it and arrive on time. Stalls near the jump threshold are the soak's case: two late
+    # frames either side of it must not walk the reference down so that the on-time frame after
+    # them reads as a step ahead.
+    stall = stall_ms * ms
+    late = {9: stall - 10 * ms, 10: stall + 40 * ms}
+    stamps = [k * 33 * ms + (stall + 60 * ms if k > 10 else 0) for k in range(30)]
+    arrivals = [k * 33 * ms + 20 * ms + (stall + 60 * ms if k > 10 else late.get(k, 0)) for k in range(30)]
     frames = list(zip(stamps, arrivals))
     assert _corrected(jumps, frames) == [s for s, _ in frames] and not jumps.jumps
-    replay = [(k * 33 * ms, k * 3 * ms) for k in range(600)]  # 20 s of stamps in 1.8 s: --rate 11
-    assert _corrected(ClockJumps(5000 * ms), replay) == [s for s, _ in replay]
+    for wall_ms in (3, 66):  # 20 s of stamps replayed in 1.8 s (--rate 11) and in 40 s (--rate 0.5)
+        replay = [(k * 33 * ms, k * wall_ms * ms) for k in range(600)]
+        jumps = ClockJumps(5000 * ms)
+        assert _corrected(jumps, replay) == [s for s, _ in replay] and not jumps.jumps
 
 
 def test_a_clock_step_back_is_taken_out_once_it_persists() -> None:
