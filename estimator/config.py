@@ -33,6 +33,12 @@ class EstimatorConfig(BaseModel):
     huber_k: float = Field(default=1.345, gt=0, description="Huber threshold in whitened units")
     relinearize_threshold: float = Field(default=0.001, gt=0)
     refresh_s: float = Field(default=1.0, gt=0, description="how often a fused pair factor is replaced")
+    refresh_sigma: float = Field(
+        default=0.05, ge=0,
+        description="a settled pair's factor is rebuilt only when its mean moved this many of the factor's own sigmas "
+        "(Mahalanobis, 6 dof) or its covariance 10 %; the solution then stays within refresh_sigma x sqrt(pairs) of "
+        "rebuilding every refresh_s, in its own covariance's units (0: rebuild every refresh_s)",
+    )
     max_fused: int = Field(
         default=4, ge=1,
         description="cap on how many observations a fused factor counts as independent: a static view repeats its bias "

@@ -73,17 +73,42 @@ class Pair:
     """
 
     n: int = 0
-    pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
-    alt_rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
-    cov_sum: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    #: Sums in one row, laid out as ``FoldedRows.sums``, so a batch folds in with one add:
+    #: position (3), chosen rotation (9), other branch's rotation (9), covariance (36, ROS order).
+    sums: np.ndarray = field(default_factory=lambda: np.zeros(57), repr=False)
     primary_in_alt: int = 0  # observations whose chosen pose fell in the alternative branch
     rejected: int = 0
     slot: int | None = None  # iSAM2 factor index, None until the factor is in the graph
     refreshed_ns: int = 0
     dirty: bool = False
+    factor_mean: np.ndarray | None = field(default=None, repr=False)  # camera_T_marker the factor holds
+    factor_cov: np.ndarray | None = field(default=None, repr=False)  # its 6x6 covariance, ROS order
+    factor_n_eff: int = 0  # observations it counts as independent
     _cached: np.ndarray | None = field(default=None, repr=False)
     _cached_n: int = field(default=0, repr=False)
+
+    @property
+    def pos_sum(self) -> np.ndarray:
+        return self.sums[:3]
+
+    @property
+    def rot_sum(self) -> np.ndarray:
+        return self.sums[3:12].reshape(3, 3)
+
+    @property
+    def alt_rot_sum(self) -> np.ndarray:
+        return self.sums[12:21].reshape(3, 3)
+
+    @property
+    def cov_sum(self) -> np.ndarray:
+        return self.sums[21:].reshape(6, 6)
+
+    def _swap_branches_if_flipped(self) -> None:
+        """If most observations' own choice fell in the other branch, the pair started on a flip."""
+        if self.n >= 3 and 2 * self.primary_in_alt > self.n:
+            self.sums[3:12], self.sums[12:21] = self.sums[12:21].copy(), self.sums[3:12].copy()
+            self.primary_in_alt = self.n - self.primary_in_alt
+            self._cached = None
 
     def mean(self, exact: bool = False) -> np.ndarray:
         """Mean pose (4x4; do not modify). The rotation is re-projected once the count has grown
@@ -96,22 +121,38 @@ class Pair:
         self._cached[:3, 3] = self.pos_sum / self.n
         return self._cached
 
+    def factor_is_current(self, max_fused: int, sigmas: float) -> bool:
+        """Would rebuilding the factor change it by less than ``sigmas`` of its own sigma?
+
+        True when it already counts ``max_fused`` observations (more do not tighten it), its
+        covariance changed by under 10 % per axis, and the mean moved less than ``sigmas``
+        (Mahalanobis, 6 dof, under the factor's covariance) since it was built. A settled static
+        pair then stops costing solver updates: its mean's drift shrinks as 1/n.
+        """
+        if self.factor_mean is None or self.factor_cov is None or self.factor_n_eff < max_fused:
+            return False
+        cov = self.mean_covariance() / max_fused
+        if np.abs(np.diag(cov) / np.diag(self.factor_cov) - 1.0).max() > 0.1:
+            return False
+        Rf, T = self.factor_mean[:3, :3], self.mean()
+        dR = Rf.T @ T[:3, :3]
+        xi = np.concatenate([Rf.T @ (T[:3, 3] - self.factor_mean[:3, 3]),  # ROS order: x y z rx ry rz, marker frame
+                             0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])])  # fmt: skip
+        return float(xi @ np.linalg.solve(self.factor_cov, xi)) < sigmas**2
+
     def mean_covariance(self) -> np.ndarray:
         """Mean single-observation covariance (ROS order, marker frame)."""
         return self.cov_sum / self.n
 
     def _take(self, T: np.ndarray, other: np.ndarray | None, cov: np.ndarray, primary_in_alt: bool) -> None:
         self.n += 1
-        self.pos_sum += T[:3, 3]
-        self.rot_sum += T[:3, :3]
-        self.alt_rot_sum += (other if other is not None else T)[:3, :3]
-        self.cov_sum += cov
+        self.pos_sum[:] += T[:3, 3]
+        self.rot_sum[:] += T[:3, :3]
+        self.alt_rot_sum[:] += (other if other is not None else T)[:3, :3]
+        self.cov_sum[:] += cov
         self.primary_in_alt += int(primary_in_alt)
         self.dirty = True
-        if self.n >= 3 and 2 * self.primary_in_alt > self.n:  # the majority says we are on the flip
-            self.rot_sum, self.alt_rot_sum = self.alt_rot_sum, self.rot_sum
-            self.primary_in_alt = self.n - self.primary_in_alt
-            self._cached = None
+        self._swap_branches_if_flipped()
 
     def add(self, obs: Observation) -> bool:
         """Fold an observation in, choosing the IPPE branch consistent with the mean. False if rejected."""
@@ -131,40 +172,54 @@ class Pair:
             return True
         self.rejected += 1
         if self.rejected > self.n:  # the majority disagrees with the mean in position too: restart
+            slot = self.slot
             self.__init__()
+            self.slot = slot  # the factor in that slot is replaced on the next refresh, not left beside the new one
             self._take(*first, cov, False)
         return False
 
-    def add_many(self, poses: np.ndarray, alternatives: np.ndarray, covariances: np.ndarray) -> int:
-        """``add`` of a batch (N, 4, 4), (N, 4, 4), (N, 6, 6), all judged against the mean before it.
-
-        For a settled pair the mean moves by a fraction of the noise over a batch, so the choices
-        are those of one-by-one adding. Returns the number accepted. A batch that would trip the
-        restart rule is added one by one instead, where the rule is exact.
-        """
-        mean = self.mean()
-        tr_pose = np.einsum("ij,nij->n", mean[:3, :3], poses[:, :3, :3])  # trace(R_mean^T R): larger = closer
-        tr_alt = np.einsum("ij,nij->n", mean[:3, :3], alternatives[:, :3, :3])
-        swap = tr_alt > tr_pose
-        chosen = np.where(swap[:, None, None], alternatives, poses)
-        ok = (np.maximum(tr_pose, tr_alt) > TRACE_GATE) & (np.linalg.norm(chosen[:, :3, 3] - mean[:3, 3], axis=1) < POSITION_GATE_M)
-        k = int(ok.sum())
-        if self.rejected + (len(ok) - k) > self.n:
-            return sum(self.add_pose(T, A, C) for T, A, C in zip(poses, alternatives, covariances))
-        other = np.where(swap[:, None, None], poses, alternatives)
+    def fold(self, rows: "FoldedRows", j: int) -> None:
+        """Add pair ``j``'s share of a batch judged against the means before it (see ``fold_rows``)."""
+        k = int(rows.accepted[j])
         self.n += k
-        self.pos_sum += chosen[ok, :3, 3].sum(axis=0)
-        self.rot_sum += chosen[ok, :3, :3].sum(axis=0)
-        self.alt_rot_sum += other[ok, :3, :3].sum(axis=0)
-        self.cov_sum += covariances[ok].sum(axis=0)
-        self.primary_in_alt += int(swap[ok].sum())
-        self.rejected += len(ok) - k
+        self.sums += rows.sums[j]
+        self.primary_in_alt += int(rows.swapped[j])
+        self.rejected += int(rows.rejected[j])
         self.dirty = self.dirty or k > 0
-        if self.n >= 3 and 2 * self.primary_in_alt > self.n:  # as in _take
-            self.rot_sum, self.alt_rot_sum = self.alt_rot_sum, self.rot_sum
-            self.primary_in_alt = self.n - self.primary_in_alt
-            self._cached = None
-        return k
+        self._swap_branches_if_flipped()
+
+
+@dataclass(frozen=True)
+class FoldedRows:
+    """Per-pair sums of a batch of observations: ``sums`` (P, 57) = position (3), chosen rotation
+    (9), other branch's rotation (9), covariance (36, ROS order); counts (P,) of accepted, swapped
+    (the other branch was nearer the mean) and rejected rows."""
+
+    sums: np.ndarray
+    accepted: np.ndarray
+    swapped: np.ndarray
+    rejected: np.ndarray
+
+
+def fold_rows(expected: np.ndarray, row_pair: np.ndarray, n_pairs: int, a: MarkerArrays) -> FoldedRows:
+    """``Pair.add_pose`` for many rows of many pairs at once, each judged against its pair's mean
+    ``expected[row]`` (N, 4, 4) from before the batch. For settled pairs the mean moves by a fraction
+    of the noise over a batch, so the choices are those of one-by-one adding. One matrix product
+    with the rows' pair membership gives every pair's sums: no Python loop over pairs or rows."""
+    Rm = expected[:, :3, :3]
+    tr_pose = np.einsum("nij,nij->n", Rm, a.poses[:, :3, :3])  # trace(R_mean^T R): larger = closer
+    tr_alt = np.einsum("nij,nij->n", Rm, a.alternatives[:, :3, :3])
+    swap = tr_alt > tr_pose
+    chosen = np.where(swap[:, None, None], a.alternatives, a.poses)
+    other = np.where(swap[:, None, None], a.poses, a.alternatives)
+    ok = (np.maximum(tr_pose, tr_alt) > TRACE_GATE) & (np.linalg.norm(chosen[:, :3, 3] - expected[:, :3, 3], axis=1) < POSITION_GATE_M)
+    n = len(row_pair)
+    member = np.zeros((n_pairs, n))
+    member[row_pair, np.arange(n)] = 1.0
+    taken = member * ok
+    stats = np.concatenate([chosen[:, :3, 3], chosen[:, :3, :3].reshape(n, 9), other[:, :3, :3].reshape(n, 9), a.covariances.reshape(n, 36)], axis=1)
+    accepted = taken.sum(axis=1)
+    return FoldedRows(taken @ stats, accepted, taken @ swap, member.sum(axis=1) - accepted)
 
 
 @dataclass
@@ -214,6 +269,7 @@ class Counters:
     rejected: int = 0
     unknown_markers: int = 0
     updates: int = 0
+    factors_rebuilt: int = 0  # pair factors (re)built in the graph
     last_update_ms: float = 0.0
 
 
@@ -316,8 +372,7 @@ class Estimator:
         """
         track = self.tracks.get(camera_id)
         seg_key = (camera_id, track.segment) if track else None
-        static = ~np.isin(a.ids, list(self.object_markers)) if self.object_markers else np.ones(len(a.ids), bool)
-        sa = a.rows(static)  # the static markers' rows
+        sa = a.rows(~np.isin(a.ids, list(self.object_markers))) if self.object_markers else a  # the static markers' rows
         marker_ids, row_pair = np.unique(sa.ids, return_inverse=True)
         pairs = [self.pairs.get((seg_key, int(mk))) for mk in marker_ids]
         fast = (
@@ -326,19 +381,26 @@ class Estimator:
             and (self.known is None or bool(np.isin(a.ids, list(self.known)).all()))
             and all(p is not None and p.n >= YOUNG_PAIR for p in pairs)
         )  # fmt: skip
-        if fast and pairs:
-            fast = not self._any_frame_moved(sa, np.stack([p.mean() for p in pairs])[row_pair], len(stamps))
+        expected = np.stack([p.mean() for p in pairs])[row_pair] if fast and pairs else None
+        if expected is not None:
+            fast = not self._any_frame_moved(sa, expected, len(stamps))
         if not fast:
             out = []
             for f, stamp in enumerate(stamps):
                 joined = self.add_frame(camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f)))
                 out.append(self.tracks[camera_id].segment if joined else None)
             return out
-        for j, pair in enumerate(pairs):
-            rows = row_pair == j
-            k = pair.add_many(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows])
-            self.counters.observations += k
-            self.counters.rejected += int(rows.sum()) - k
+        folded = fold_rows(expected, row_pair, len(pairs), sa) if expected is not None else None
+        for j, pair in enumerate(pairs if folded is not None else []):
+            if pair.rejected + folded.rejected[j] > pair.n:  # would trip the restart rule: exact, one by one
+                rows = row_pair == j
+                k = sum(pair.add_pose(T, A, C) for T, A, C in zip(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows]))
+                self.counters.observations += k
+                self.counters.rejected += int(rows.sum()) - k
+                continue
+            pair.fold(folded, j)
+            self.counters.observations += int(folded.accepted[j])
+            self.counters.rejected += int(folded.rejected[j])
         last = len(stamps) - 1
         track.last_stamp_ns = int(stamps[last])
         latest = observations_of(camera_id, track.last_stamp_ns, a.rows(a.frame == last))
@@ -353,14 +415,18 @@ class Estimator:
         if len(s.ids) == 0:
             return False
         D = s.poses[:, :3, 3] - expected[:, :3, 3]
+        shifts = np.linalg.norm(D, axis=1)
+        # A median above a threshold needs at least half of the frame's values above it: only
+        # frames that pass this count can have moved, and only they get an exact median. The
+        # shift alone rules most frames out before any covariance is solved.
+        n_rows = np.bincount(s.frame, minlength=frames)
+        far = shifts > self.config.bump_position_m
+        if not np.any((n_rows > 0) & (2 * np.bincount(s.frame, weights=far, minlength=frames) >= n_rows)):
+            return False
         R = expected[:, :3, :3]
         covs = R @ s.covariances[:, :3, :3] @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3)
         d2 = np.einsum("ij,ij->i", D, np.linalg.solve(covs, D[:, :, None])[:, :, 0])
-        shifts = np.linalg.norm(D, axis=1)
-        # A median above a threshold needs at least half of the frame's values above it: only
-        # frames that pass this count can have moved, and only they get an exact median.
-        high = (d2 > MOVE_CHI2) & (shifts > self.config.bump_position_m)
-        n_rows = np.bincount(s.frame, minlength=frames)
+        high = (d2 > MOVE_CHI2) & far
         n_high = np.bincount(s.frame, weights=high, minlength=frames)
         for f in np.flatnonzero((n_rows > 0) & (2 * n_high >= n_rows)):
             rows = s.frame == f
@@ -434,8 +500,11 @@ class Estimator:
             self.camera_index[cam] = len(self.camera_index)
         return camera_symbol(self.camera_index[cam])
 
-    def update(self, now_ns: int) -> None:
-        """Place new variables and refresh due pair factors in one iSAM2 update."""
+    def update(self, now_ns: int, refresh_all: bool = False) -> None:
+        """Place new variables and refresh due pair factors in one iSAM2 update.
+
+        ``refresh_all`` rebuilds every pair whose mean changed at all (the offline solve's last
+        update, so the batch problem holds every final mean)."""
         t0 = time.perf_counter()
         graph, values = self._pending_priors
         self._pending_priors = (gtsam.NonlinearFactorGraph(), gtsam.Values())
@@ -443,14 +512,16 @@ class Estimator:
         self._place_new(new_values)
         remove: list[int] = []
         refreshed: list[Pair] = []
-        for (cam, marker_id), pair in self._due_pairs(now_ns):
+        due = [(k, p) for k, p in self.pairs.items() if p.dirty] if refresh_all else self._due_pairs(now_ns)
+        for (cam, marker_id), pair in due:
             ck, mk = self._camera_key(cam), marker_symbol(marker_id)
             if not (self._has(ck, new_values) and self._has(mk, new_values)):
                 continue
             n_eff = min(pair.n, self.config.max_fused)
-            cov = cov_ros_to_gtsam(pair.mean_covariance()) / n_eff
-            noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov))
-            graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.mean(exact=True)), noise))
+            pair.factor_cov, pair.factor_n_eff = pair.mean_covariance() / n_eff, n_eff
+            pair.factor_mean = pair.mean(exact=True).copy()
+            noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(pair.factor_cov)))
+            graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.factor_mean), noise))
             if pair.slot is not None:
                 remove.append(pair.slot)
             refreshed.append(pair)
@@ -468,6 +539,7 @@ class Estimator:
             self.in_graph.add(key)
         self.values = self.isam.calculateEstimate()
         self.counters.updates += 1
+        self.counters.factors_rebuilt += len(refreshed)
         self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
 
     def _due_pairs(self, now_ns: int) -> list[tuple[tuple[CameraKey, int], Pair]]:
@@ -476,7 +548,8 @@ class Estimator:
         New pairs always; young ones (fewer than ``YOUNG_PAIR`` observations) every refresh_s / 10
         so a new segment converges within a fraction of a second; mature ones once per refresh_s,
         the most overdue first and at most their fair share per update, so refreshes spread over
-        the updates instead of all landing in one (that was the p99 latency).
+        the updates instead of all landing in one (that was the p99 latency), and only if the
+        rebuilt factor would differ (``Pair.factor_is_current``).
         """
         refresh_ns = int(self.config.refresh_s * 1e9)
         urgent, mature = [], []
@@ -487,6 +560,9 @@ class Estimator:
             if pair.slot is None or (pair.n < YOUNG_PAIR and age >= refresh_ns // 10):
                 urgent.append((key, pair))
             elif age >= refresh_ns:
+                if pair.factor_is_current(self.config.max_fused, self.config.refresh_sigma):
+                    pair.refreshed_ns = now_ns  # looked at: next look in refresh_s
+                    continue
                 mature.append((age, key, pair))
         share = max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0)))
         mature.sort(key=lambda x: -x[0])

@@ -102,7 +102,7 @@ def resolve(
             if progress is not None:
                 progress(n_obs)
     if last_update is not None:
-        est.update(last_update + int(config.refresh_s * 1e9) + 1)  # every pair's final mean in the graph
+        est.update(last_update + int(config.refresh_s * 1e9) + 1, refresh_all=True)  # every pair's final mean in the graph
     graph = est.factor_graph()
     if graph.size() == 0 or est.values.size() == 0:
         return ResolveResult([], {}, [], sorted(est.tracks), n_obs, n_frames, [], 0.0, 0, stamps)

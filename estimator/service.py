@@ -18,7 +18,6 @@ import zenoh
 from estimator.config import EstimatorConfig
 from estimator.errors import StateFileError
 from estimator.graph import CameraState, Estimate, Estimator
-from estimator.observation import Observation, observations_of
 from estimator.state import SavedMarker, load_state, save_state, set_aside
 from schemas import codec, keys
 from schemas import messages as m
@@ -32,13 +31,6 @@ _STATE = {
     CameraState.MOVING: m.CameraState.MOVING,
     CameraState.STALE: m.CameraState.STALE,
 }
-
-
-def observations_from_msg(msg: m.MarkerObservations, stamp_ns: int | None = None) -> list[Observation]:
-    """Wire observations as estimator input, stamped ``stamp_ns`` (default: the message's, ns).
-    ``msg`` must come from ``codec.decode`` (every subscription and log reader does), which
-    validated it: converting is all that is left."""
-    return observations_of(msg.camera_id, msg.stamp_ns if stamp_ns is None else stamp_ns, codec.marker_arrays(msg, check=False))
 
 
 def marker_frame(marker_id: int) -> str:
@@ -171,11 +163,17 @@ class EstimatorService:
     # ------------------------------------------------------------ loop
 
     def ingest(self, items: list[Received[m.MarkerObservations]]) -> None:
+        """One period's frames, each camera's as one block: a still camera's frames fold in with numpy
+        (``Estimator.add_frames``), the same as one by one. Cameras are independent between updates."""
+        by_camera: dict[str, list[tuple[int, m.MarkerObservations]]] = {}
         for item in items:
             stamp_ns = self.clock_jumps.correct(item.msg.camera_id, item.msg.stamp_ns, item.receive_ns)
-            obs = observations_from_msg(item.msg, stamp_ns)  # validated on receipt by the subscription
             self.clock.observe(stamp_ns, item.receive_ns)
-            self.estimator.add_frame(item.msg.camera_id, stamp_ns, obs)
+            by_camera.setdefault(item.msg.camera_id, []).append((stamp_ns, item.msg))
+        for camera_id, frames in by_camera.items():
+            stamps = np.array([stamp for stamp, _ in frames], dtype=np.int64)
+            # validated on receipt by the subscription: converting is all that is left
+            self.estimator.add_frames(camera_id, stamps, codec.marker_batch([msg for _, msg in frames], check=False))
 
     def step(self) -> Estimate:
         """Ingest what arrived, update, publish. One call per update period."""
