@@ -31,7 +31,7 @@ ENV_PREFIX = "CELLSIGHT__"
 
 
 class CellSection(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = "demo"
     scenario: Path | None = Field(default=None, description="simulated cell scenario (TOML); None: built-in demo")
@@ -41,7 +41,7 @@ class CellSection(BaseModel):
 class CellConfig(BaseModel):
     """Everything one cell needs. ``CellConfig()`` alone is valid and means the simulated demo cell."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     cell: CellSection = Field(default_factory=CellSection)
     transport: TransportConfig = Field(default_factory=TransportConfig)

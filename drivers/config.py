@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -13,7 +13,7 @@ from schemas.keys import check_name
 class IntrinsicsConfig(BaseModel):
     """Pinhole intrinsics; omitted in a camera section means Kinect v1 defaults for its size."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     fx: float = Field(gt=0)
     fy: float = Field(gt=0)
@@ -25,11 +25,11 @@ class IntrinsicsConfig(BaseModel):
 class MarkerConfig(BaseModel):
     """What the marker front-end looks for."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     dictionary: str = Field(default="DICT_APRILTAG_36h11", description="OpenCV predefined dictionary name")
     side_m: float = Field(default=0.15, gt=0, description="printed black-square side length")
-    sides_m: dict[int, float] = Field(default_factory=dict, description="per-id side lengths overriding side_m")
+    sides_m: dict[int, Annotated[float, Field(gt=0)]] = Field(default_factory=dict, description="per-id side lengths overriding side_m")
     use_depth: bool = Field(default=True, description="refine poses with the registered depth when available")
     corner_refinement: Literal["none", "subpix", "contour", "apriltag"] = Field(
         default="subpix", description="OpenCV corner refinement; subpix for pose accuracy"
@@ -37,12 +37,6 @@ class MarkerConfig(BaseModel):
     detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML read first")
     pixel_sigma: float = Field(default=0.5, gt=0, description="corner noise (px) behind the covariance model")
 
-    @model_validator(mode="after")
-    def _sizes_positive(self) -> "MarkerConfig":
-        bad = {k: v for k, v in self.sides_m.items() if not v > 0}
-        if bad:
-            raise ValueError(f"marker sides must be positive, got {bad}")
-        return self
 
     def side_for(self, marker_id: int) -> float:
         return self.sides_m.get(marker_id, self.side_m)
@@ -51,7 +45,7 @@ class MarkerConfig(BaseModel):
 class CameraConfig(BaseModel):
     """One sensor and the driver process that serves it."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     id: str
     source: Literal["sim", "openni2"] = "sim"

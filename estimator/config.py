@@ -12,7 +12,7 @@ from schemas.spec import PoseSpec
 class AnchorConfig(BaseModel):
     """A marker with a surveyed world pose; it becomes a prior factor."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     marker_id: int = Field(ge=0)
     world_T_marker: PoseSpec
@@ -21,7 +21,7 @@ class AnchorConfig(BaseModel):
 
 
 class EstimatorConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     anchors: list[AnchorConfig] = Field(default_factory=list)
     object_markers: list[int] = Field(

@@ -14,7 +14,7 @@ class DescriptorConfig(BaseModel):
     """How a cloud becomes a descriptor. A database stores the values it was built with; a recogniser
     using different ones would compare unlike histograms, so loading checks they agree."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     voxel_m: float = Field(default=0.01, gt=0, description="voxel side for downsampling, m")
     normal_radius_m: float = Field(default=0.03, gt=0, description="neighbourhood radius for normals, m")
@@ -26,7 +26,7 @@ class DescriptorConfig(BaseModel):
 class ObjectMarkerConfig(BaseModel):
     """A fiducial fixed on an object: seeing it names the object and gives a pose prior."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     marker_id: int = Field(ge=0)
     object_id: str
@@ -36,7 +36,7 @@ class ObjectMarkerConfig(BaseModel):
 class BoardMarker(BaseModel):
     """One marker of a capture board: its id and ``board_T_marker``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     marker_id: int = Field(ge=0)
     board_T_marker: PoseSpec
@@ -50,7 +50,7 @@ class BoardConfig(BaseModel):
     frame, m) belong to the object; the bottom of that box keeps clear of the board itself.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     markers: list[BoardMarker] = Field(min_length=3, description="at least three, not in a line: placed from their centres")
     board_T_object: PoseSpec = Field(default_factory=PoseSpec)
@@ -69,7 +69,7 @@ class BoardConfig(BaseModel):
 
 
 class RecognitionConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     enabled: bool = Field(default=True, description="run the recognition worker in `cellsight run`")
     models: Path | None = Field(default=None, description="model database directory (cellsight model build)")

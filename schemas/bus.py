@@ -40,7 +40,7 @@ SHM_POOL_BYTES = 64 * 1024 * 1024  # per publishing process: ~50 VGA RGB-D frame
 class TransportConfig(BaseModel):
     """How a process joins the zenoh network. Defaults: client of one router on loopback."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     mode: Literal["client", "peer", "router"] | None = Field(
         default=None, description="zenoh mode; unset: the zenoh config file's, else client"

@@ -50,7 +50,7 @@ def normal_matrix(normal: np.ndarray, up: np.ndarray | None = None) -> np.ndarra
 class PoseSpec(BaseModel):
     """A pose in a config file; ``matrix()`` gives the 4x4 ``parent_T_child``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     position: Vec3 = (0.0, 0.0, 0.0)
     rpy_deg: Vec3 | None = None

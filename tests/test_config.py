@@ -63,3 +63,18 @@ def test_two_orientations_for_one_pose_are_rejected() -> None:
 
 def test_defaults_alone_are_valid() -> None:
     assert CellConfig().cell.name == "demo"
+
+
+@pytest.mark.parametrize("value", [0.0, -0.1, float("nan"), float("inf")])
+@pytest.mark.parametrize("where", ["side_m", "sides_m"])
+def test_marker_sides_must_be_finite_and_positive(where: str, value: float) -> None:
+    markers = {"side_m": value} if where == "side_m" else {"sides_m": {"3": value}}
+    with pytest.raises(ConfigError, match=rf"markers\.{where}"):
+        parse_config({"markers": markers}, environ={})
+
+
+def test_no_setting_takes_infinity() -> None:
+    """A NaN or an infinity means nothing in a cell: every model refuses them, naming the field."""
+    for section, key in (("estimator", "huber_k"), ("estimator", "stale_after_s"), ("recognition", "min_fitness")):
+        with pytest.raises(ConfigError, match=rf"{section}\.{key}: Input should be a finite number"):
+            parse_config({section: {key: float("inf")}}, environ={})
