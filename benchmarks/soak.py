@@ -1,7 +1,7 @@
 """Soak: the demo cell under ``cellsight run --record`` for 30 minutes, with faults on a schedule.
 
-The first and last windows are fault-free; they give memory (resident set of every process of
-the cell, from /proc) and the estimator's update time (``EstimatorStatus.update_ms``) at the start
+The first and last windows are fault-free; they give memory (private resident memory of every
+process of the cell, from /proc, and apart from it the shared memory each maps) and the estimator's update time (``EstimatorStatus.update_ms``) at the start
 and at the end. In between, one fault every period, cycling through: a driver SIGKILLed, the
 estimator SIGKILLed, the router SIGKILLed, the recorder SIGKILLed, the recognition worker
 SIGKILLed, a driver paused (SIGSTOP, so its camera stops sending) for 5 s. A fault is recovered when
@@ -110,15 +110,21 @@ def processes(run_dir: Path) -> dict[str, int]:
         return {}
 
 
-def rss_mb(pid: int) -> float:
-    """Resident memory of a process, MiB, from /proc/PID/status (NaN once it is gone)."""
+def rss_mb(pid: int) -> tuple[float, float]:
+    """(private, shared-memory) resident MiB of a process, from /proc/PID/status (NaN once gone).
+
+    Apart because they mean different things: private memory (RssAnon) is where a leak shows;
+    shared memory (RssShmem) is zenoh's frame pools, which the machine holds once however many
+    processes map them, and which every reader's VmRSS counts again.
+    """
+    found = {}
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
+            if line.startswith(("RssAnon:", "RssShmem:")):
+                found[line.split(":")[0]] = int(line.split()[1]) / 1024
     except OSError:
         pass
-    return float("nan")
+    return found.get("RssAnon", float("nan")), found.get("RssShmem", float("nan"))
 
 
 def inject(fault: Fault, pid: int) -> None:
@@ -171,7 +177,8 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     sched = Schedule(minutes * 60, 10.0, 5.0, 5.0, 5.0) if quick else Schedule(minutes * 60, 60.0, 300.0, 90.0, 60.0)
     port = free_port()
     watch, faults = Watch(), []
-    rss: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, MiB)
+    rss: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, private MiB)
+    shm: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, shared-memory MiB)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         run_dir = tmp / "run"
@@ -197,7 +204,9 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
                 now = time.monotonic()
                 if now >= next_rss:
                     for name, pid in processes(run_dir).items():
-                        rss.setdefault(name, []).append((now - t0, rss_mb(pid)))
+                        private, shared = rss_mb(pid)
+                        rss.setdefault(name, []).append((now - t0, private))
+                        shm.setdefault(name, []).append((now - t0, shared))
                     next_rss = now + 5.0
                 if schedule and now >= schedule[0]:
                     schedule.pop(0)
@@ -221,6 +230,8 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
             proc.wait(120)
             if args is not None and args.keep is not None:
                 shutil.copytree(run_dir, args.keep, dirs_exist_ok=True)
+                (args.keep / "memory.json").write_text(json.dumps({"private_mb": rss, "shared_mb": shm,
+                                                                   "faults": [(f.name, f.at - t0) for f in faults]}))  # fmt: skip
         finally:
             if bus is not None:
                 bus.close()
@@ -235,6 +246,8 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     # Median per process in each window; a process restarted in between counts with its new self.
     mb_first = {name: float(np.nanmedian(window(v, *first))) for name, v in rss.items()}
     mb_last = {name: float(np.nanmedian(window(v, *last))) for name, v in rss.items()}
+    shm_first = {name: float(np.nanmedian(window(v, *first))) for name, v in shm.items()}
+    shm_last = {name: float(np.nanmedian(window(v, *last))) for name, v in shm.items()}
     return {
         "minutes": minutes,
         "faults_injected": len(faults),
@@ -244,6 +257,9 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
         "rss_mb_last": sum(mb_last.values()),
         "rss_growth_mb": sum(mb_last.values()) - sum(mb_first.values()),
         **{f"rss_growth_mb_{name.replace('/', '_')}": mb_last[name] - mb_first[name] for name in sorted(rss)},
+        "shm_mapped_mb_first_max": max(shm_first.values()),  # the most any one process maps
+        "shm_mapped_mb_last_max": max(shm_last.values()),
+        **{f"shm_mapped_growth_mb_{name.replace('/', '_')}": shm_last[name] - shm_first[name] for name in sorted(shm)},
         "update_ms_p99_first": float(np.nanpercentile(window(upd, *first), 99)),
         "update_ms_p99_last": float(np.nanpercentile(window(upd, *last), 99)),
         "log_parts": parts,
