@@ -130,6 +130,11 @@ def median_ms(samples: np.ndarray, lo: int, hi: int) -> float:
     return float(np.median(samples[lo:hi]))
 
 
+def median_tick_ms(r: Runner, lo: int, hi: int) -> float:
+    """Median ingest + update time of ticks [lo, hi)."""
+    return median_ms(r.update_ms + r.ingest_ms, lo, hi)
+
+
 def run(quick: bool, args=None) -> dict[str, float]:
     hours = 0.2 if quick else (args.hours if args is not None else 24.0)
     markers, cams, anchors = ring_cell()
@@ -169,7 +174,6 @@ def run(quick: bool, args=None) -> dict[str, float]:
     seq_last = median_ms(aged.update_ms, n_ticks - window, n_ticks)
     paired_aged = median_ms(aged.update_ms, paired_aged_from, paired_aged_from + window)
     paired_young = median_ms(young.update_ms, warmup, window)
-    tick_of = lambda r, lo, hi: float(np.median(r.update_ms[lo:hi] + r.ingest_ms[lo:hi]))  # noqa: E731
     return {
         "simulated_hours": hours,
         "observations": float(n_obs),
@@ -181,7 +185,7 @@ def run(quick: bool, args=None) -> dict[str, float]:
         "tick_ms_p99": float(np.percentile(tick, 99)),
         "warmup_update_ms_max": float(np.max(aged.update_ms[:warmup])) if warmup else 0.0,
         "last_over_first_hour_latency_ratio": paired_aged / paired_young,
-        "last_over_first_hour_tick_ratio": tick_of(aged, paired_aged_from, paired_aged_from + window) / tick_of(young, warmup, window),
+        "last_over_first_hour_tick_ratio": median_tick_ms(aged, paired_aged_from, paired_aged_from + window) / median_tick_ms(young, warmup, window),
         "last_over_first_hour_latency_ratio_sequential": seq_last / seq_first,
         "solver_updates_first_hour": float(sum(aged.solved[warmup:window])),
         "solver_updates_last_hour": float(sum(aged.solved[n_ticks - window:n_ticks])),

@@ -110,7 +110,7 @@ def processes(run_dir: Path) -> dict[str, int]:
         return {}
 
 
-def rss_mb(pid: int) -> tuple[float, float]:
+def memory_mb(pid: int) -> tuple[float, float]:
     """(private, shared-memory) resident MiB of a process, from /proc/PID/status (NaN once gone).
 
     Apart because they mean different things: private memory (RssAnon) is where a leak shows;
@@ -204,7 +204,7 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
                 now = time.monotonic()
                 if now >= next_rss:
                     for name, pid in processes(run_dir).items():
-                        private, shared = rss_mb(pid)
+                        private, shared = memory_mb(pid)
                         rss.setdefault(name, []).append((now - t0, private))
                         shm.setdefault(name, []).append((now - t0, shared))
                     next_rss = now + 5.0

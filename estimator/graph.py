@@ -390,8 +390,8 @@ class Estimator:
                 joined = self.add_frame(camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f)))
                 out.append(self.tracks[camera_id].segment if joined else None)
             return out
-        folded = fold_rows(expected, row_pair, len(pairs), sa) if expected is not None else None
-        for j, pair in enumerate(pairs if folded is not None else []):
+        folded = fold_rows(expected, row_pair, len(pairs), sa) if pairs else None  # past the fast test, expected exists iff pairs do
+        for j, pair in enumerate(pairs):
             if pair.rejected + folded.rejected[j] > pair.n:  # would trip the restart rule: exact, one by one
                 rows = row_pair == j
                 k = sum(pair.add_pose(T, A, C) for T, A, C in zip(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows]))
