@@ -121,7 +121,14 @@ class Pair:
         self._cached[:3, 3] = self.pos_sum / self.n
         return self._cached
 
-    def factor_is_current(self, max_fused: int, sigmas: float) -> bool:
+    def factor_covariance(self, max_fused: int, rotation_floor_rad: float) -> np.ndarray:
+        """The fused factor's covariance (6x6, ROS order, marker frame): the mean single-frame one
+        over at most ``max_fused`` observations, plus the view's rotation bias on the diagonal."""
+        cov = self.mean_covariance() / min(self.n, max_fused)
+        cov[3:, 3:] += np.eye(3) * rotation_floor_rad**2
+        return cov
+
+    def factor_is_current(self, max_fused: int, sigmas: float, rotation_floor_rad: float = 0.0) -> bool:
         """Would rebuilding the factor change it by less than ``sigmas`` of its own sigma?
 
         True when it already counts ``max_fused`` observations (more do not tighten it), its
@@ -131,7 +138,7 @@ class Pair:
         """
         if self.factor_mean is None or self.factor_cov is None or self.factor_n_eff < max_fused:
             return False
-        cov = self.mean_covariance() / max_fused
+        cov = self.factor_covariance(max_fused, rotation_floor_rad)
         if np.abs(np.diag(cov) / np.diag(self.factor_cov) - 1.0).max() > 0.1:
             return False
         Rf, T = self.factor_mean[:3, :3], self.mean()
@@ -295,6 +302,7 @@ class Estimator:
         self.counters = Counters()
         self.unknown_ids: set[int] = set()
         self._robust = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
+        self.rotation_floor_rad = math.radians(config.view_rotation_sigma_deg)
         self._pending_priors = self._anchor_priors()
         self.seeded: set[int] = set()
 
@@ -517,8 +525,8 @@ class Estimator:
             ck, mk = self._camera_key(cam), marker_symbol(marker_id)
             if not (self._has(ck, new_values) and self._has(mk, new_values)):
                 continue
-            n_eff = min(pair.n, self.config.max_fused)
-            pair.factor_cov, pair.factor_n_eff = pair.mean_covariance() / n_eff, n_eff
+            pair.factor_cov = pair.factor_covariance(self.config.max_fused, self.rotation_floor_rad)
+            pair.factor_n_eff = min(pair.n, self.config.max_fused)
             pair.factor_mean = pair.mean(exact=True).copy()
             noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(pair.factor_cov)))
             graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.factor_mean), noise))
@@ -560,7 +568,7 @@ class Estimator:
             if pair.slot is None or (pair.n < YOUNG_PAIR and age >= refresh_ns // 10):
                 urgent.append((key, pair))
             elif age >= refresh_ns:
-                if pair.factor_is_current(self.config.max_fused, self.config.refresh_sigma):
+                if pair.factor_is_current(self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad):
                     pair.refreshed_ns = now_ns  # looked at: next look in refresh_s
                     continue
                 mature.append((age, key, pair))

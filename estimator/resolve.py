@@ -129,7 +129,7 @@ def resolve(
         ck, mkey = camera_symbol(est.camera_index[(cam, seg)]), marker_symbol(mk)
         if not (values.exists(ck) and values.exists(mkey)) or pair.n == 0:
             continue
-        cov = cov_ros_to_gtsam(pair.mean_covariance()) / min(pair.n, config.max_fused)
+        cov = cov_ros_to_gtsam(pair.factor_covariance(config.max_fused, est.rotation_floor_rad))
         factor = gtsam.BetweenFactorPose3(ck, mkey, gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov))
         residuals.append(PairResidual(cam, seg, mk, pair.n, pair.rejected, math.sqrt(2.0 * factor.error(values))))
     placed = {cam for (cam, _), i in est.camera_index.items() if values.exists(camera_symbol(i))}
