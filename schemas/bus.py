@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import resource
 import threading
 import time
 from collections import Counter, deque
@@ -34,7 +35,7 @@ log = logging.getLogger(__name__)
 
 Msg = TypeVar("Msg", bound=Message)
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
-SHM_POOL_BYTES = 64 * 1024 * 1024  # per publishing process: ~50 VGA RGB-D frames in flight
+CAP_IPC_LOCK = 14  # capability bit: lock memory beyond RLIMIT_MEMLOCK
 
 
 class TransportConfig(BaseModel):
@@ -50,7 +51,16 @@ class TransportConfig(BaseModel):
     )
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on")
     multicast_scouting: bool = False
-    shared_memory: bool = True
+    shared_memory: bool = Field(
+        default=True, description="frames through zenoh shared memory between processes on this host (needs "
+        "unlimited locked memory: root, CAP_IPC_LOCK or `ulimit -l unlimited`; otherwise switched off with a warning)",
+    )
+    shm_pool_mb: int = Field(
+        default=16, ge=2, le=4096,
+        description="shared-memory pool of each frame-publishing process (a VGA RGB-D pair is 1.5 MB; decoders release "
+        "a frame at once). Every reader maps it too and, zenoh 1.10, keeps a crashed publisher's pool mapped for its "
+        "own lifetime (zenoh issue 2787): a driver crash costs each reader this much",
+    )
     zenoh_config: Path | None = Field(
         default=None, description="zenoh JSON5 config file loaded first (TLS, mTLS, access control)"
     )
@@ -93,8 +103,44 @@ class TransportConfig(BaseModel):
         return cls(mode="router", connect=[], listen=listen)
 
 
+def memory_lock_problem(status_file: Path = Path("/proc/self/status")) -> str | None:
+    """Why this process cannot use zenoh shared memory, or None when it can.
+
+    zenoh locks (mlock) its own pool and every pool it receives frames from. Without CAP_IPC_LOCK
+    that is capped by RLIMIT_MEMLOCK (8 MiB on Debian), and a sample whose pool cannot be locked
+    is dropped without a word (zenoh issue 2788): a reader would see a silent camera. A finite
+    limit only postpones that, since pools of crashed publishers stay locked.
+    """
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        caps = next(int(line.split()[1], 16) for line in status_file.read_text().splitlines() if line.startswith("CapEff:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        caps = 0
+    if caps >> CAP_IPC_LOCK & 1:
+        return None
+    return f"locked memory is limited to {soft // 1024} KiB (RLIMIT_MEMLOCK) and the process lacks CAP_IPC_LOCK"
+
+
+def usable_transport(transport: TransportConfig) -> TransportConfig:
+    """``transport``, with shared memory switched off (and a warning) where it cannot work."""
+    if not transport.shared_memory:
+        return transport
+    problem = memory_lock_problem()
+    if problem is None:
+        return transport
+    log.warning(
+        "zenoh shared memory off for this process: %s. Frames travel as plain bytes (more CPU). To use it, run with "
+        "`ulimit -l unlimited` (systemd: LimitMEMLOCK=infinity) or set transport.shared_memory = false to silence this.",
+        problem,
+    )
+    return transport.model_copy(update={"shared_memory": False})
+
+
 def open_session(transport: TransportConfig) -> zenoh.Session:
     """Open a zenoh session; raise ``BusError`` with the endpoints tried when it fails."""
+    transport = usable_transport(transport)
     try:
         return zenoh.open(transport.to_zenoh())
     except zenoh.ZError as exc:
@@ -247,8 +293,8 @@ class Bus:
 
     def __init__(self, transport: TransportConfig, cell: str) -> None:
         self.cell = keys.check_name(cell, "cell name")
-        self.transport = transport
-        self.session = open_session(transport)
+        self.transport = usable_transport(transport)
+        self.session = open_session(self.transport)
         self._tokens: list[zenoh.LivelinessToken] = []
         self._shm: zenoh.shm.ShmProvider | None = None
 
@@ -260,12 +306,18 @@ class Bus:
 
     def publisher(self, key: str, *, frames: bool = False) -> Publisher:
         """Typed publisher; ``frames=True``: lower priority, dropped under congestion, shared memory."""
-        shm = None
-        if frames and self.transport.shared_memory:
-            if self._shm is None:
-                self._shm = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
-            shm = self._shm
+        shm = self._frame_pool() if frames and self.transport.shared_memory else None
         return Publisher(self.session, key, frames=frames, shm=shm)
+
+    def _frame_pool(self) -> "zenoh.shm.ShmProvider | None":
+        """This process's shared-memory pool for frames, made on first use; None if the OS refuses."""
+        if self._shm is None:
+            try:
+                self._shm = zenoh.shm.ShmProvider.default_backend(self.transport.shm_pool_mb * 1024 * 1024)
+            except zenoh.ZError as exc:  # /dev/shm full, or locked memory refused: plain bytes still work
+                log.warning("no %d MiB shared-memory pool for frames (%s): sending them as plain bytes", self.transport.shm_pool_mb, exc)
+                self.transport = self.transport.model_copy(update={"shared_memory": False})
+        return self._shm
 
     def subscribe(
         self,

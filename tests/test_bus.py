@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import random
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -11,6 +15,7 @@ from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.errors import BusError, SchemaError
+from tests.conftest import ROOT
 from tests.helpers import wait_until
 
 CELL = "t"
@@ -183,3 +188,78 @@ def test_frames_travel_through_shared_memory(client_transport: TransportConfig) 
     assert pub.shm_puts == pub.published > 0
     assert any(raw), "no frame arrived as a shared-memory buffer"
     np.testing.assert_array_equal(codec.image_from_msg(received[0]), depth)
+
+
+# Root without CAP_IPC_LOCK: Debian's 8 MiB cap on locked memory applies, as to any plain user.
+NO_MEMLOCK = ["setpriv", "--bounding-set=-ipc_lock", "--inh-caps=-ipc_lock"]
+PEER = [sys.executable, "-m", "tests.frame_peer"]
+
+
+def need_root() -> None:
+    if os.geteuid() != 0:
+        if os.environ.get("CI"):
+            pytest.fail("CI runs as root; the memory-lock tests need it to drop CAP_IPC_LOCK")
+        pytest.skip("needs root to drop CAP_IPC_LOCK from a child (CI runs these)")
+
+
+def peer(*args: str, limited: bool = False) -> subprocess.Popen:
+    return subprocess.Popen((NO_MEMLOCK if limited else []) + PEER + list(args), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def last_received(out: str) -> tuple[int, int]:
+    """(frames, RssShmem KiB) from a reader's last ``received`` line."""
+    line = [ln for ln in out.splitlines() if ln.startswith("received")][-1].split()
+    return int(line[1]), int(line[3])
+
+
+def test_a_reader_that_cannot_lock_memory_still_gets_frames(client_transport: TransportConfig) -> None:
+    """zenoh drops a shared-memory sample whose pool the reader cannot lock (zenoh issue 2788), so a
+    plain user's recorder saw a silent camera. A process that cannot lock memory now turns shared
+    memory off and gets frames as bytes, while the root publisher still uses its pool."""
+    need_root()
+    reader = peer("sub", client_transport.connect[0], "4", limited=True)
+    assert reader.stdout is not None and reader.stdout.readline().startswith("ready")
+    time.sleep(0.5)
+    with Bus(client_transport, CELL) as bus:
+        pub = bus.publisher(keys.depth(CELL, "cam1"), frames=True)
+        msg = codec.image_to_msg(np.ones((480, 640), np.uint16), 5, "cam1", "16UC1")
+        for _ in range(30):
+            pub.put(msg)
+            time.sleep(0.02)
+    out, err = reader.communicate(timeout=30)
+    assert pub.shm_puts == 30
+    assert last_received(out)[0] >= 27, out + err  # frames=True may drop under congestion; loopback is idle
+    assert "shared memory off for this process" in err and "RLIMIT_MEMLOCK" in err
+
+
+def test_a_publisher_that_cannot_lock_memory_sends_plain_bytes(client_transport: TransportConfig) -> None:
+    """It used to die creating its pool (``ZError``: out of memory); a driver must start as a plain user."""
+    need_root()
+    got: list[int] = []
+    with Bus(client_transport, CELL) as bus:
+        probe = bus.session.declare_subscriber(keys.depth(CELL, "cam1"), lambda s: got.append(len(s.payload)))
+        out, err = peer("pub", client_transport.connect[0], "30", limited=True).communicate(timeout=30)
+        wait_until(lambda: len(got) >= 27, 5.0, f"frames from the limited publisher ({out}{err})")
+        probe.undeclare()
+    assert "published 30 shm 0" in out, out + err
+
+
+@pytest.mark.parametrize("plain", [False, True], ids=["shared-memory", "plain"])
+def test_each_publisher_restart_costs_a_reader_at_most_one_pool(client_transport: TransportConfig, plain: bool) -> None:
+    """zenoh 1.10 keeps every pool a reader has received from mapped for the reader's life (zenoh
+    issue 2787), so each restarted driver costs each frame reader its pool (``shm_pool_mb``) plus
+    zenoh's 1.25 MiB metadata: the bound the README states. A reader with shared memory off maps
+    nothing."""
+    need_root()
+    gens = 3
+    reader = peer("sub", client_transport.connect[0], "7", *(["plain"] if plain else []))
+    assert reader.stdout is not None
+    before = int(reader.stdout.readline().split()[2])
+    for _ in range(gens):
+        peer("pub", client_transport.connect[0], "20").communicate(timeout=30)
+    out, err = reader.communicate(timeout=30)
+    frames, after = last_received(out)
+    assert frames >= gens * 18, out + err
+    per_restart_mib = (after - before) / 1024 / gens
+    pool_mib = TransportConfig().shm_pool_mb
+    assert per_restart_mib <= (0.5 if plain else pool_mib + 2.0), f"{per_restart_mib:.1f} MiB per publisher restart"
