@@ -732,6 +732,9 @@ def resolve_cmd(
         on = v["online_vs_truth_mm_deg"]
         if off is not None:
             typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else ""))
+    for child, v in run.figures["object_markers"].items():
+        off = v["offline_vs_truth_mm_deg"]
+        typer.echo(f"  {child}: {v['poses']} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))
     if run.read.stopped_early:
         _stderr().print(f"[yellow]warning:[/] the log ended early ({run.read.stopped_early}); resolved from the {run.read.messages} messages before it")
 

@@ -33,6 +33,9 @@ class Change:
 
 
 def newest_poses(path: Path) -> tuple[dict[str, StampedPose], ReadReport]:
+    """The newest pose of every camera and static marker in a log. Markers on objects move by
+    design, so those the log names (``cellsight resolve`` output, or a recording's embedded
+    config) are left out."""
     report = ReadReport()
     newest: dict[str, StampedPose] = {}
     for lm in read_log(path, None, report):
@@ -41,7 +44,25 @@ def newest_poses(path: Path) -> tuple[dict[str, StampedPose], ReadReport]:
             for child, p in codec.poses_from_msg(lm.msg).items():
                 if child not in newest or p.stamp_ns >= newest[child].stamp_ns:
                     newest[child] = p
+    for mk in object_markers_of(report):
+        newest.pop(f"marker_{mk}", None)
     return newest, report
+
+
+def object_markers_of(report: ReadReport) -> list[int]:
+    """Object-marker ids a log's metadata names: resolve's list, or the recorder's embedded config."""
+    meta = report.metadata.get("cellsight", {})
+    if "object_markers" in meta:
+        return [int(v) for v in meta["object_markers"].split()]
+    if "config" in meta:
+        import tomllib
+
+        try:
+            ids = tomllib.loads(meta["config"]).get("estimator", {}).get("object_markers", [])
+        except tomllib.TOMLDecodeError:
+            return []
+        return [int(v) for v in ids if isinstance(v, int)]
+    return []
 
 
 def compare(a: dict[str, StampedPose], b: dict[str, StampedPose], min_mm: float = 1.0, min_deg: float = 0.05) -> list[Change]:

@@ -16,6 +16,7 @@ import html
 import logging
 import json
 import math
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
@@ -24,7 +25,8 @@ import numpy as np
 
 from cellsight.config import CellConfig, parse_config, save_used
 from cellsight.report import Timeline, draw_ellipse, pose_error
-from estimator.resolve import FrameBlock, ResolveResult, resolve
+from estimator.resolve import FrameBlock, ObjectRows, ResolveResult, place_objects, resolve
+from estimator.service import marker_frame
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.codec import StampedPose
@@ -32,6 +34,7 @@ from schemas.errors import DecodeError
 from schemas.log import LogWriter, ReadReport, read_log
 
 TRUTH_MIN_GAP_NS = 100_000_000  # keep ground truth and online estimates at <= 10 Hz per camera
+OBJECT_GAP_NS = 100_000_000  # object markers: sightings kept per camera and poses written per marker at <= 10 Hz
 log = logging.getLogger(__name__)
 BLOCK_FRAMES = 30  # marker frames per camera validated and folded in together (1 s at 30 Hz)
 
@@ -43,10 +46,15 @@ class Side:
     online: Timeline = field(default_factory=Timeline.empty)
     truth_cameras: Timeline = field(default_factory=Timeline.empty)
     truth_markers: dict[str, StampedPose] = field(default_factory=dict)
+    object_frames: frozenset[str] = frozenset()  # marker_<id> of the object markers
+    online_objects: Timeline = field(default_factory=Timeline.empty)
+    truth_objects: Timeline = field(default_factory=Timeline.empty)
     cell: str | None = None
 
-    def keep(self, tl: Timeline, msg) -> None:
+    def keep(self, tl: Timeline, msg, only: frozenset[str] | None = None) -> None:
         for child, p in codec.poses_from_msg(msg).items():
+            if only is not None and child not in only:
+                continue
             last = tl.stamps.get(child)
             if not last or p.stamp_ns - last[-1] >= TRUTH_MIN_GAP_NS:
                 tl.stamps[child].append(p.stamp_ns)
@@ -66,10 +74,14 @@ def blocks_from_log(path: Path, side: Side, report: ReadReport, progress: Callab
                 yield from _block(lm.msg.camera_id, pending.pop(lm.msg.camera_id), report)
         elif parsed.topic == "estimate/cameras":
             side.keep(side.online, lm.msg)
+        elif parsed.topic == "estimate/markers" and side.object_frames:
+            side.keep(side.online_objects, lm.msg, side.object_frames)
         elif parsed.topic == "truth/cameras":
             side.keep(side.truth_cameras, lm.msg)
         elif parsed.topic == "truth/markers":
             side.truth_markers.update(codec.poses_from_msg(lm.msg))
+            if side.object_frames:
+                side.keep(side.truth_objects, lm.msg, side.object_frames)
     for camera_id, msgs in pending.items():
         yield from _block(camera_id, msgs, report)
 
@@ -125,13 +137,84 @@ class ResolveRun:
     figures: dict
 
 
+class ObjectSpool:
+    """Object-marker sightings from the log's static frames, kept on disk until the cameras are
+    solved: an hour of four cameras at 10 Hz is ~10^5 rows per marker, and memory holds one chunk."""
+
+    DTYPE = np.dtype([("stamp", "<i8"), ("segment", "<i8"), ("marker", "<i8"), ("camera", "<i8"),
+                      ("pose", "<f8", (4, 4)), ("cov", "<f8", (6, 6))])  # fmt: skip
+
+    def __init__(self, directory: Path) -> None:
+        self._file = tempfile.TemporaryFile(dir=directory, prefix=".objects-")
+        self.cameras: list[str] = []
+        self._last: dict[tuple[str, int], int] = {}
+        self.rows = 0
+
+    def add(self, rows: ObjectRows) -> None:
+        """Append the rows, at most one per camera and marker per ``OBJECT_GAP_NS``."""
+        keep = []
+        for i, (stamp, mk) in enumerate(zip(rows.stamps.tolist(), rows.ids.tolist())):
+            last = self._last.get((rows.camera_id, mk))
+            if last is None or stamp - last >= OBJECT_GAP_NS:
+                self._last[(rows.camera_id, mk)] = stamp
+                keep.append(i)
+        if not keep:
+            return
+        if rows.camera_id not in self.cameras:
+            self.cameras.append(rows.camera_id)
+        a = np.zeros(len(keep), self.DTYPE)
+        a["stamp"], a["segment"], a["marker"] = rows.stamps[keep], rows.segments[keep], rows.ids[keep]
+        a["camera"], a["pose"], a["cov"] = self.cameras.index(rows.camera_id), rows.poses[keep], rows.covariances[keep]
+        a.tofile(self._file)
+        self.rows += len(keep)
+
+    def chunks(self, n: int = 20_000) -> Iterator[np.ndarray]:
+        """The rows in log order, ``n`` at a time (structured arrays of ``DTYPE``)."""
+        self._file.flush()
+        self._file.seek(0)
+        while len(a := np.fromfile(self._file, dtype=self.DTYPE, count=n)):
+            yield a
+
+    def close(self) -> None:
+        self._file.close()
+
+
 def run_resolve(log_path: Path, out: Path, cfg: CellConfig, progress: Callable[[int, int], None] | None = None) -> ResolveRun:
     out.mkdir(parents=True, exist_ok=True)
     save_used(cfg, out)
-    side, report = Side(), ReadReport()
-    result = resolve(blocks_from_log(log_path, side, report, progress), cfg.estimator)
-    figures = write_outputs(result, side, report, out, side.cell or cfg.cell.name)
+    side = Side(object_frames=frozenset(marker_frame(k) for k in cfg.estimator.object_markers))
+    report, spool = ReadReport(), ObjectSpool(out)
+    try:
+        result = resolve(blocks_from_log(log_path, side, report, progress), cfg.estimator, objects=spool.add)
+        figures = write_outputs(result, side, report, out, side.cell or cfg.cell.name, spool, cfg.estimator.object_markers)
+    finally:
+        spool.close()
     return ResolveRun(result, report, side, out, figures)
+
+
+def object_poses(spool: ObjectSpool, result: ResolveResult) -> Iterator[StampedPose]:
+    """Each object marker through the solved cameras, at most every ``OBJECT_GAP_NS``: of the
+    sightings of one marker in one such period the one with the smallest position covariance
+    (cameras see an object at different distances and through different uncertainties)."""
+    segments = {(s.camera_id, s.segment): s for s in result.segments}
+    best: dict[tuple[int, int], tuple[float, StampedPose]] = {}  # (marker, period) -> best so far
+    newest = -1
+    for a in spool.chunks():
+        for ci, cam in enumerate(spool.cameras):
+            rows = a[a["camera"] == ci]
+            if not len(rows):
+                continue
+            T, cov, solved = place_objects(ObjectRows(cam, rows["stamp"], rows["segment"], rows["marker"], rows["pose"], rows["cov"]), segments)
+            for stamp, mk, Ti, Ci in zip(rows["stamp"][solved].tolist(), rows["marker"][solved].tolist(), T, cov):
+                key, score = (mk, stamp // OBJECT_GAP_NS), float(np.trace(Ci[:3, :3]))
+                if key not in best or score < best[key][0]:
+                    best[key] = (score, StampedPose("world", marker_frame(mk), stamp, Ti, Ci))
+        # Sightings arrive in log order, a few frames apart across cameras: periods two behind are final.
+        newest = max([newest] + [p for _, p in best])
+        for key in sorted(k for k in best if k[1] < newest - 1):
+            yield best.pop(key)[1]
+    for key in sorted(best):
+        yield best[key][1]
 
 
 def segment_at(result: ResolveResult, cam: str, stamp: int):
@@ -143,14 +226,27 @@ def segment_at(result: ResolveResult, cam: str, stamp: int):
     return best
 
 
-def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Path, cell: str) -> dict:
+def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Path, cell: str, spool: ObjectSpool | None = None,
+                  object_markers: list[int] | None = None) -> dict:  # fmt: skip
     end = max((s.last_stamp_ns for s in result.segments), default=0)
-    # resolved.mcap: each segment's pose at its first and last frame, markers and tf at the end.
-    w = LogWriter(out / "resolved.mcap", metadata={"source": "cellsight resolve"})
+    # resolved.mcap: each segment's pose at its first and last frame, object markers over time,
+    # static markers and tf at the end.
+    w = LogWriter(out / "resolved.mcap", metadata={"source": "cellsight resolve", "object_markers": " ".join(map(str, object_markers or []))})
     for s in result.segments:
         for stamp in sorted({s.first_stamp_ns, s.last_stamp_ns}):
             w.write(keys.estimate_cameras(cell), codec.poses_to_msg(stamp, [StampedPose("world", s.camera_id, stamp, s.world_T_camera, s.covariance)]), stamp)
-    markers = [StampedPose("world", f"marker_{k}", end, T, C) for k, (T, C) in result.markers.items()]
+    tdir = out / "trajectories"
+    tdir.mkdir(exist_ok=True)
+    objects = ObjectErrors()
+    if spool is not None:
+        tum: dict[str, list[str]] = {}
+        for p in object_poses(spool, result):
+            w.write(keys.estimate_markers(cell), codec.poses_to_msg(p.stamp_ns, [p]), p.stamp_ns)
+            tum.setdefault(p.child, []).append(f"{p.stamp_ns / 1e9:.9f} {tum_pose(p.T)}")
+            objects.add(p, side)
+        for child, lines in tum.items():
+            (tdir / f"{child}.tum").write_text("\n".join(lines) + "\n")
+    markers = [StampedPose("world", marker_frame(k), end, T, C) for k, (T, C) in result.markers.items()]
     w.write(keys.estimate_markers(cell), codec.poses_to_msg(end, markers), end)
     latest = {}
     for s in result.segments:
@@ -158,16 +254,12 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
     w.write(keys.tf(cell), codec.transforms_to_msg(end, [("world", c, s.world_T_camera) for c, s in latest.items()] + [("world", p.child, p.T) for p in markers]), end)
     w.close()
     # TUM trajectories: "t tx ty tz qx qy qz qw" per frame of a solved static segment.
-    tdir = out / "trajectories"
-    tdir.mkdir(exist_ok=True)
-    pose_text = {}  # a segment's pose, formatted once: an hour's log has 100,000 frames per camera
-    for s in result.segments:
-        q, t = codec.quat_from_matrix(s.world_T_camera[:3, :3]), s.world_T_camera[:3, 3]
-        pose_text[(s.camera_id, s.segment)] = f"{t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
+    pose_text = {(s.camera_id, s.segment): tum_pose(s.world_T_camera) for s in result.segments}  # once: 10^5 frames/h
     for cam, rows in result.frame_stamps.items():
         lines = [f"{stamp / 1e9:.9f} {pose_text[(cam, seg)]}" for stamp, seg in rows if (cam, seg) in pose_text]
         (tdir / f"{cam}.tum").write_text("\n".join(lines) + ("\n" if lines else ""))
     figures = evaluate(result, side)
+    figures["object_markers"] = objects.summary(side)
     figures.update({
         "observations": result.observations, "frames": result.frames, "messages_read": report.messages,
         "log_complete": report.stopped_early is None, "stopped_early": report.stopped_early,
@@ -179,11 +271,61 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
     return figures
 
 
+def tum_pose(T: np.ndarray) -> str:
+    q, t = codec.quat_from_matrix(T[:3, :3]), T[:3, 3]
+    return f"{t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
+
+
+@dataclass
+class ObjectErrors:
+    """Per object marker: poses written and, in simulator logs, their errors against ground truth."""
+
+    poses: dict[str, int] = field(default_factory=dict)
+    offline: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)  # (s, mm, deg)
+
+    def add(self, p: StampedPose, side: Side) -> None:
+        self.poses[p.child] = self.poses.get(p.child, 0) + 1
+        t = side.truth_objects.at(p.child, p.stamp_ns)
+        if t is not None and abs(t.stamp_ns - p.stamp_ns) <= OBJECT_GAP_NS // 2:
+            self.offline.setdefault(p.child, []).append((p.stamp_ns / 1e9, *pose_error(p.T, t.T)))
+
+    def summary(self, side: Side) -> dict:
+        out = {}
+        for child in sorted(self.poses):
+            online = []
+            for p in side.online_objects.poses.get(child, []):
+                t = side.truth_objects.at(child, p.stamp_ns)
+                if t is not None and abs(t.stamp_ns - p.stamp_ns) <= OBJECT_GAP_NS // 2:
+                    online.append(pose_error(p.T, t.T))
+            off = [e[1:] for e in self.offline.get(child, [])]
+            out[child] = {"poses": self.poses[child], "offline_vs_truth_mm_deg": _median_pair(off), "online_vs_truth_mm_deg": _median_pair(online)}
+        return out
+
+
+def _median_pair(rows: list) -> list[float] | None:
+    """Median position and rotation error of (mm, deg) rows, None without rows."""
+    return [float(np.median([r[0] for r in rows])), float(np.median([r[1] for r in rows]))] if rows else None
+
+
+def _paired(rows: list[tuple[float, float, float, float]]) -> dict | None:
+    """Rows of (offline mm, offline deg, online mm, online deg) at the same instants."""
+    if not rows:
+        return None
+    a = np.array(rows)
+    med, rms = np.median(a, axis=0), np.sqrt(np.mean(a**2, axis=0))
+    return {"stamps": len(rows), "offline_mm_deg_p50": [float(med[0]), float(med[1])], "online_mm_deg_p50": [float(med[2]), float(med[3])],
+            "offline_mm_deg_rms": [float(rms[0]), float(rms[1])], "online_mm_deg_rms": [float(rms[2]), float(rms[3])]}  # fmt: skip
+
+
 def evaluate(result: ResolveResult, side: Side) -> dict:
-    """Offline vs online vs truth, per camera: median position / rotation errors."""
+    """Offline vs online vs truth, per camera: median position / rotation errors.
+
+    ``paired``: at every online estimate's stamp that a solved segment covers and ground truth
+    has, both errors at that instant (the like-for-like comparison): medians and RMS.
+    """
     cams: dict[str, dict] = {}
     for cam in sorted({s.camera_id for s in result.segments}):
-        off_truth, on_truth, on_off = [], [], []
+        off_truth, on_truth, on_off, paired = [], [], [], []
         for p in side.online.poses.get(cam, []):
             seg = segment_at(result, cam, p.stamp_ns)
             if seg is not None:
@@ -191,12 +333,14 @@ def evaluate(result: ResolveResult, side: Side) -> dict:
             t = side.truth_cameras.at(cam, p.stamp_ns)
             if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
                 on_truth.append(pose_error(p.T, t.T))
+                if seg is not None:
+                    paired.append((*pose_error(seg.world_T_camera, t.T), *pose_error(p.T, t.T)))
         for t in side.truth_cameras.poses.get(cam, []):
             seg = segment_at(result, cam, t.stamp_ns)
             if seg is not None:
                 off_truth.append(pose_error(seg.world_T_camera, t.T))
-        med = lambda rows: [float(np.median([r[0] for r in rows])), float(np.median([r[1] for r in rows]))] if rows else None  # noqa: E731
-        cams[cam] = {"offline_vs_truth_mm_deg": med(off_truth), "online_vs_truth_mm_deg": med(on_truth), "online_vs_offline_mm_deg": med(on_off)}
+        cams[cam] = {"offline_vs_truth_mm_deg": _median_pair(off_truth), "online_vs_truth_mm_deg": _median_pair(on_truth),
+                     "online_vs_offline_mm_deg": _median_pair(on_off), "paired": _paired(paired)}  # fmt: skip
     marker_err = []
     for k, (T, _) in result.markers.items():
         t = side.truth_markers.get(f"marker_{k}")
@@ -243,7 +387,8 @@ def plots(result: ResolveResult, side: Side, out: Path) -> None:
         rejected[r.marker_id] = rejected.get(r.marker_id, 0) + r.rejected
     fig, ax = plt.subplots(figsize=(8, 3))
     ids = sorted(rejected)
-    ax.bar([str(i) for i in ids], [rejected[i] for i in ids], color="tab:orange")
+    ax.bar(range(len(ids)), [rejected[i] for i in ids], color="tab:orange")
+    ax.set_xticks(range(len(ids)), [str(i) for i in ids])  # positions, not category strings (matplotlib logs those)
     ax.set_xlabel("marker id")
     ax.set_ylabel("observations rejected")
     ax.set_title("Outliers rejected per marker")
@@ -282,6 +427,14 @@ def html_report(result: ResolveResult, fig: dict) -> str:
         f"<td>{1000 * math.sqrt(max(np.linalg.eigvalsh(s.covariance[:3, :3]).max(), 0)):.2f}</td></tr>"
         for s in result.segments
     )
+    objects = "".join(
+        f"<tr><td>{html.escape(c)}</td><td>{v['poses']}</td><td>{fmt(v['offline_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_truth_mm_deg'])}</td></tr>"
+        for c, v in fig.get("object_markers", {}).items()
+    )
+    objects_html = (
+        "<h2>Object markers (placed through the solved cameras, at most 10 Hz; median errors)</h2>"
+        f"<table><tr><th>marker</th><th>poses</th><th>offline vs truth</th><th>online vs truth</th></tr>{objects}</table>"
+    ) if objects else ""
     warn = "" if fig["log_complete"] else f"<p class=warn>The log was not complete ({html.escape(str(fig['stopped_early']))}); this covers what was readable.</p>"
     return f"""<!doctype html><html><head><meta charset=utf-8><title>cellsight resolve</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
@@ -291,6 +444,7 @@ Levenberg-Marquardt {fig['lm_iterations']} iterations. Unanchored cameras: {', '
 Anchors flagged as moved: {', '.join(map(str, fig['flagged_anchors'])) or 'none'}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
 <table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>online vs offline</th></tr>{rows}</table>
+{objects_html}
 <h2>Segments</h2><table><tr><th>camera</th><th>segment</th><th>frames</th><th>position (m)</th><th>sigma (mm)</th></tr>{segs}</table>
 <h2>Top view</h2><img src="top_view.png">
 <h2>Residuals</h2><img src="residuals.png">

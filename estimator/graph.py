@@ -62,6 +62,24 @@ def project_rotation(M: np.ndarray) -> np.ndarray:
     return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
+def through_camera(world_T_camera: np.ndarray, camera_cov: np.ndarray, camera_T_marker: np.ndarray, marker_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """world_T_marker (..., 4, 4) and its covariance (..., 6, 6; ROS order, marker frame) from a
+    camera pose with its covariance (camera frame) and an observation with its own (marker frame).
+
+    The camera's uncertainty reaches the marker through the adjoint of marker_T_camera: a twist
+    (v, w) of the camera is (R v + [p]x R w, R w) at the marker, R, p = marker_T_camera.
+    Works on one pose or on stacks of them (leading dimensions broadcast).
+    """
+    R = np.swapaxes(camera_T_marker[..., :3, :3], -1, -2)
+    p = -R @ camera_T_marker[..., :3, 3:4]
+    px = np.zeros(R.shape)
+    px[..., 0, 1], px[..., 0, 2], px[..., 1, 2] = -p[..., 2, 0], p[..., 1, 0], -p[..., 0, 0]
+    px[..., 1, 0], px[..., 2, 0], px[..., 2, 1] = p[..., 2, 0], -p[..., 1, 0], p[..., 0, 0]
+    A = np.zeros(R.shape[:-2] + (6, 6))
+    A[..., :3, :3], A[..., :3, 3:], A[..., 3:, 3:] = R, px @ R, R
+    return world_T_camera @ camera_T_marker, A @ camera_cov @ np.swapaxes(A, -1, -2) + marker_cov
+
+
 @dataclass
 class Pair:
     """Running mean of one camera-segment/marker relation, and the factor that carries it.
@@ -667,10 +685,11 @@ class Estimator:
             for mk, obs in track.latest.items():
                 if mk not in self.object_markers:
                     continue
-                cov = obs.covariance + (cam.pose.covariance if cam.pose.covariance is not None else 0.0)
+                cam_cov = cam.pose.covariance if cam.pose.covariance is not None else np.zeros((6, 6))
+                T, cov = through_camera(cam.pose.T, cam_cov, obs.camera_T_marker, obs.covariance)
                 score = float(np.trace(cov[:3, :3]))
                 if mk not in best or score < best[mk][0]:
-                    best[mk] = (score, PoseEstimate(cam.pose.T @ obs.camera_T_marker, cov))
+                    best[mk] = (score, PoseEstimate(T, cov))
         return {mk: pe for mk, (_, pe) in best.items()}
 
     def _flagged_anchors(self) -> list[int]:

@@ -19,7 +19,7 @@ import gtsam
 import numpy as np
 
 from estimator.config import EstimatorConfig
-from estimator.graph import Estimator, camera_symbol, marker_symbol
+from estimator.graph import Estimator, camera_symbol, marker_symbol, through_camera
 from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam
 
 log = logging.getLogger(__name__)
@@ -33,6 +33,19 @@ class FrameBlock:
     camera_id: str
     stamps: np.ndarray
     arrays: MarkerArrays
+
+
+@dataclass(frozen=True)
+class ObjectRows:
+    """Object-marker observations of one camera's frames that belong to a static segment: stamps,
+    segments and marker ids (N,), camera_T_marker (N, 4, 4), covariances (N, 6, 6; ROS order)."""
+
+    camera_id: str
+    stamps: np.ndarray
+    segments: np.ndarray
+    ids: np.ndarray
+    poses: np.ndarray
+    covariances: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -74,11 +87,14 @@ def resolve(
     blocks: Iterable[FrameBlock],
     config: EstimatorConfig,
     progress: Callable[[int], None] | None = None,
+    objects: Callable[[ObjectRows], None] | None = None,
 ) -> ResolveResult:
     """Batch-solve a stream of frame blocks, in capture order per camera.
 
     Blocks of a few dozen frames let the estimator fold a settled camera's observations in with
-    numpy (``Estimator.add_frames``) instead of one Python call per marker.
+    numpy (``Estimator.add_frames``) instead of one Python call per marker. ``objects`` receives
+    each block's object-marker observations from static frames, to be placed through the solved
+    cameras afterwards (``place_objects``); they are not part of the map.
     """
     est = Estimator(config)
     last_update = None
@@ -87,7 +103,10 @@ def resolve(
     seg_span: dict[tuple[str, int], list[int]] = {}
     for block in blocks:
         cam = block.camera_id
-        for stamp, seg in zip(block.stamps.tolist(), est.add_frames(cam, block.stamps, block.arrays)):
+        segs = est.add_frames(cam, block.stamps, block.arrays)
+        if objects is not None and est.object_markers:
+            _object_rows(block, segs, est.object_markers, objects)
+        for stamp, seg in zip(block.stamps.tolist(), segs):
             if seg is None:
                 continue
             stamps.setdefault(cam, []).append((stamp, seg))
@@ -138,3 +157,25 @@ def resolve(
         segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
         float(graph.error(values)), int(optimizer.iterations()), stamps,
     )  # fmt: skip
+
+
+def _object_rows(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]) -> None:
+    seg_of_frame = np.array([-1 if g is None else g for g in segs], dtype=np.int64)
+    a = block.arrays
+    keep = np.isin(a.ids, list(object_markers)) & (seg_of_frame[a.frame] >= 0)
+    if keep.any():
+        f = a.frame[keep]
+        sink(ObjectRows(block.camera_id, block.stamps[f], seg_of_frame[f], a.ids[keep], a.poses[keep], a.covariances[keep]))
+
+
+def place_objects(rows: ObjectRows, segments: dict[tuple[str, int], SegmentResult]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """world_T_marker (M, 4, 4) and covariances (M, 6, 6; ROS order, marker frame) of the rows
+    whose segment was solved, and the mask (N,) of those rows."""
+    solved = np.array([(rows.camera_id, int(g)) in segments for g in rows.segments], dtype=bool)
+    if not solved.any():
+        return np.zeros((0, 4, 4)), np.zeros((0, 6, 6)), solved
+    segs = [segments[(rows.camera_id, int(g))] for g in rows.segments[solved]]
+    wTc = np.stack([s.world_T_camera for s in segs])
+    cam_cov = np.stack([s.covariance for s in segs])
+    T, cov = through_camera(wTc, cam_cov, rows.poses[solved], rows.covariances[solved])
+    return T, cov, solved
