@@ -36,7 +36,6 @@ log = logging.getLogger(__name__)
 FLIP_GATE_RAD = math.radians(15.0)  # a candidate further than this from the pair mean is a flip
 POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, caught separately)
 MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
-MIN_PAIR_FOR_MOTION = 5  # observations a pair needs before it can witness a move
 YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
 TRACE_GATE = 1.0 + 2.0 * math.cos(FLIP_GATE_RAD)  # trace(R_mean^T R) above this: within the flip gate
 
@@ -490,9 +489,11 @@ class Estimator:
         cam_key = self._camera_key((track.camera_id, track.segment))
         for obs in static:
             pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
-            map_margin = 0.0
-            if pair is not None and pair.n >= MIN_PAIR_FOR_MOTION:
-                expected = pair.mean()
+            map_margin, young = 0.0, 1.0
+            if pair is not None and pair.n > 0:
+                # Its mean of n observations is itself uncertain by their covariance over n: from
+                # its first frame on, a pair can witness a move (a slow camera has few frames).
+                expected, young = pair.mean(), 1.0 + 1.0 / pair.n
             elif pair is None and cam_key in self.in_graph and marker_symbol(obs.marker_id) in self.in_graph:
                 # A marker this segment never paired with, but the map knows: it must appear where
                 # the map predicts (within the map's own uncertainty), or the camera has moved.
@@ -504,7 +505,7 @@ class Estimator:
             # Marker-frame covariance into the camera frame with the expected rotation: the
             # observation's own may be a flip, which would point its long (depth) axis astray.
             R = expected[:3, :3]
-            covs.append(R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3))
+            covs.append(young * R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3))
         d2: np.ndarray = np.zeros(0)
         shifts: np.ndarray = np.zeros(0)
         if deltas:  # one batched solve per frame instead of one per marker

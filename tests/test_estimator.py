@@ -286,3 +286,18 @@ def test_object_marker_covariance_carries_the_camera_through_the_lever_arm() -> 
     _, lever = through_camera(np.eye(4), rot_only, cTm.matrix(), np.zeros((6, 6)))
     assert 3.0 < 1000 * np.sqrt(np.trace(lever[:3, :3]) / 2) < 4.0  # ~2 m x 0.1 deg = 3.5 mm across two axes
 
+
+def test_a_camera_bumped_within_its_first_frames_is_still_caught() -> None:
+    """Pairs younger than five observations used to be no witness of a move, so a camera bumped
+    in its first frames (a slow camera under load: ~1 frame/s) folded the moved frames into its
+    first segment. A young pair's mean is uncertain by its observations' covariance over n, which
+    the test now adds; the bumped camera gets a new segment at its new pose."""
+    bump = CameraMotion(kind="bump", start_s=0.1, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))
+    markers = [wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")]
+    s = Scenario(markers=markers, cameras=[camera("a", 0.0, 0.3, [bump]), camera("b", 0.6, 0.3)])
+    est = run(s, 2.0)
+    assert est.estimate(int(2e9)).cameras["a"].segment == 1, "the bump in a's first frames did not start a new segment"
+    first = [p.n for ((cam, mk), p) in est.pairs.items() if cam == ("a", 0)]
+    assert first and max(first) <= 3, f"frames after the bump joined the first segment: {first} observations per pair"
+    check_camera(est, s, "a", 2.0, pos_mm=10.0, rot_deg=0.3)
+    check_camera(est, s, "b", 2.0, pos_mm=10.0, rot_deg=0.3)
