@@ -166,6 +166,17 @@ def log_gaps(run_dir: Path, faults: list[Fault], t0_mono: float, t0_ns: int) -> 
     return len(parts), gaps, unexplained
 
 
+def keep(run_dir: Path, dest: Path, memory: dict) -> None:
+    """The run's logs, config, state and memory series in ``dest``; not the recording (30 minutes
+    of it is ~16 GB, and copying it once filled the disk and lost the figures)."""
+    try:
+        dest.mkdir(parents=True, exist_ok=True)
+        (dest / "memory.json").write_text(json.dumps(memory))
+        shutil.copytree(run_dir, dest, dirs_exist_ok=True, ignore=shutil.ignore_patterns("*.mcap"))
+    except OSError as exc:  # the figures matter more than the copy
+        log.warning("could not keep the run in %s: %s", dest, exc)
+
+
 def window(samples: list[tuple[float, float]], lo: float, hi: float) -> np.ndarray:
     return np.array([v for t, v in samples if lo <= t < hi] or [np.nan])
 
@@ -229,9 +240,7 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
             proc.send_signal(signal.SIGTERM)
             proc.wait(120)
             if args is not None and args.keep is not None:
-                shutil.copytree(run_dir, args.keep, dirs_exist_ok=True)
-                (args.keep / "memory.json").write_text(json.dumps({"private_mb": rss, "shared_mb": shm,
-                                                                   "faults": [(f.name, f.at - t0) for f in faults]}))  # fmt: skip
+                keep(run_dir, args.keep, {"private_mb": rss, "shared_mb": shm, "faults": [(f.name, f.at - t0) for f in faults]})
         finally:
             if bus is not None:
                 bus.close()
@@ -278,7 +287,7 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
 
 def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--minutes", type=float, default=30.0, help="length of the full run (default 30)")
-    parser.add_argument("--keep", type=Path, help="copy the run folder (logs, recording, state) here at the end")
+    parser.add_argument("--keep", type=Path, help="copy the run folder here at the end (logs, config, state, memory series; not the recording)")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """``cellsight resolve``: re-solve a recorded log in batch and write what people and tools read.
 
-    DIR/resolved.mcap         solved poses and covariances on the daemon's keys, plus tf
-    DIR/trajectories/*.tum    per-camera poses at every frame of a static segment (for evo)
+    DIR/resolved.mcap         solved poses and covariances on the daemon's keys (object markers over time), plus tf
+    DIR/trajectories/*.tum    per-camera poses at every frame of a static segment, object markers at <= 10 Hz (for evo)
     DIR/report.html + *.png   top view, residuals, outliers per marker, online vs offline, truth
     DIR/resolve.json          the figures behind the report
     DIR/config.toml           the configuration used

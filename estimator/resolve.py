@@ -5,7 +5,8 @@ resolves planar-PnP flips per pair and detects moved cameras. Its fused pair fac
 sufficient statistics of the log, so memory stays bounded however long the log is. At the end,
 Levenberg-Marquardt (robust Huber factors, from the incremental solution) solves the whole
 problem to convergence, and gtsam's ``Marginals`` give every pose's covariance. Per pair the
-whitened residual is kept for the report.
+whitened residual is kept for the report. Object markers are not in the map: their observations
+go to a caller's sink and are placed through the solved cameras afterwards (``place_objects``).
 """
 
 from __future__ import annotations

@@ -1,0 +1,120 @@
+"""Frames through the bus: CPU of moving 4 cameras x 30 Hz of VGA RGB-D to 2 readers, shared memory vs plain bytes.
+
+One router, four publisher processes (a 640x480 rgb8 and a 16UC1 image per frame, 1.5 MB, at
+30 Hz, as a Kinect v1 driver sends them) and two reader processes that decode every frame into
+protobuf messages, as the recorder and the recognition worker do. Each process reports its own
+CPU time (user + system, ``getrusage``); the same run is made with ``transport.shared_memory``
+on and off. The reference shared memory must beat is plain bytes on the same machine, same run.
+"""
+
+from __future__ import annotations
+
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from benchmarks.common import main
+from schemas import codec, keys
+from schemas.bus import Bus, TransportConfig, open_session
+
+CELL = "bench"
+CAMERAS = ("cam1", "cam2", "cam3", "cam4")
+RATE_HZ = 30.0
+READERS = 2
+
+
+def cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def publisher(endpoint: str, shm: bool, camera: str, seconds: float) -> None:
+    """Publish ``seconds`` of frames at RATE_HZ; print CPU seconds, frames and how many went through shared memory."""
+    with Bus(TransportConfig(mode="client", connect=[endpoint], shared_memory=shm), CELL) as bus:
+        color, depth = bus.publisher(keys.color(CELL, camera), frames=True), bus.publisher(keys.depth(CELL, camera), frames=True)
+        rng = np.random.default_rng(0)
+        c = codec.image_to_msg(rng.integers(0, 255, (480, 640, 3), dtype=np.uint8), 1, camera, "rgb8")
+        d = codec.image_to_msg(rng.integers(0, 4000, (480, 640), dtype=np.uint16), 1, camera, "16UC1")
+        time.sleep(1.0)  # readers are routed
+        start, k = time.monotonic(), 0
+        while time.monotonic() - start < seconds:
+            color.put(c)
+            depth.put(d)
+            k += 1
+            time.sleep(max(0.0, start + k / RATE_HZ - time.monotonic()))
+        print(f"{cpu_s():.3f} {k} {color.shm_puts + depth.shm_puts}", flush=True)
+
+
+def reader(endpoint: str, shm: bool, seconds: float) -> None:
+    """Decode every frame for ``seconds``; print CPU seconds and frames received."""
+    with Bus(TransportConfig(mode="client", connect=[endpoint], shared_memory=shm), CELL) as bus:
+        sub = bus.subscribe(keys.everything(CELL), capacity=64, ring=True)
+        end, n = time.monotonic() + seconds, 0
+        while time.monotonic() < end:
+            n += len(sub.drain())
+            time.sleep(0.01)
+        print(f"{cpu_s():.3f} {n}", flush=True)
+
+
+def router(endpoint: str, shm: bool, seconds: float) -> None:
+    session = open_session(TransportConfig(mode="router", connect=[], listen=[endpoint], shared_memory=shm))
+    time.sleep(seconds)
+    print(f"{cpu_s():.3f}", flush=True)
+    session.close()
+
+
+def one_run(shm: bool, seconds: float) -> dict[str, float]:
+    from tests.conftest import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    me = [sys.executable, "-m", "benchmarks.transport", "--role"]
+    flag = "1" if shm else "0"
+    r = subprocess.Popen(me + ["router", endpoint, flag, str(seconds + 6)], stdout=subprocess.PIPE, text=True)
+    time.sleep(1.0)
+    readers = [subprocess.Popen(me + ["reader", endpoint, flag, str(seconds + 3)], stdout=subprocess.PIPE, text=True) for _ in range(READERS)]
+    time.sleep(0.5)
+    pubs = [subprocess.Popen(me + ["publisher", endpoint, flag, str(seconds), cam], stdout=subprocess.PIPE, text=True) for cam in CAMERAS]
+    pub_out = [p.communicate(timeout=seconds + 60)[0].split() for p in pubs]
+    read_out = [p.communicate(timeout=seconds + 60)[0].split() for p in readers]
+    router_cpu = float(r.communicate(timeout=seconds + 60)[0].split()[0])
+    sent = sum(int(o[1]) for o in pub_out) * 2  # color + depth
+    return {
+        "cpu_s_per_s_total": (sum(float(o[0]) for o in pub_out) + sum(float(o[0]) for o in read_out) + router_cpu) / seconds,
+        "cpu_s_per_s_publishers": sum(float(o[0]) for o in pub_out) / seconds,
+        "cpu_s_per_s_readers": sum(float(o[0]) for o in read_out) / seconds,
+        "cpu_s_per_s_router": router_cpu / seconds,
+        "images_sent": sent,
+        "images_received_pct": 100.0 * sum(int(o[1]) for o in read_out) / (READERS * sent),
+        "images_via_shm_pct": 100.0 * sum(int(o[2]) for o in pub_out) / sent,
+    }
+
+
+def run(quick: bool) -> dict[str, float]:
+    seconds = 8.0 if quick else 30.0
+    shm, plain = one_run(True, seconds), one_run(False, seconds)
+    figures: dict[str, float] = {"seconds": seconds}
+    figures.update({f"shm_{k}": v for k, v in shm.items()})
+    figures.update({f"plain_{k}": v for k, v in plain.items()})
+    figures["plain_over_shm_cpu_ratio"] = plain["cpu_s_per_s_total"] / shm["cpu_s_per_s_total"]
+    return figures
+
+
+def _role(argv: list[str]) -> None:
+    role, endpoint, flag, seconds = argv[:4]
+    shm, secs = flag == "1", float(seconds)
+    if role == "publisher":
+        publisher(endpoint, shm, argv[4], secs)
+    elif role == "reader":
+        reader(endpoint, shm, secs)
+    else:
+        router(endpoint, shm, secs)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--role":
+        _role(sys.argv[2:])
+    else:
+        main("transport", __doc__.splitlines()[0], run)
