@@ -17,9 +17,10 @@ import logging
 import json
 import math
 import tempfile
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, TextIO
 
 import numpy as np
 
@@ -239,13 +240,14 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
     tdir.mkdir(exist_ok=True)
     objects = ObjectErrors()
     if spool is not None:
-        tum: dict[str, list[str]] = {}
-        for p in object_poses(spool, result):
-            w.write(keys.estimate_markers(cell), codec.poses_to_msg(p.stamp_ns, [p]), p.stamp_ns)
-            tum.setdefault(p.child, []).append(f"{p.stamp_ns / 1e9:.9f} {tum_pose(p.T)}")
-            objects.add(p, side)
-        for child, lines in tum.items():
-            (tdir / f"{child}.tum").write_text("\n".join(lines) + "\n")
+        with ExitStack() as files:  # streamed: an hour is ~36,000 poses per object marker
+            tum: dict[str, TextIO] = {}
+            for p in object_poses(spool, result):
+                w.write(keys.estimate_markers(cell), codec.poses_to_msg(p.stamp_ns, [p]), p.stamp_ns)
+                if p.child not in tum:
+                    tum[p.child] = files.enter_context((tdir / f"{p.child}.tum").open("w"))
+                tum[p.child].write(f"{p.stamp_ns / 1e9:.9f} {tum_pose(p.T)}\n")
+                objects.add(p, side)
     markers = [StampedPose("world", marker_frame(k), end, T, C) for k, (T, C) in result.markers.items()]
     w.write(keys.estimate_markers(cell), codec.poses_to_msg(end, markers), end)
     latest = {}
