@@ -44,10 +44,17 @@ class Child:
     backoff_s: float = 0.5
     restart_at: float | None = None
     events: list[str] = field(default_factory=list)
+    shm_starts: int | None = None  # frame publishers: starts with shared memory, then plain bytes
+
+    @property
+    def plain_bytes(self) -> bool:
+        """Whether this start sends frames as plain bytes (its shared-memory starts are used up)."""
+        return self.shm_starts is not None and self.restarts >= self.shm_starts
 
     def start(self) -> None:
         log_file = open(self.log_path, "ab")
-        self.proc = subprocess.Popen(self.argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True)
+        env = {**os.environ, "CELLSIGHT__TRANSPORT__SHARED_MEMORY": "false"} if self.plain_bytes else None
+        self.proc = subprocess.Popen(self.argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         log_file.close()
         self.started = time.monotonic()
         self.restart_at = None
@@ -102,9 +109,10 @@ class Supervisor:
                 events.append(f"{child.name} exited with code {code}; restarting in {child.backoff_s:.1f} s")
                 child.backoff_s = min(child.backoff_s * 2, MAX_BACKOFF_S)
             elif now >= child.restart_at:
-                child.start()
                 child.restarts += 1
-                events.append(f"{child.name} restarted (pid {child.pid}, restart {child.restarts})")
+                child.start()
+                plain = ", frames as plain bytes: each new shared-memory pool stays mapped in every reader" if child.plain_bytes else ""
+                events.append(f"{child.name} restarted (pid {child.pid}, restart {child.restarts}{plain})")
                 self.write_manifest()
         for e in events:
             log.warning(e)
@@ -164,7 +172,7 @@ def plan(cfg: CellConfig, run_dir: Path, record: Path | None, max_image_hz: floa
             argv = CLI + ["driver", "sim", "--camera", cam.id, "--epoch-ns", str(epoch_ns)] + common
         else:
             argv = CLI + ["driver", "openni2", "--camera", cam.id] + common
-        children.append(Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log"))
+        children.append(Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log", shm_starts=cfg.transport.shm_driver_starts))
     state = cfg.estimator.state_file or run_dir / "estimator_state.json"
     children.append(Child("estimator", CLI + ["estimator", "--state-file", str(state)] + common, logs / "estimator.log"))
     if cfg.recognition.enabled:

@@ -61,6 +61,12 @@ class TransportConfig(BaseModel):
         "a frame at once). Every reader maps it too and, zenoh 1.10, keeps a crashed publisher's pool mapped for its "
         "own lifetime (zenoh issue 2787): a driver crash costs each reader this much",
     )
+    shm_driver_starts: int = Field(
+        default=1, ge=0,
+        description="how many times `cellsight run` starts a driver with shared memory; a driver restarted after that "
+        "sends plain bytes, because every pool a reader has seen stays mapped in it (zenoh issue 2787): with 1, "
+        "driver crashes cost the readers nothing more, the crashed camera 1.5x the transport CPU",
+    )
     zenoh_config: Path | None = Field(
         default=None, description="zenoh JSON5 config file loaded first (TLS, mTLS, access control)"
     )
@@ -81,6 +87,10 @@ class TransportConfig(BaseModel):
         settings: dict[str, Any] = {
             "scouting/multicast/enabled": self.multicast_scouting,
             "transport/shared_memory/enabled": self.shared_memory,
+            # Off: zenoh would give every process a 16 MiB pool of its own for any message over 3 KB,
+            # and each restart of any process would leave one more pool mapped in its readers.
+            # Frames get their pool explicitly (Bus.publisher(frames=True)); nothing else needs one.
+            "transport/shared_memory/transport_optimization/enabled": False,
         }
         if self.mode is not None or self.zenoh_config is None:
             settings["mode"] = self.mode or "client"

@@ -100,8 +100,17 @@ def kill_once_localized(run_dir: Path, states, name: str) -> tuple[int, float]:
     return pid, time.monotonic()
 
 
+def zenoh_segments(pid: int) -> set[str]:
+    """The zenoh shared-memory segments a process maps (its own pools and those it received from)."""
+    return {line.split()[-1] for line in Path(f"/proc/{pid}/maps").read_text().splitlines() if line.endswith(".zenoh")}
+
+
 def test_killed_driver_goes_stale_and_recovers_after_restart(cell) -> None:
+    """Also: the restarted driver sends plain bytes (``shm_driver_starts`` = 1) and makes no pool, so
+    the router, which keeps every pool it has seen mapped (zenoh issue 2787), maps nothing new."""
     run_dir, states, _ = cell
+    wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
+    router_before = zenoh_segments(pid_of(run_dir, "router"))
     old, killed = kill_once_localized(run_dir, states, "driver/a")
     wait_until(lambda: states[-1][1].get("a") == m.CameraState.STALE, 5, "camera a to go stale")
     stale_at = next(t for t, s in states if t > killed and s.get("a") == m.CameraState.STALE)
@@ -109,6 +118,10 @@ def test_killed_driver_goes_stale_and_recovers_after_restart(cell) -> None:
     assert states[-1][1]["b"] == m.CameraState.LOCALIZED  # the other camera is unaffected
     wait_until(lambda: pid_of(run_dir, "driver/a") != old, 10, "the supervisor to restart the driver")
     wait_until(lambda: localized(states, "a"), 30, "camera a localized again")
+    assert zenoh_segments(pid_of(run_dir, "driver/a")) == set(), "the restarted driver made a shared-memory pool"
+    time.sleep(1.0)  # more frames of the new driver through the router
+    new = zenoh_segments(pid_of(run_dir, "router")) - router_before
+    assert not new, f"the router mapped {len(new)} new segments after the restart: {sorted(new)}"
 
 
 def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(cell) -> None:
