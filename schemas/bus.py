@@ -59,7 +59,7 @@ class TransportConfig(BaseModel):
         default=16, ge=2, le=4096,
         description="shared-memory pool of each frame-publishing process (a VGA RGB-D pair is 1.5 MB; decoders release "
         "a frame at once). Every reader maps it too and, zenoh 1.10, keeps a crashed publisher's pool mapped for its "
-        "own lifetime (zenoh issue 2787): a driver crash costs each reader this much",
+        "own lifetime (zenoh issue 2787): see shm_driver_starts",
     )
     shm_driver_starts: int = Field(
         default=1, ge=0,
