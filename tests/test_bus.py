@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import random
+import resource
 import subprocess
 import sys
 import time
@@ -13,7 +14,7 @@ import pytest
 
 from schemas import codec, keys
 from schemas import messages as m
-from schemas.bus import Bus, TransportConfig
+from schemas.bus import Bus, TransportConfig, memory_lock_problem
 from schemas.errors import BusError, SchemaError
 from tests.conftest import ROOT
 from tests.helpers import wait_until
@@ -190,20 +191,28 @@ def test_frames_travel_through_shared_memory(client_transport: TransportConfig) 
     np.testing.assert_array_equal(codec.image_from_msg(received[0]), depth)
 
 
-# Root without CAP_IPC_LOCK: Debian's 8 MiB cap on locked memory applies, as to any plain user.
-NO_MEMLOCK = ["setpriv", "--bounding-set=-ipc_lock", "--inh-caps=-ipc_lock"]
+# A child that may lock 8 MiB, Debian's default for a plain user. Root also drops CAP_IPC_LOCK,
+# which would let it past the limit; a plain user has no such capability to drop.
+MEMLOCK_CAP_BYTES = 8 * 1024 * 1024
+NO_IPC_LOCK = ["setpriv", "--bounding-set=-ipc_lock", "--inh-caps=-ipc_lock"]
 PEER = [sys.executable, "-m", "tests.frame_peer"]
 
 
-def need_root() -> None:
-    if os.geteuid() != 0:
-        if os.environ.get("CI"):
-            pytest.fail("CI runs as root; the memory-lock tests need it to drop CAP_IPC_LOCK")
-        pytest.skip("needs root to drop CAP_IPC_LOCK from a child (CI runs these)")
+def _cap_locked_memory() -> None:
+    resource.setrlimit(resource.RLIMIT_MEMLOCK, (MEMLOCK_CAP_BYTES, MEMLOCK_CAP_BYTES))  # lowering is always allowed
 
 
 def peer(*args: str, limited: bool = False) -> subprocess.Popen:
-    return subprocess.Popen((NO_MEMLOCK if limited else []) + PEER + list(args), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    prefix = NO_IPC_LOCK if limited and os.geteuid() == 0 else []
+    return subprocess.Popen(prefix + PEER + list(args), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_cap_locked_memory if limited else None)  # fmt: skip
+
+
+def need_shared_memory() -> None:
+    """These tests compare against a process that does use shared memory: this one must be able to."""
+    problem = memory_lock_problem()
+    if problem is not None:
+        pytest.fail(f"{problem}: run the tests as root (as set-up and CI do) or with `ulimit -l unlimited`")
 
 
 def last_received(out: str) -> tuple[int, int]:
@@ -215,8 +224,8 @@ def last_received(out: str) -> tuple[int, int]:
 def test_a_reader_that_cannot_lock_memory_still_gets_frames(client_transport: TransportConfig) -> None:
     """zenoh drops a shared-memory sample whose pool the reader cannot lock (zenoh issue 2788), so a
     plain user's recorder saw a silent camera. A process that cannot lock memory now turns shared
-    memory off and gets frames as bytes, while the root publisher still uses its pool."""
-    need_root()
+    memory off and gets frames as bytes, while the publisher still uses its pool."""
+    need_shared_memory()
     reader = peer("sub", client_transport.connect[0], "4", limited=True)
     assert reader.stdout is not None and reader.stdout.readline().startswith("ready")
     time.sleep(0.5)
@@ -234,7 +243,6 @@ def test_a_reader_that_cannot_lock_memory_still_gets_frames(client_transport: Tr
 
 def test_a_publisher_that_cannot_lock_memory_sends_plain_bytes(client_transport: TransportConfig) -> None:
     """It used to die creating its pool (``ZError``: out of memory); a driver must start as a plain user."""
-    need_root()
     got: list[int] = []
     with Bus(client_transport, CELL) as bus:
         probe = bus.session.declare_subscriber(keys.depth(CELL, "cam1"), lambda s: got.append(len(s.payload)))
@@ -250,7 +258,7 @@ def test_each_publisher_restart_costs_a_reader_at_most_one_pool(client_transport
     issue 2787), so each restarted driver costs each frame reader its pool (``shm_pool_mb``) plus
     zenoh's 1.25 MiB metadata: the bound the README states. A reader with shared memory off maps
     nothing."""
-    need_root()
+    need_shared_memory()
     gens = 3
     reader = peer("sub", client_transport.connect[0], "7", *(["plain"] if plain else []))
     assert reader.stdout is not None
