@@ -51,18 +51,17 @@ def newest_poses(path: Path) -> tuple[dict[str, StampedPose], ReadReport]:
 
 def object_markers_of(report: ReadReport) -> list[int]:
     """Object-marker ids a log's metadata names: resolve's list, or the recorder's embedded config."""
+    from cellsight.errors import ConfigError
+    from cellsight.resolve_cmd import config_of_log
+
     meta = report.metadata.get("cellsight", {})
     if "object_markers" in meta:
         return [int(v) for v in meta["object_markers"].split()]
-    if "config" in meta:
-        import tomllib
-
-        try:
-            ids = tomllib.loads(meta["config"]).get("estimator", {}).get("object_markers", [])
-        except tomllib.TOMLDecodeError:
-            return []
-        return [int(v) for v in ids if isinstance(v, int)]
-    return []
+    try:
+        cfg = config_of_log(report)
+    except ConfigError:  # a damaged embedded config says nothing about objects; compare everything
+        return []
+    return [] if cfg is None else list(cfg.estimator.object_markers)
 
 
 def compare(a: dict[str, StampedPose], b: dict[str, StampedPose], min_mm: float = 1.0, min_deg: float = 0.05) -> list[Change]:
