@@ -208,10 +208,10 @@ CLI_TEMPLATES = [
 ]
 
 
-@functools.cache
-def _junk_files() -> tuple[str, ...]:
+@pytest.fixture(scope="module")
+def junk_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, ...]:
     """Paths a confused user might pass: missing, a folder, empty and garbage files of each kind."""
-    where = Path(tempfile.mkdtemp(prefix="cli-fuzz-"))
+    where = tmp_path_factory.mktemp("cli-fuzz")
     paths = [where / "missing.toml", where, where / ""]
     for name, data in [("empty.toml", b""), ("junk.toml", b"[cell\nname = 3"), ("junk.mcap", b"\x89MCAP0\r\n" + bytes(100)),
                        ("junk.pcd", b"# .PCD\nFIELDS x\n"), ("junk.png", b"\x89PNG\r\n\x1a\n garbage"), ("junk.yml", b"%YAML:1.0\nfoo: [")]:  # fmt: skip
@@ -225,7 +225,7 @@ NUMBERS = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(str), st.
 
 @settings(max_examples=100, deadline=None, phases=[Phase.explicit, Phase.reuse, Phase.generate])  # the message names the args: no shrinking
 @given(data=st.data())
-def test_cli_arguments_give_an_exit_code_never_a_traceback(data: st.DataObject) -> None:
+def test_cli_arguments_give_an_exit_code_never_a_traceback(junk_files: tuple[str, ...], data: st.DataObject) -> None:
     """Any mix of junk arguments to the offline commands ends in a clean exit 0, 1 or 2."""
     from typer.testing import CliRunner
 
@@ -236,8 +236,8 @@ def test_cli_arguments_give_an_exit_code_never_a_traceback(data: st.DataObject) 
         if data.draw(st.integers(0, 9)) == 0:
             continue  # a missing argument or option value
         word = data.draw(st.text(st.characters(codec="ascii", categories=["L", "N", "P"]), min_size=0, max_size=8))
-        path = data.draw(st.sampled_from(_junk_files()))
-        args.append(token.replace("S=P", f"{word}={path}").replace("OUT", f"{_junk_files()[1]}/out")
+        path = data.draw(st.sampled_from(junk_files))
+        args.append(token.replace("S=P", f"{word}={path}").replace("OUT", f"{junk_files[1]}/out")
                     .replace("P", path) if token in ("P", "S=P", "OUT") else data.draw(NUMBERS) if token == "N"
                     else word if token == "S" else token)  # fmt: skip
     result = CliRunner().invoke(app, args, catch_exceptions=True)
@@ -293,12 +293,13 @@ def _small_log() -> bytes:
     from schemas import messages as m
     from schemas.log import LogWriter
 
-    path = Path(tempfile.mkdtemp(prefix="log-fuzz-")) / "small.mcap"
-    writer = LogWriter(path, chunk_size=1024, metadata={"config": "x"})
-    for i in range(60):
-        writer.write(keys.status("fz", "cam1"), m.DriverStatus(camera_id="cam1", stamp_ns=1 + i, frames=i), 1 + i)
-    writer.close()
-    return path.read_bytes()
+    with tempfile.TemporaryDirectory(prefix="log-fuzz-") as where:
+        path = Path(where) / "small.mcap"
+        writer = LogWriter(path, chunk_size=1024, metadata={"config": "x"})
+        for i in range(60):
+            writer.write(keys.status("fz", "cam1"), m.DriverStatus(camera_id="cam1", stamp_ns=1 + i, frames=i), 1 + i)
+        writer.close()
+        return path.read_bytes()
 
 
 @FUZZ
