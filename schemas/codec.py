@@ -436,8 +436,9 @@ def poses_from_msg(msg: m.PosesWithCovariance) -> dict[str, StampedPose]:
 @dataclass(frozen=True)
 class MarkerArrays:
     """The observations of one or more ``MarkerObservations`` as arrays, one row per marker: ids (N,),
-    camera_T_marker (N, 4, 4), the other IPPE candidate (N, 4, 4; equal to the chosen one when
-    absent), covariances (N, 6, 6) in ROS order, ambiguous flags (N,) and the index (N,) of the
+    camera_T_marker (N, 4, 4), the other IPPE branch (N, 4, 4: the rotation of the candidate further
+    from the chosen one, at the chosen position; equal to the chosen pose when no candidates were
+    sent), covariances (N, 6, 6) in ROS order, ambiguous flags (N,) and the index (N,) of the
     message each row came from."""
 
     ids: np.ndarray
@@ -481,20 +482,30 @@ def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> Ma
     for i, msg in enumerate(msgs):  # the one Python loop: every field read once, checks come after
         for o in msg.markers:
             p = o.camera_T_marker
+            a = o.candidate_a if o.HasField("candidate_a") else p
             b = o.candidate_b if o.HasField("candidate_b") else p
             rows.append((o.marker_id, i, o.ambiguous, o.side_m, len(o.corners_px), len(o.covariance),
-                         p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw, b.x, b.y, b.z, b.qx, b.qy, b.qz, b.qw))  # fmt: skip
+                         p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw, a.x, a.y, a.z, a.qx, a.qy, a.qz, a.qw,
+                         b.x, b.y, b.z, b.qx, b.qy, b.qz, b.qw))  # fmt: skip
             cov.extend(o.covariance)
-    r = np.array(rows, dtype=np.float64).reshape(-1, 20)
+    r = np.array(rows, dtype=np.float64).reshape(-1, 27)
     ids = r[:, 0].astype(np.int64)
     if check:
         _check_marker_scalars(ids, r[:, 3], r[:, 4], r[:, 5])
     cov_a = np.fromiter(cov, np.float64, len(cov)).reshape(-1, 6, 6)
     if check:
         _check_marker_rows(ids, r[:, 6:], cov_a)
-    poses = _poses_from_rows(np.concatenate([r[:, 6:13], r[:, 13:]]))
     n = len(ids)
-    return MarkerArrays(ids, poses[:n], poses[n:], cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
+    poses = _poses_from_rows(np.concatenate([r[:, 6:13], r[:, 13:20], r[:, 20:]]))
+    chosen, cand_a, cand_b = poses[:n], poses[n : 2 * n], poses[2 * n :]
+    # The chosen pose is either candidate after depth refinement: a new rotation toward the plane's
+    # normal and the plane's range. The other branch is the candidate further from it in rotation;
+    # it keeps the chosen position, since the candidates' own positions are planar PnP's (tens of mm
+    # off in range at 3 m) and a flip corrected in the estimator must not bring that error back.
+    further_a = np.einsum("nij,nij->n", chosen[:, :3, :3], cand_a[:, :3, :3]) < np.einsum("nij,nij->n", chosen[:, :3, :3], cand_b[:, :3, :3])
+    other = np.where(further_a[:, None, None], cand_a, cand_b)
+    other[:, :3, 3] = chosen[:, :3, 3]
+    return MarkerArrays(ids, chosen, other, cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
 
 
 def _check_marker_scalars(ids: np.ndarray, side: np.ndarray, corners: np.ndarray, cov_len: np.ndarray) -> None:
@@ -507,8 +518,8 @@ def _check_marker_scalars(ids: np.ndarray, side: np.ndarray, corners: np.ndarray
 
 
 def _check_marker_rows(ids: np.ndarray, r: np.ndarray, cov: np.ndarray) -> None:
-    """Poses (N, 14: chosen, then candidate_b, each x y z qx qy qz qw) and covariances (N, 6, 6)."""
-    for name, rows in (("camera_T_marker", r[:, :7]), ("candidate_b", r[:, 7:])):
+    """Poses (N, 21: chosen, candidate_a, candidate_b, each x y z qx qy qz qw) and covariances (N, 6, 6)."""
+    for name, rows in (("camera_T_marker", r[:, :7]), ("candidate_a", r[:, 7:14]), ("candidate_b", r[:, 14:])):
         bad = ~np.all(np.isfinite(rows), axis=1)
         norms = np.linalg.norm(rows[:, 3:], axis=1)
         bad_norm = np.abs(norms - 1.0) > 1e-3

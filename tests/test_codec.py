@@ -141,6 +141,27 @@ def test_bad_marker_observations_are_rejected_with_a_reason(mutate, why: str) ->
         codec.decode(msg.SerializeToString(), m.MarkerObservations)
 
 
+@pytest.mark.parametrize("refined_from", ["a", "b"])
+def test_the_alternative_is_the_other_ippe_branch_at_the_chosen_position(refined_from: str) -> None:
+    """Depth refinement turns either IPPE candidate and replaces planar PnP's range. The estimator's
+    alternative must be the other branch, at the refined position: a corrected flip must not bring
+    back PnP's range error (tens of mm at 3 m; it once shifted a pair's mean by 70 mm)."""
+    Ra, Rb = codec.matrix_from_quat([0.0, 0.0, 0.0, 1.0]), codec.matrix_from_quat([0.17, 0.0, 0.0, 0.985])
+    tilt = codec.matrix_from_quat([0.0, 0.02, 0.0, 0.9998])  # the plane's correction of the chosen rotation
+    cand = {"a": codec.make_pose(Ra, [0.1, 0.0, 3.04]), "b": codec.make_pose(Rb, [0.1, 0.0, 3.06])}
+    chosen = codec.make_pose(tilt @ cand[refined_from][:3, :3], [0.1, 0.0, 3.0])
+    msg = good_marker_observations()
+    o = msg.markers[0]
+    codec.pose_to_msg(cand["a"], o.candidate_a)
+    codec.pose_to_msg(cand["b"], o.candidate_b)
+    codec.pose_to_msg(chosen, o.camera_T_marker)
+    a = codec.marker_arrays(codec.decode(msg.SerializeToString(), m.MarkerObservations))
+    other = cand["b" if refined_from == "a" else "a"]
+    np.testing.assert_allclose(a.poses[0], chosen, atol=1e-9)
+    np.testing.assert_allclose(a.alternatives[0][:3, :3], other[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(a.alternatives[0][:3, 3], chosen[:3, 3], atol=1e-12)
+
+
 def test_image_with_wrong_size_is_rejected() -> None:
     msg = codec.image_to_msg(np.zeros((4, 4, 3), np.uint8), 1, "c", "rgb8")
     msg.data = msg.data[:-1]
