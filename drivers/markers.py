@@ -118,7 +118,16 @@ class PlaneFit:
 
 
 def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrink: float = 0.8) -> PlaneFit | None:
-    """Least-squares plane through the depth pixels inside the (shrunken) marker quad, 2 trimming passes."""
+    """Plane through the depth pixels inside the (shrunken) marker quad, fitted in inverse depth.
+
+    A plane n.X = d seen through normalised image coordinates (x, y) has inverse depth
+    1/z = (n / d) . (x, y, 1): linear in the pixel. The Kinect measures disparity f b / z with
+    Gaussian noise of the same size everywhere, so ordinary least squares in 1/z is the unbiased
+    fit. A fit of the back-projected points in metres is not: their noise grows as z^2 and runs
+    along the rays, and ranges came out up to 3 mm long at 4 m. Two trimming passes drop flying
+    pixels at the quad's edge; the cut never goes below the sensor's own noise, or a near-frontal
+    quad whose pixels mostly share one quantisation level would keep only those.
+    """
     centre = corners.mean(0)
     quad = (centre + shrink * (corners - centre)).astype(np.int32)
     x0, y0 = np.maximum(quad.min(0), 0)
@@ -132,23 +141,28 @@ def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrin
     if sel.sum() < 12:
         return None
     v, u = np.nonzero(sel)
-    zz = z[sel]
-    pts = np.column_stack([((u + x0) - info.K[0, 2]) * zz / info.K[0, 0], ((v + y0) - info.K[1, 2]) * zz / info.K[1, 1], zz])
-    keep = np.ones(len(pts), bool)
-    for _ in range(2):  # trim outliers (flying pixels at the quad's edge)
-        c = pts[keep].mean(0)
-        _, _, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
-        n = vt[2]
-        res = (pts - c) @ n
-        sigma = max(1.4826 * np.median(np.abs(res[keep])), 1e-4)
-        keep = np.abs(res) < 3 * sigma
+    A = np.column_stack([((u + x0) - info.K[0, 2]) / info.K[0, 0], ((v + y0) - info.K[1, 2]) / info.K[1, 1], np.ones(len(u))])
+    w = 1.0 / z[sel]
+    f = 0.5 * (info.K[0, 0] + info.K[1, 1])
+    noise_w = kinect_sigma_z(1.0, f)  # the sensor's 1/z sigma (1/m), the same at every range
+    keep = np.ones(len(w), bool)
+    for _ in range(2):
+        p = np.linalg.lstsq(A[keep], w[keep], rcond=None)[0]
+        res = w - A @ p
+        keep = np.abs(res) < 3.0 * max(1.4826 * float(np.median(np.abs(res[keep]))), noise_w)
         if keep.sum() < 12:
             return None
-    c = pts[keep].mean(0)
-    _, s, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
-    n = vt[2] if vt[2] @ c < 0 else -vt[2]
-    extent = float(np.sqrt(s[0] ** 2 / keep.sum()) * 2 * math.sqrt(3))
-    return PlaneFit(n, float(n @ c), int(keep.sum()), float(np.sqrt(np.mean(((pts[keep] - c) @ n) ** 2))), extent)
+    p = np.linalg.lstsq(A[keep], w[keep], rcond=None)[0]
+    if p[2] <= 0:
+        return None  # the plane does not face the camera: no sensible fit
+    norm = float(np.linalg.norm(p))
+    pts = A[keep] / w[keep, None]
+    _, s, _ = np.linalg.svd(pts - pts.mean(0), full_matrices=False)
+    # Residuals as distances from the plane (m), as a metric fit would report them: a pixel off by
+    # dw in 1/z is off by dz = dw z^2 along its ray (x, y, 1), and by dz |n . (x, y, 1)| from the plane.
+    off = (w[keep] - A[keep] @ p) / w[keep] ** 2 * (A[keep] @ p) / norm
+    rms = float(np.sqrt(np.mean(off**2)))
+    return PlaneFit(-p / norm, -1.0 / norm, int(keep.sum()), rms, float(s[0] / math.sqrt(keep.sum()) * 2 * math.sqrt(3)))
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,8 @@ import pytest
 
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
-from drivers.markers import MarkerDetector, covariance_model
-from drivers.sim.render import SimCell
+from drivers.markers import MarkerDetector, covariance_model, fit_plane
+from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import load_scenario
 from schemas.codec import CameraInfo, invert_pose, make_pose
 from tests.helpers import rotation_angle_deg
@@ -113,6 +113,33 @@ def sim_observations():
                     rows.append((d, truth))
         out[use_depth] = rows
     return out
+
+
+@pytest.mark.parametrize("z0", [2.3, 3.4, 3.7, 3.8])
+@pytest.mark.parametrize("tilt_deg", [0.0, 65.0])
+def test_plane_fit_range_is_unbiased_on_kinect_depth(z0: float, tilt_deg: float) -> None:
+    """The plane's range along the centre ray, over 40 noise draws of the simulator's Kinect model
+    (disparity noise, 1/8 px quantisation) for a 0.25 m quad: its mean error must be within 0.5 mm
+    (about 3 standard errors of the mean at 3.8 m, 65 deg). A metric fit with a median trim was
+    biased by up to 6 mm: frontal quads kept only the commonest quantisation level, tilted ones
+    read 1.5 mm long (noise along the rays, growing as z^2)."""
+    info = CameraInfo.kinect_v1()
+    noise = load_scenario(None).noise
+    t = np.radians(tilt_deg)
+    n = np.array([np.sin(t), 0.0, -np.cos(t)])  # toward the camera, through (0, 0, z0)
+    u, v = np.meshgrid(np.arange(info.width), np.arange(info.height))
+    rays = np.stack([(u - info.K[0, 2]) / info.K[0, 0], (v - info.K[1, 2]) / info.K[1, 1], np.ones(u.shape)], -1).reshape(-1, 3)
+    z = (n @ [0.0, 0.0, z0]) / (rays @ n)
+    half, hx = 0.125 * info.K[0, 0] / z0, 0.125 * info.K[0, 0] / z0 * np.cos(t)
+    c = info.K[:2, 2]
+    corners = c + np.array([[-hx, -half], [hx, -half], [hx, half], [-hx, half]])
+    rng = np.random.default_rng(7)
+    errors = []
+    for _ in range(40):
+        plane = fit_plane(kinect_depth(z, np.ones_like(z), info, noise, rng), corners, info)
+        assert plane is not None
+        errors.append(plane.d / plane.normal[2] - z0)
+    assert abs(np.mean(errors)) < 5e-4, f"range bias {np.mean(errors) * 1e3:+.2f} mm at {z0} m, {tilt_deg} deg"
 
 
 def test_sim_depth_refinement_beats_pnp_and_removes_flips(sim_observations) -> None:
