@@ -31,8 +31,10 @@ class MarkerConfig(BaseModel):
     side_m: float = Field(default=0.15, gt=0, description="printed black-square side length")
     sides_m: dict[int, Annotated[float, Field(gt=0)]] = Field(default_factory=dict, description="per-id side lengths overriding side_m")
     use_depth: bool = Field(default=True, description="refine poses with the registered depth when available")
-    corner_refinement: Literal["none", "subpix", "contour", "apriltag"] = Field(
-        default="subpix", description="OpenCV corner refinement; subpix for pose accuracy"
+    corner_refinement: Literal["edges", "none", "subpix", "contour", "apriltag"] = Field(
+        default="edges",
+        description="edges: lines fitted to the black border's outer edges, corners where they meet (needs a light margin "
+        "round the marker; falls back to OpenCV's corners where an edge is not found); otherwise OpenCV's refinement",
     )
     detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML read first")
     pixel_sigma: float = Field(default=0.5, gt=0, description="corner noise (px) behind the covariance model")

@@ -12,7 +12,7 @@ import pytest
 
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
-from drivers.markers import MarkerDetector, covariance_model, fit_plane
+from drivers.markers import MarkerDetector, covariance_model, fit_plane, marker_object_points
 from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import load_scenario
 from schemas.codec import CameraInfo, invert_pose, make_pose
@@ -113,6 +113,35 @@ def sim_observations():
                     rows.append((d, truth))
         out[use_depth] = rows
     return out
+
+
+def test_sim_corners_sit_on_the_true_corners() -> None:
+    """Every static marker of the demo cell, all four cameras, three frames each: detected corners
+    against the true corners projected. A static view repeats its corner error every frame, so it
+    is what averaging cannot remove; the median view's must stay under 0.1 px (about 2 % of a
+    module at 4 m) and the corners must not sit inside the marker on average. OpenCV's own sub-pixel
+    refinement missed by 0.43 px, 0.26 px inward, on the same frames."""
+    scenario = load_scenario()
+    cell = SimCell(scenario)
+    det = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m, corner_refinement="edges"))
+    errors: dict[tuple[str, int], list[np.ndarray]] = {}
+    for k in range(3):
+        for cam in scenario.cameras:
+            frame = cell.render(cam.id, 1.0 + k / 10, k)
+            ids, corners = det.find(frame.rgb)
+            for mk, c in zip(ids.tolist(), corners):
+                spec = next(m for m in scenario.markers if m.id == mk)
+                if spec.object is not None:
+                    continue
+                T = invert_pose(frame.world_T_camera) @ scenario.world_T_marker(spec, 1.0 + k / 10)
+                p = marker_object_points(scenario.side_of(spec)) @ T[:3, :3].T + T[:3, 3]
+                errors.setdefault((cam.id, mk), []).append(c - (p[:, :2] / p[:, 2:] * frame.info.K[[0, 1], [0, 1]] + frame.info.K[:2, 2]))
+    assert len(errors) >= 30, "the demo cell shows fewer static markers than it should"
+    bias = np.array([np.linalg.norm(np.mean(e, axis=0), axis=1).mean() for e in errors.values()])
+    diagonal = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) / np.sqrt(2)  # TL TR BR BL, outward
+    outward = np.median([np.mean(np.sum((np.mean(e, 0) - np.mean(e, axis=(0, 1))) * diagonal, axis=1)) for e in errors.values()])
+    assert np.median(bias) < 0.1, f"median view's corners off by {np.median(bias):.3f} px"
+    assert abs(outward) < 0.05, f"corners sit {outward:+.3f} px outward of the true ones"
 
 
 @pytest.mark.parametrize("z0", [2.3, 3.4, 3.7, 3.8])
