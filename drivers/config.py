@@ -37,7 +37,7 @@ class MarkerConfig(BaseModel):
         "round the marker; falls back to OpenCV's corners where an edge is not found); otherwise OpenCV's refinement",
     )
     detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML read first")
-    pixel_sigma: float = Field(default=0.5, gt=0, description="corner noise (px) behind the covariance model")
+    pixel_sigma: float = Field(default=0.25, gt=0, description="corner noise (px) behind the covariance model")
 
 
     def side_for(self, marker_id: int) -> float:
