@@ -731,7 +731,8 @@ def resolve_cmd(
         off = v["offline_vs_truth_mm_deg"]
         on = v["online_vs_truth_mm_deg"]
         if off is not None:
-            typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else ""))
+            moving = f"; {v['moving_frames']} moving frames solved" if v["moving_frames"] else ""
+            typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else "") + moving)
     for child, v in run.figures["object_markers"].items():
         off = v["offline_vs_truth_mm_deg"]
         typer.echo(f"  {child}: {v['poses']} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))

@@ -236,6 +236,8 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
     for s in result.segments:
         for stamp in sorted({s.first_stamp_ns, s.last_stamp_ns}):
             w.write(keys.estimate_cameras(cell), codec.poses_to_msg(stamp, [StampedPose("world", s.camera_id, stamp, s.world_T_camera, s.covariance)]), stamp)
+    for k in result.keyframes:  # a moving camera's frames, each solved as a pose of its own
+        w.write(keys.estimate_cameras(cell), codec.poses_to_msg(k.stamp_ns, [StampedPose("world", k.camera_id, k.stamp_ns, k.world_T_camera, k.covariance)]), k.stamp_ns)
     tdir = out / "trajectories"
     tdir.mkdir(exist_ok=True)
     objects = ObjectErrors()
@@ -255,10 +257,13 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
         latest[s.camera_id] = s
     w.write(keys.tf(cell), codec.transforms_to_msg(end, [("world", c, s.world_T_camera) for c, s in latest.items()] + [("world", p.child, p.T) for p in markers]), end)
     w.close()
-    # TUM trajectories: "t tx ty tz qx qy qz qw" per frame of a solved static segment.
+    # TUM trajectories: "t tx ty tz qx qy qz qw" per frame of a solved static segment, and per
+    # moving frame solved on its own.
     pose_text = {(s.camera_id, s.segment): tum_pose(s.world_T_camera) for s in result.segments}  # once: 10^5 frames/h
-    for cam, rows in result.frame_stamps.items():
-        lines = [f"{stamp / 1e9:.9f} {pose_text[(cam, seg)]}" for stamp, seg in rows if (cam, seg) in pose_text]
+    for cam in sorted(set(result.frame_stamps) | {k.camera_id for k in result.keyframes}):
+        rows = [(stamp, pose_text[(cam, seg)]) for stamp, seg in result.frame_stamps.get(cam, []) if (cam, seg) in pose_text]
+        rows += [(k.stamp_ns, tum_pose(k.world_T_camera)) for k in result.keyframes if k.camera_id == cam]
+        lines = [f"{stamp / 1e9:.9f} {text}" for stamp, text in sorted(rows)]
         (tdir / f"{cam}.tum").write_text("\n".join(lines) + ("\n" if lines else ""))
     figures = evaluate(result, side)
     figures["object_markers"] = objects.summary(side)
@@ -324,6 +329,8 @@ def evaluate(result: ResolveResult, side: Side) -> dict:
 
     ``paired``: at every online estimate's stamp that a solved segment covers and ground truth
     has, both errors at that instant (the like-for-like comparison): medians and RMS.
+    ``moving_frames``: how many of the camera's moving frames were solved as poses of their own,
+    and their median error against ground truth taken at the same stamp.
     """
     cams: dict[str, dict] = {}
     for cam in sorted({s.camera_id for s in result.segments}):
@@ -341,8 +348,12 @@ def evaluate(result: ResolveResult, side: Side) -> dict:
             seg = segment_at(result, cam, t.stamp_ns)
             if seg is not None:
                 off_truth.append(pose_error(seg.world_T_camera, t.T))
+        moving = [k for k in result.keyframes if k.camera_id == cam]
+        at_truth = [(k, side.truth_cameras.at(cam, k.stamp_ns)) for k in moving]
+        moving_truth = [pose_error(k.world_T_camera, t.T) for k, t in at_truth if t is not None and abs(t.stamp_ns - k.stamp_ns) < 1_000_000]
         cams[cam] = {"offline_vs_truth_mm_deg": _median_pair(off_truth), "online_vs_truth_mm_deg": _median_pair(on_truth),
-                     "online_vs_offline_mm_deg": _median_pair(on_off), "paired": _paired(paired)}  # fmt: skip
+                     "online_vs_offline_mm_deg": _median_pair(on_off), "paired": _paired(paired),
+                     "moving_frames": len(moving), "moving_frames_vs_truth_mm_deg": _median_pair(moving_truth)}  # fmt: skip
     marker_err = []
     for k, (T, _) in result.markers.items():
         t = side.truth_markers.get(f"marker_{k}")
@@ -421,7 +432,8 @@ def html_report(result: ResolveResult, fig: dict) -> str:
         return "-" if v is None else f"{v[0]:.2f} mm / {v[1]:.3f} deg"
 
     rows = "".join(
-        f"<tr><td>{html.escape(c)}</td><td>{fmt(v['offline_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_offline_mm_deg'])}</td></tr>"
+        f"<tr><td>{html.escape(c)}</td><td>{fmt(v['offline_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_offline_mm_deg'])}</td>"
+        f"<td>{v['moving_frames']}</td><td>{fmt(v['moving_frames_vs_truth_mm_deg'])}</td></tr>"
         for c, v in fig["cameras"].items()
     )
     segs = "".join(
@@ -445,7 +457,7 @@ def html_report(result: ResolveResult, fig: dict) -> str:
 Levenberg-Marquardt {fig['lm_iterations']} iterations. Unanchored cameras: {', '.join(fig['unanchored']) or 'none'}.
 Anchors flagged as moved: {', '.join(map(str, fig['flagged_anchors'])) or 'none'}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
-<table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>online vs offline</th></tr>{rows}</table>
+<table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>
 {objects_html}
 <h2>Segments</h2><table><tr><th>camera</th><th>segment</th><th>frames</th><th>position (m)</th><th>sigma (mm)</th></tr>{segs}</table>
 <h2>Top view</h2><img src="top_view.png">

@@ -20,6 +20,23 @@ class AnchorConfig(BaseModel):
     sigma_rotation_deg: float = Field(default=0.1, gt=0, description="surveyed rotation sigma")
 
 
+class KeyframeConfig(BaseModel):
+    """Moving-camera frames in the offline solve (the daemon never adds them)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    enabled: bool = Field(default=True, description="add moving cameras' frames as poses of their own to the offline solve")
+    min_gap_s: float = Field(default=0.1, gt=0, description="at most one frame per camera this often")
+    max_frames: int = Field(default=2000, ge=1, description="past this, every other kept frame is dropped and the gap doubles")
+    new_view_deg: float = Field(
+        default=0.2, ge=0,
+        description="a frame is a new view only if it turned this much (or moved new_view_m) from its camera's segments and "
+        "from the frame kept before it: one pixel is 0.11 deg, and frames of a camera settling after a move see what its next "
+        "segment sees, with the same bias",
+    )
+    new_view_m: float = Field(default=0.005, ge=0, description="see new_view_deg")
+
+
 class EstimatorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -63,3 +80,4 @@ class EstimatorConfig(BaseModel):
     settle_frames: int = Field(default=5, ge=1, description="consecutive still frames before a moved camera gets a new segment")
     anchor_check_m: float = Field(default=0.05, gt=0, description="anchor disagreement that flags a moved anchor")
     state_file: Path | None = Field(default=None, description="where the daemon persists its map")
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)

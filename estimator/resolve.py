@@ -7,6 +7,8 @@ Levenberg-Marquardt (robust Huber factors, from the incremental solution) solves
 problem to convergence, and gtsam's ``Marginals`` give every pose's covariance. Per pair the
 whitened residual is kept for the report. Object markers are not in the map: their observations
 go to a caller's sink and are placed through the solved cameras afterwards (``place_objects``).
+Frames of a moving camera, which the daemon leaves out, join the batch as poses of their own
+(``estimator.keyframes``), and the problem is solved again with them.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 
 from estimator.config import EstimatorConfig
 from estimator.graph import Estimator, camera_symbol, marker_symbol, through_camera
+from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes
 from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam
 
 log = logging.getLogger(__name__)
@@ -61,6 +64,17 @@ class SegmentResult:
 
 
 @dataclass(frozen=True)
+class KeyframeResult:
+    """A moving camera's frame solved as a pose of its own."""
+
+    camera_id: str
+    stamp_ns: int
+    world_T_camera: np.ndarray
+    covariance: np.ndarray  # 6x6, ROS order, body frame
+    markers: int  # markers whose factors placed it
+
+
+@dataclass(frozen=True)
 class PairResidual:
     camera_id: str
     segment: int
@@ -82,6 +96,7 @@ class ResolveResult:
     final_error: float
     iterations: int
     frame_stamps: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # camera -> (stamp, segment)
+    keyframes: list[KeyframeResult] = field(default_factory=list)  # in log order per camera
 
 
 def resolve(
@@ -98,6 +113,7 @@ def resolve(
     cameras afterwards (``place_objects``); they are not part of the map.
     """
     est = Estimator(config)
+    moving = MovingFrames(config.keyframes)
     last_update = None
     n_frames = n_obs = 0
     stamps: dict[str, list[tuple[int, int]]] = {}
@@ -107,6 +123,8 @@ def resolve(
         segs = est.add_frames(cam, block.stamps, block.arrays)
         if objects is not None and est.object_markers:
             _object_rows(block, segs, est.object_markers, objects)
+        if config.keyframes.enabled:
+            _moving_frames(block, segs, est.object_markers, moving)
         for stamp, seg in zip(block.stamps.tolist(), segs):
             if seg is None:
                 continue
@@ -131,6 +149,16 @@ def resolve(
     params.setRelativeErrorTol(1e-9)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, est.values, params)
     values = optimizer.optimize()
+    solved = {mk: values.atPose3(marker_symbol(mk)).matrix() for mk in {m for (_, m) in est.pairs} | set(est.anchors) if values.exists(marker_symbol(mk))}
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
+    segment_poses: dict[str, list[np.ndarray]] = {}
+    for (cam, _), index in est.camera_index.items():
+        if values.exists(camera_symbol(index)):
+            segment_poses.setdefault(cam, []).append(values.atPose3(camera_symbol(index)).matrix())
+    added = add_keyframes(graph, values, moving.frames, solved, segment_poses, marker_symbol, est.rotation_floor_rad, huber, config.keyframes)
+    if added:
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        values = optimizer.optimize()
     marginals = gtsam.Marginals(graph, values)
     segments = []
     for (cam, seg), index in sorted(est.camera_index.items()):
@@ -152,12 +180,22 @@ def resolve(
         cov = cov_ros_to_gtsam(pair.factor_covariance(config.max_fused, est.rotation_floor_rad))
         factor = gtsam.BetweenFactorPose3(ck, mkey, gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov))
         residuals.append(PairResidual(cam, seg, mk, pair.n, pair.rejected, math.sqrt(2.0 * factor.error(values))))
+    keyframes = [KeyframeResult(f.camera_id, f.stamp_ns, values.atPose3(k).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(k)), n)
+                 for k, f, n in added]  # fmt: skip
     placed = {cam for (cam, _), i in est.camera_index.items() if values.exists(camera_symbol(i))}
     flagged = est.estimate(last_update or 0, with_covariance=False).flagged_anchors
     return ResolveResult(
         segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
-        float(graph.error(values)), int(optimizer.iterations()), stamps,
+        float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes,
     )  # fmt: skip
+
+
+def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames) -> None:
+    """The static markers seen in the block's frames that joined no segment (the camera moved)."""
+    a = block.arrays
+    for f in [i for i, g in enumerate(segs) if g is None]:
+        rows = (a.frame == f) & ~np.isin(a.ids, list(object_markers))
+        sink.add(MovingFrame(block.camera_id, int(block.stamps[f]), a.ids[rows], a.poses[rows], a.alternatives[rows], a.covariances[rows]))
 
 
 def _object_rows(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]) -> None:

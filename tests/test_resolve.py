@@ -7,14 +7,17 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.scenes import NoiseSettings, demo, estimator_config, frame_observations, observations_msg
+from benchmarks.scenes import NoiseSettings, demo, estimator_config, flip, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_cmd import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
-from drivers.sim.scenario import CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
+from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
+from estimator.config import KeyframeConfig
 from estimator.graph import Estimator
+from estimator.keyframes import MovingFrame, place_frame
 from estimator.observation import observations_of
 from schemas import codec, keys
+from schemas.codec import invert_pose
 from schemas.log import LogWriter, read_log
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
@@ -194,3 +197,76 @@ def test_batched_frames_fold_in_like_one_at_a_time() -> None:
             # Means of hundreds of observations: the batch judges a few borderline ones against a
             # mean that is up to 30 frames older; 0.1 mm and 0.01 deg is far below the noise.
             assert_pose_close(pair.mean(exact=True), other.mean(exact=True), 1e-4, 0.01, what=str(key))
+
+
+def _moving_frame(s: Scenario, world_T_camera: np.ndarray, flipped: set[int], outlier: int | None = None) -> MovingFrame:
+    """A frame of exact observations of every marker of ``s`` from ``world_T_camera``; rows in
+    ``flipped`` carry the wrong IPPE branch as their choice, ``outlier`` is 60 mm off."""
+    poses, alts = [], []
+    for i, mk in enumerate(s.markers):
+        T = invert_pose(world_T_camera) @ s.world_T_marker(mk, 0.0)
+        if i == outlier:
+            T = T.copy()
+            T[:3, 3] += (0.06, 0.0, 0.0)
+        poses.append(flip(T) if i in flipped else T)
+        alts.append(T if i in flipped else flip(T))
+    n = len(s.markers)
+    return MovingFrame("b", 1, np.array([m.id for m in s.markers]), np.stack(poses), np.stack(alts), np.tile(np.eye(6) * 1e-6, (n, 1, 1)))
+
+
+def test_a_moving_frame_is_placed_by_the_markers_that_agree() -> None:
+    """Two of four markers chose the mirrored IPPE branch and one more is 60 mm off: the frame's
+    pose is the one the majority implies, each flip is taken back, the outlier is left out."""
+    s = scene()
+    s.markers.append(MarkerSpec(id=4, side_m=0.25, pose=PoseSpec(position=(0.3, 2.0, 1.6), normal=(0.0, -1.0, 0.0))))
+    wTm = {mk.id: s.world_T_marker(mk, 0.0) for mk in s.markers}
+    wTc = s.camera("b").world_T_camera(0.0)
+    placed = place_frame(_moving_frame(s, wTc, flipped={0, 2}, outlier=4), wTm)
+    assert placed is not None
+    pose, kept, branches = placed
+    assert_pose_close(pose, wTc, 1e-9, 1e-6)
+    assert kept == [0, 1, 2, 3]
+    for j, T in zip(kept, branches):
+        assert_pose_close(T, invert_pose(wTc) @ wTm[s.markers[j].id], 1e-9, 1e-6, f"marker {j}")
+    one = _moving_frame(s, wTc, flipped=set())
+    assert place_frame(MovingFrame("b", 1, one.ids[:1], one.poses[:1], one.alternatives[:1], one.covariances[:1]), wTm) is None
+
+
+def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -> None:
+    """Camera b slides 0.3 m between 2 and 3 s. Its frames in between join no segment; offline each
+    kept one (>= 0.1 s apart, a new view) is a pose of its own, on estimate/cameras and in b's TUM
+    trajectory. A single frame of 2-4 markers at ~2 m under the synthetic noise is good to ~15 mm:
+    each error must lie inside its reported covariance (position NEES under 16.3, chi-square 3 dof
+    99.9 %), the median under the median sigma. With ``max_frames`` 3 the kept frames still span
+    the move; with keyframes off there are none."""
+    s = scene()
+    s.cameras[1].motion = [CameraMotion(kind="slide", offset=(0.3, 0.0, 0.0), start_s=2.0, end_s=3.0)]
+    log = tmp_path / "log.mcap"
+    write_log(log, s, 5.0, flip_rate=0.0)
+    cfg = peek_config(log)
+    run = run_resolve(log, tmp_path / "out", cfg)
+    frames = run.result.keyframes
+    t0 = 1_700_000_000_000_000_000
+    assert 5 <= len(frames) <= 12 and {k.camera_id for k in frames} == {"b"}, [(k.camera_id, k.stamp_ns) for k in frames]
+    errors, sigmas = [], []
+    for k in frames:
+        t = (k.stamp_ns - t0) / 1e9
+        assert 2.0 <= t <= 3.5, t
+        e = s.camera("b").world_T_camera(t)[:3, 3] - k.world_T_camera[:3, 3]
+        R = k.world_T_camera[:3, :3]  # the covariance is in the camera (body) frame
+        assert float(e @ R @ np.linalg.solve(k.covariance[:3, :3], R.T @ e)) < 16.27, f"frame at {t:.2f} s off by {np.linalg.norm(e) * 1e3:.1f} mm"
+        errors.append(np.linalg.norm(e))
+        sigmas.append(np.sqrt(np.trace(k.covariance[:3, :3])))
+    assert np.median(errors) < np.median(sigmas), (np.median(errors), np.median(sigmas))
+    assert np.diff([k.stamp_ns for k in frames]).min() >= 100_000_000
+    tum = {float(line.split()[0]) for line in (tmp_path / "out" / "trajectories" / "b.tum").read_text().splitlines()}
+    assert {round(k.stamp_ns / 1e9, 9) for k in frames} <= {round(x, 9) for x in tum}
+    published = {p.stamp_ns for lm in read_log(tmp_path / "out" / "resolved.mcap") if lm.key == keys.estimate_cameras(CELL) for p in codec.poses_from_msg(lm.msg).values()}
+    assert {k.stamp_ns for k in frames} <= published
+    figures = json.loads((tmp_path / "out" / "resolve.json").read_text())["cameras"]["b"]
+    assert figures["moving_frames"] == len(frames)
+    few = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(max_frames=3)})})
+    kept = sorted((k.stamp_ns - t0) / 1e9 for k in run_resolve(log, tmp_path / "few", few).result.keyframes)
+    assert 1 <= len(kept) <= 3 and kept[-1] - kept[0] >= 0.4, kept
+    off = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(enabled=False)})})
+    assert run_resolve(log, tmp_path / "off", off).result.keyframes == []

@@ -1,0 +1,140 @@
+"""Offline: a moving camera's frames as camera poses of their own in the batch problem.
+
+While a camera moves, the daemon leaves it out of the graph: one pose per frame would grow the
+graph without bound. Offline the log is finite, so each such frame that sees at least two markers
+of the solved map becomes a pose (key ``k``) with one factor per marker. Every one is a view from
+somewhere new, with a bias of its own, where a static view repeats one bias in every frame and
+its fused factor counts at most ``max_fused`` of them. On the demo cell the 14 frames of cam1's
+tilt and cam2's settling after its bump took the map from 0.95 to 0.35 mm (median marker) and
+the cameras from 0.7-2.6 to 0.06-1.3 mm.
+
+Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
+other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from estimator.config import KeyframeConfig
+from schemas.codec import cov_ros_to_gtsam, invert_pose
+
+AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
+AGREE_M = 0.05  # and this distance
+
+
+@dataclass(frozen=True)
+class MovingFrame:
+    """One frame of a camera that was not in a static segment: marker ids (K,), camera_T_marker
+    and the other IPPE branch (K, 4, 4), covariances (K, 6, 6; ROS order, marker frame)."""
+
+    camera_id: str
+    stamp_ns: int
+    ids: np.ndarray
+    poses: np.ndarray
+    alternatives: np.ndarray
+    covariances: np.ndarray
+
+
+class MovingFrames:
+    """The kept moving frames, bounded as the module docstring says."""
+
+    def __init__(self, config: KeyframeConfig) -> None:
+        self.gap_ns = int(config.min_gap_s * 1e9)
+        self.max_frames = config.max_frames
+        self.frames: list[MovingFrame] = []
+        self._last: dict[str, int] = {}
+
+    def add(self, frame: MovingFrame) -> None:
+        if len(frame.ids) < 2:
+            return
+        last = self._last.get(frame.camera_id)
+        if last is not None and frame.stamp_ns - last < self.gap_ns:
+            return
+        self._last[frame.camera_id] = frame.stamp_ns
+        self.frames.append(frame)
+        if len(self.frames) > self.max_frames:
+            self.frames = self.frames[::2]
+            self.gap_ns *= 2
+
+
+def keyframe_symbol(index: int) -> int:
+    return gtsam.symbol("k", index)
+
+
+def _rotation_gap(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Angles (rad) between rotations A (N, 3, 3) and B (3, 3)."""
+    return np.arccos(np.clip((np.einsum("nij,ij->n", A, B) - 1.0) / 2.0, -1.0, 1.0))
+
+
+def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tuple[np.ndarray, list[int], list[np.ndarray]] | None:
+    """world_T_camera of a frame from the solved markers it sees, and the rows and branches that
+    agree with it; None unless two markers agree.
+
+    Each observation's two IPPE branches each imply a camera pose through its marker; the implied
+    pose most others agree with is the frame's, and each marker keeps the branch nearer to it.
+    """
+    rows = [j for j, mk in enumerate(frame.ids.tolist()) if mk in world_T_marker]
+    if len(rows) < 2:
+        return None
+    implied = np.stack([world_T_marker[int(frame.ids[j])] @ invert_pose(T) for j in rows for T in (frame.poses[j], frame.alternatives[j])])
+    best, best_votes = None, 0
+    for c in implied:
+        close = (_rotation_gap(implied[:, :3, :3], c[:3, :3]) < AGREE_RAD) & (np.linalg.norm(implied[:, :3, 3] - c[:3, 3], axis=1) < AGREE_M)
+        votes = int(close.reshape(-1, 2).any(axis=1).sum())  # markers with a branch near this pose
+        if votes > best_votes:
+            best, best_votes = c, votes
+    if best is None or best_votes < 2:
+        return None
+    kept, branches = [], []
+    for i, j in enumerate(rows):
+        a, b = implied[2 * i], implied[2 * i + 1]
+        gap = _rotation_gap(np.stack([a[:3, :3], b[:3, :3]]), best[:3, :3])
+        k = int(np.argmin(gap))
+        near = (a, b)[k]
+        if gap[k] < AGREE_RAD and np.linalg.norm(near[:3, 3] - best[:3, 3]) < AGREE_M:
+            kept.append(j)
+            branches.append((frame.poses[j], frame.alternatives[j])[k])
+    return best, kept, branches
+
+
+def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) -> bool:
+    """Has the camera turned or moved by a new view's worth from every pose in ``seen``?"""
+    if not seen:
+        return True
+    S = np.stack(seen)
+    same = (_rotation_gap(S[:, :3, :3], T[:3, :3]) < np.radians(config.new_view_deg)) & (np.linalg.norm(S[:, :3, 3] - T[:3, 3], axis=1) < config.new_view_m)
+    return not bool(same.any())
+
+
+def add_keyframes(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame], world_T_marker: dict[int, np.ndarray],
+    segment_poses: dict[str, list[np.ndarray]], marker_key, rotation_floor_rad: float, robust: gtsam.noiseModel.mEstimator.Base,
+    config: KeyframeConfig,
+) -> list[tuple[int, MovingFrame, int]]:
+    """Add each frame that ``place_frame`` can place and that is a new view (not its camera's
+    segments' ``segment_poses`` nor the frame kept before it) to ``graph`` and ``values`` (in
+    place): a pose ``k<i>`` and one robust factor per agreeing marker, its single-frame covariance
+    plus the view's rotation floor. Returns (key, frame, markers used) of the frames added."""
+    added = []
+    last: dict[str, np.ndarray] = {}
+    for i, frame in enumerate(frames):
+        placed = place_frame(frame, world_T_marker)
+        if placed is None:
+            continue
+        world_T_camera, kept, branches = placed
+        seen = segment_poses.get(frame.camera_id, []) + ([last[frame.camera_id]] if frame.camera_id in last else [])
+        if not _is_new_view(world_T_camera, seen, config):
+            continue
+        last[frame.camera_id] = world_T_camera
+        key = keyframe_symbol(i)
+        values.insert(key, gtsam.Pose3(world_T_camera))
+        for j, T in zip(kept, branches):
+            cov = frame.covariances[j].copy()
+            cov[3:, 3:] += np.eye(3) * rotation_floor_rad**2
+            noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
+            graph.add(gtsam.BetweenFactorPose3(key, marker_key(int(frame.ids[j])), gtsam.Pose3(T), noise))
+        added.append((key, frame, len(kept)))
+    return added
