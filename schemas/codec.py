@@ -485,10 +485,9 @@ def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> Ma
             a = o.candidate_a if o.HasField("candidate_a") else p
             b = o.candidate_b if o.HasField("candidate_b") else p
             rows.append((o.marker_id, i, o.ambiguous, o.side_m, len(o.corners_px), len(o.covariance),
-                         p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw, a.x, a.y, a.z, a.qx, a.qy, a.qz, a.qw,
-                         b.x, b.y, b.z, b.qx, b.qy, b.qz, b.qw))  # fmt: skip
+                         p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw, a.qx, a.qy, a.qz, a.qw, b.qx, b.qy, b.qz, b.qw))  # fmt: skip
             cov.extend(o.covariance)
-    r = np.array(rows, dtype=np.float64).reshape(-1, 27)
+    r = np.array(rows, dtype=np.float64).reshape(-1, 21)
     ids = r[:, 0].astype(np.int64)
     if check:
         _check_marker_scalars(ids, r[:, 3], r[:, 4], r[:, 5])
@@ -496,16 +495,16 @@ def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> Ma
     if check:
         _check_marker_rows(ids, r[:, 6:], cov_a)
     n = len(ids)
-    poses = _poses_from_rows(np.concatenate([r[:, 6:13], r[:, 13:20], r[:, 20:]]))
-    chosen, cand_a, cand_b = poses[:n], poses[n : 2 * n], poses[2 * n :]
     # The chosen pose is either candidate after depth refinement: a new rotation toward the plane's
-    # normal and the plane's range. The other branch is the candidate further from it in rotation;
-    # it keeps the chosen position, since the candidates' own positions are planar PnP's (tens of mm
-    # off in range at 3 m) and a flip corrected in the estimator must not bring that error back.
-    further_a = np.einsum("nij,nij->n", chosen[:, :3, :3], cand_a[:, :3, :3]) < np.einsum("nij,nij->n", chosen[:, :3, :3], cand_b[:, :3, :3])
-    other = np.where(further_a[:, None, None], cand_a, cand_b)
-    other[:, :3, 3] = chosen[:, :3, 3]
-    return MarkerArrays(ids, chosen, other, cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
+    # normal and the plane's range. The other branch is the candidate further from it in rotation
+    # (smaller |q . q'|); it keeps the chosen position, since the candidates' own positions are
+    # planar PnP's (tens of mm off in range at 3 m) and a flip the estimator corrects must not
+    # bring that error back.
+    q = r[:, 9:13]
+    further_a = np.abs(np.einsum("ij,ij->i", q, r[:, 13:17])) < np.abs(np.einsum("ij,ij->i", q, r[:, 17:21]))
+    other = np.column_stack([r[:, 6:9], np.where(further_a[:, None], r[:, 13:17], r[:, 17:21])])  # at the chosen position
+    poses = _poses_from_rows(np.concatenate([r[:, 6:13], other]))
+    return MarkerArrays(ids, poses[:n], poses[n:], cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
 
 
 def _check_marker_scalars(ids: np.ndarray, side: np.ndarray, corners: np.ndarray, cov_len: np.ndarray) -> None:
@@ -518,10 +517,11 @@ def _check_marker_scalars(ids: np.ndarray, side: np.ndarray, corners: np.ndarray
 
 
 def _check_marker_rows(ids: np.ndarray, r: np.ndarray, cov: np.ndarray) -> None:
-    """Poses (N, 21: chosen, candidate_a, candidate_b, each x y z qx qy qz qw) and covariances (N, 6, 6)."""
-    for name, rows in (("camera_T_marker", r[:, :7]), ("candidate_a", r[:, 7:14]), ("candidate_b", r[:, 14:])):
+    """Rows (N, 15: the chosen pose x y z qx qy qz qw, then candidate_a's and candidate_b's
+    quaternions; the candidates' positions are not used) and covariances (N, 6, 6)."""
+    for name, rows, quat in (("camera_T_marker", r[:, :7], r[:, 3:7]), ("candidate_a", r[:, 7:11], r[:, 7:11]), ("candidate_b", r[:, 11:15], r[:, 11:15])):
         bad = ~np.all(np.isfinite(rows), axis=1)
-        norms = np.linalg.norm(rows[:, 3:], axis=1)
+        norms = np.linalg.norm(quat, axis=1)
         bad_norm = np.abs(norms - 1.0) > 1e-3
         if bad.any():
             raise DecodeError(f"marker {ids[bad.argmax()]} {name}: contains NaN or inf")
