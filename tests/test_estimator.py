@@ -232,7 +232,7 @@ def test_settled_pairs_stop_costing_updates_without_moving_the_answer() -> None:
 
 def test_biased_marker_rotations_do_not_turn_the_camera() -> None:
     """A static view's rotation bias repeats every frame (the README measured ~1 deg in-plane on the
-    renderer), so averaging cannot remove it. Here each of three anchors is seen turned by a fixed
+    renderer with OpenCV's corners), so averaging cannot remove it. Here each of three anchors is seen turned by a fixed
     1.5 deg about one of its axes while positions stay unbiased (sigma ~1 mm at 2 m). With the
     view-rotation floor the camera is placed by where the anchors are: within 0.15 deg (1 mm
     over their 0.5-1.2 m spread is 0.05-0.1 deg; seeds 0-3 gave 0.03-0.07). Without it (0) the
