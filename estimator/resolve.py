@@ -149,13 +149,7 @@ def resolve(
     params.setRelativeErrorTol(1e-9)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, est.values, params)
     values = optimizer.optimize()
-    solved = {mk: values.atPose3(marker_symbol(mk)).matrix() for mk in {m for (_, m) in est.pairs} | set(est.anchors) if values.exists(marker_symbol(mk))}
-    huber = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
-    segment_poses: dict[str, list[np.ndarray]] = {}
-    for (cam, _), index in est.camera_index.items():
-        if values.exists(camera_symbol(index)):
-            segment_poses.setdefault(cam, []).append(values.atPose3(camera_symbol(index)).matrix())
-    added = add_keyframes(graph, values, moving.frames, solved, segment_poses, marker_symbol, est.rotation_floor_rad, huber, config.keyframes)
+    added = _add_moving_frames(graph, values, est, moving.frames)
     if added:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
@@ -188,6 +182,19 @@ def resolve(
         segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
         float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes,
     )  # fmt: skip
+
+
+def _add_moving_frames(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, est: Estimator, frames: list[MovingFrame]) -> list[tuple[int, MovingFrame, int]]:
+    """``add_keyframes`` against the static solution ``values``: its markers place the frames, its
+    segments are the views a frame must differ from."""
+    markers = {m for (_, m) in est.pairs} | set(est.anchors)
+    solved = {mk: values.atPose3(marker_symbol(mk)).matrix() for mk in markers if values.exists(marker_symbol(mk))}
+    segment_poses: dict[str, list[np.ndarray]] = {}
+    for (cam, _), index in est.camera_index.items():
+        if values.exists(camera_symbol(index)):
+            segment_poses.setdefault(cam, []).append(values.atPose3(camera_symbol(index)).matrix())
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(est.config.huber_k)
+    return add_keyframes(graph, values, frames, solved, segment_poses, est.rotation_floor_rad, huber, est.config.keyframes)
 
 
 def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames) -> None:
