@@ -13,6 +13,7 @@ from collections import defaultdict
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import gtsam
 import numpy as np
 
 from schemas import codec, keys
@@ -84,6 +85,26 @@ class Timeline:
         i = bisect.bisect_left(stamps, stamp_ns)
         best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
         return self.poses[child][best]
+
+
+    def interpolated(self, child: str, stamp_ns: int, max_gap_ns: int = 200_000_000) -> np.ndarray | None:
+        """world_T_child (4x4) at ``stamp_ns`` between the two samples around it (position linear,
+        rotation along the geodesic); None outside the samples or across a gap over ``max_gap_ns``.
+        For a moving body whose samples were thinned (truth is kept at <= 10 Hz)."""
+        stamps = self.stamps.get(child)
+        if not stamps:
+            return None
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if i < len(stamps) and stamps[i] == stamp_ns:
+            return self.poses[child][i].T
+        if i == 0 or i == len(stamps) or stamps[i] - stamps[i - 1] > max_gap_ns:
+            return None
+        a, b = self.poses[child][i - 1].T, self.poses[child][i].T
+        f = (stamp_ns - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+        T = np.eye(4)
+        T[:3, :3] = gtsam.Rot3(a[:3, :3]).slerp(f, gtsam.Rot3(b[:3, :3])).matrix()
+        T[:3, 3] = (1 - f) * a[:3, 3] + f * b[:3, 3]
+        return T
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
