@@ -225,10 +225,34 @@ def covariance_model(
 
 
 EDGE_MIN_CONTRAST = 20.0  # grey levels between the border and the margin for an edge sample to count
-
-
 EDGE_SAMPLES = 24  # profiles across each side, over its middle 70 % (away from the corners)
 EDGE_OFFSETS = 21  # grey-level samples along each profile
+
+
+def _edge_points(gray: np.ndarray, C: np.ndarray, modules: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel points (L = 4M, S, 2) on the outer edge of each marker side (side i runs from
+    corner i to i + 1 of C (M, 4, 2)) and which of them were found (L, S): on each profile across
+    the side, where the grey level crosses halfway from the dark border to the light margin."""
+    A = C.reshape(-1, 2)
+    side = (np.roll(C, -1, axis=1) - C).reshape(-1, 2)
+    length = np.maximum(np.linalg.norm(side, axis=1), 1e-9)
+    normal = np.stack([side[:, 1], -side[:, 0]], axis=1) / length[:, None]
+    outward = np.sign(np.einsum("ij,ij->i", normal, (C - C.mean(1, keepdims=True)).reshape(-1, 2)))
+    normal *= np.where(outward == 0, 1.0, outward)[:, None]
+    reach = np.clip(0.8 * length / modules, 1.0, 3.0)  # stay inside the border module: the pattern starts after it
+    offs = np.linspace(-1.0, 1.0, EDGE_OFFSETS)[None, :] * reach[:, None]  # (L, O)
+    on_side = A[:, None, :] + np.linspace(0.15, 0.85, EDGE_SAMPLES)[None, :, None] * side[:, None, :]  # (L, S, 2)
+    P = (on_side[:, :, None, :] + offs[:, None, :, None] * normal[:, None, None, :]).reshape(-1, EDGE_OFFSETS, 2).astype(np.float32)
+    prof = cv2.remap(gray, P[..., 0], P[..., 1], cv2.INTER_LINEAR).reshape(len(side), EDGE_SAMPLES, EDGE_OFFSETS)
+    lo, hi = prof.min(axis=2), prof.max(axis=2)
+    mid = 0.5 * (lo + hi)
+    rising = (prof[..., :-1] <= mid[..., None]) & (prof[..., 1:] > mid[..., None])  # dark -> light going outward
+    found = (hi - lo >= EDGE_MIN_CONTRAST) & (rising.sum(axis=2) == 1)  # one clean edge, else the profile is skipped
+    j = rising.argmax(axis=2)[..., None]
+    p0, p1 = np.take_along_axis(prof, j, 2)[..., 0], np.take_along_axis(prof, j + 1, 2)[..., 0]
+    d = np.take_along_axis(np.broadcast_to(offs[:, None, :], prof.shape), j, 2)[..., 0]
+    d = d + (mid - p0) / np.maximum(p1 - p0, 1e-6) * (offs[:, 1] - offs[:, 0])[:, None]
+    return on_side + d[..., None] * normal[:, None, :], found
 
 
 def _principal_lines(P: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -242,46 +266,10 @@ def _principal_lines(P: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return m, np.stack([np.cos(theta), np.sin(theta)], axis=1)
 
 
-def refine_corners_on_edges(gray: np.ndarray, corners: list[np.ndarray], modules: int) -> list[np.ndarray]:
-    """Corners (4, 2) of each marker where lines fitted to its four outer border edges meet.
-
-    OpenCV's corners sit on the thresholded contour (half a pixel inside) or come from a window
-    that, on a small marker, also sees the inner pattern's edges: both pull every corner inward,
-    by 0.26-0.5 px on the demo cell, and the same way in every frame of a static view. The outer
-    edge of the black border is clean along its whole length: on profiles across each side, the
-    sub-pixel point where the grey level crosses halfway from border to margin; a line through
-    them (refitted once without points over 3 robust sigmas off: a partly hidden edge) never sees
-    the pattern. ``modules``: the marker's width in modules (data bits plus border). All markers
-    of a frame go through numpy together. A marker whose edge is not found keeps its corners.
-    """
-    if not corners:
-        return []
-    C = np.stack(corners).astype(np.float64)  # (M, 4, 2)
-    A, B = C, np.roll(C, -1, axis=1)  # side i runs from corner i to corner i + 1
-    side = (B - A).reshape(-1, 2)  # (L = 4M, 2)
-    length = np.maximum(np.linalg.norm(side, axis=1), 1e-9)
-    normal = np.stack([side[:, 1], -side[:, 0]], axis=1) / length[:, None]
-    outward = np.sign(np.einsum("ij,ij->i", normal, (A - C.mean(1, keepdims=True)).reshape(-1, 2)))
-    normal *= np.where(outward == 0, 1.0, outward)[:, None]
-    reach = np.clip(0.8 * length / modules, 1.0, 3.0)  # stay inside the border module: the pattern starts after it
-    s = np.linspace(0.15, 0.85, EDGE_SAMPLES)
-    offs = np.linspace(-1.0, 1.0, EDGE_OFFSETS)[None, :] * reach[:, None]  # (L, O)
-    on_side = A.reshape(-1, 2)[:, None, :] + s[None, :, None] * side[:, None, :]  # (L, S, 2)
-    P = on_side[:, :, None, :] + offs[:, None, :, None] * normal[:, None, None, :]  # (L, S, O, 2)
-    flat = P.reshape(-1, EDGE_OFFSETS, 2).astype(np.float32)
-    prof = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR).reshape(len(side), EDGE_SAMPLES, EDGE_OFFSETS)
-    lo, hi = prof.min(axis=2), prof.max(axis=2)
-    mid = 0.5 * (lo + hi)
-    rising = (prof[..., :-1] <= mid[..., None]) & (prof[..., 1:] > mid[..., None])  # dark -> light going outward
-    ok = (hi - lo >= EDGE_MIN_CONTRAST) & (rising.sum(axis=2) == 1)  # one clean edge, else the profile is skipped
-    j = rising.argmax(axis=2)
-    p0 = np.take_along_axis(prof, j[..., None], 2)[..., 0]
-    p1 = np.take_along_axis(prof, j[..., None] + 1, 2)[..., 0]
-    step = offs[:, 1] - offs[:, 0]
-    d = np.take_along_axis(np.broadcast_to(offs[:, None, :], prof.shape), j[..., None], 2)[..., 0]
-    d = d + (mid - p0) / np.maximum(p1 - p0, 1e-6) * step[:, None]
-    pts = on_side + d[..., None] * normal[:, None, :]  # (L, S, 2)
-    w = ok.astype(np.float64)
+def _robust_lines(pts: np.ndarray, found: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lines (centroids, directions) through each side's found points, refitted twice without the
+    points over 3 robust sigmas off (a partly hidden edge), and how many points each kept."""
+    w = found.astype(np.float64)
     for _ in range(2):
         m, t = _principal_lines(pts, w)
         off = np.abs(np.einsum("lsk,lk->ls", pts - m[:, None, :], np.stack([-t[:, 1], t[:, 0]], axis=1)))
@@ -289,6 +277,24 @@ def refine_corners_on_edges(gray: np.ndarray, corners: list[np.ndarray], modules
         med = ranked[np.arange(len(ranked)), np.maximum(w.sum(axis=1).astype(int) - 1, 0) // 2]
         w = w * (off <= np.maximum(3.0 * 1.4826 * np.where(np.isfinite(med), med, 0.0), 0.05)[:, None])
     m, t = _principal_lines(pts, w)
+    return m, t, w.sum(axis=1)
+
+
+def refine_corners_on_edges(gray: np.ndarray, corners: list[np.ndarray], modules: int) -> list[np.ndarray]:
+    """Corners (4, 2) of each marker where lines fitted to its four outer border edges meet.
+
+    OpenCV's corners sit on the thresholded contour (half a pixel inside) or come from a window
+    that, on a small marker, also sees the inner pattern's edges: both pull every corner inward,
+    by 0.26-0.5 px on the demo cell, and the same way in every frame of a static view. The outer
+    edge of the black border is clean along its whole length, and a line through a few dozen
+    sub-pixel points on it never sees the pattern. ``gray`` float32; ``modules``: the marker's width
+    in modules (data bits plus border). All markers of a frame go through numpy together. A marker
+    whose edges are not found keeps its corners.
+    """
+    if not corners:
+        return []
+    C = np.stack(corners).astype(np.float64)  # (M, 4, 2)
+    m, t, kept = _robust_lines(*_edge_points(gray, C, modules))
     m, t = m.reshape(-1, 4, 2), t.reshape(-1, 4, 2)
     # Corner i joins the side before it (i-1 -> i) and the side after it (i -> i+1): m0 + a t0 = m1 + b t1.
     m0, t0, m1, t1 = np.roll(m, 1, axis=1), np.roll(t, 1, axis=1), m, t
@@ -296,7 +302,7 @@ def refine_corners_on_edges(gray: np.ndarray, corners: list[np.ndarray], modules
     r = m1 - m0
     a = (r[..., 1] * t1[..., 0] - r[..., 0] * t1[..., 1]) / np.where(np.abs(det) < 0.1, 1.0, det)
     Q = m0 + a[..., None] * t0
-    good = ((w.sum(axis=1) >= 4).reshape(-1, 4).all(axis=1) & (np.abs(det) >= 0.1).all(axis=1)  # edges found, not parallel
+    good = ((kept >= 4).reshape(-1, 4).all(axis=1) & (np.abs(det) >= 0.1).all(axis=1)  # edges found, not parallel
             & (np.abs(Q - C).max(axis=(1, 2)) <= 3.0))  # beyond that an edge fit went astray  # fmt: skip
     return [q if g else c for q, c, g in zip(Q, corners, good)]
 
