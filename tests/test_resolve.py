@@ -269,6 +269,8 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     assert abs(figures["moving_frames_vs_truth_mm_deg"][0] - 1e3 * np.median(errors)) < 0.01
     few = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(max_frames=3)})})
     kept = sorted((k.stamp_ns - t0) / 1e9 for k in run_resolve(log, tmp_path / "few", few).result.keyframes)
-    assert 1 <= len(kept) <= 3 and kept[-1] - kept[0] >= 0.4, kept
+    assert kept, "no moving frame survived the thinning"
+    assert len(kept) <= 3 < len(frames), (kept, len(frames))  # bounded: fewer than without the bound
+    assert kept[-1] - kept[0] >= 0.4, kept  # and still spread over the 1 s move, not its first frames
     off = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(enabled=False)})})
     assert run_resolve(log, tmp_path / "off", off).result.keyframes == []
