@@ -86,7 +86,6 @@ class Timeline:
         best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
         return self.poses[child][best]
 
-
     def interpolated(self, child: str, stamp_ns: int, max_gap_ns: int = 200_000_000) -> np.ndarray | None:
         """world_T_child (4x4) at ``stamp_ns`` between the two samples around it (position linear,
         rotation along the geodesic); None outside the samples or across a gap over ``max_gap_ns``.

@@ -55,6 +55,11 @@ def marker_symbol(marker_id: int) -> int:
     return gtsam.symbol("m", marker_id)
 
 
+def keyframe_symbol(index: int) -> int:
+    """A moving camera's frame solved as a pose of its own (offline only, ``estimator.keyframes``)."""
+    return gtsam.symbol("k", index)
+
+
 def project_rotation(M: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (chordal L2 mean of a sum of rotations)."""
     U, _, Vt = np.linalg.svd(M)

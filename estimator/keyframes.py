@@ -21,8 +21,8 @@ import gtsam
 import numpy as np
 
 from estimator.config import KeyframeConfig
-from estimator.graph import marker_symbol
-from schemas.codec import cov_ros_to_gtsam, invert_pose
+from estimator.graph import keyframe_symbol, marker_symbol
+from schemas.codec import cov_ros_to_gtsam, invert_pose, rotation_angles
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
 AGREE_M = 0.05  # and this distance
@@ -63,15 +63,6 @@ class MovingFrames:
             self.gap_ns *= 2
 
 
-def keyframe_symbol(index: int) -> int:
-    return gtsam.symbol("k", index)
-
-
-def _rotation_gap(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Angles (rad) between rotations A (N, 3, 3) and B (3, 3)."""
-    return np.arccos(np.clip((np.einsum("nij,ij->n", A, B) - 1.0) / 2.0, -1.0, 1.0))
-
-
 def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tuple[np.ndarray, list[int], list[np.ndarray]] | None:
     """world_T_camera of a frame from the solved markers it sees, and the rows and branches that
     agree with it; None unless two markers agree.
@@ -85,7 +76,7 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tu
     implied = np.stack([world_T_marker[int(frame.ids[j])] @ invert_pose(T) for j in rows for T in (frame.poses[j], frame.alternatives[j])])
     best, best_votes = None, 0
     for c in implied:
-        close = (_rotation_gap(implied[:, :3, :3], c[:3, :3]) < AGREE_RAD) & (np.linalg.norm(implied[:, :3, 3] - c[:3, 3], axis=1) < AGREE_M)
+        close = (rotation_angles(implied[:, :3, :3], c[:3, :3]) < AGREE_RAD) & (np.linalg.norm(implied[:, :3, 3] - c[:3, 3], axis=1) < AGREE_M)
         votes = int(close.reshape(-1, 2).any(axis=1).sum())  # markers with a branch near this pose
         if votes > best_votes:
             best, best_votes = c, votes
@@ -94,7 +85,7 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tu
     kept, branches = [], []
     for i, j in enumerate(rows):
         a, b = implied[2 * i], implied[2 * i + 1]
-        gap = _rotation_gap(np.stack([a[:3, :3], b[:3, :3]]), best[:3, :3])
+        gap = rotation_angles(np.stack([a[:3, :3], b[:3, :3]]), best[:3, :3])
         k = int(np.argmin(gap))
         near = (a, b)[k]
         if gap[k] < AGREE_RAD and np.linalg.norm(near[:3, 3] - best[:3, 3]) < AGREE_M:
@@ -108,7 +99,7 @@ def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) 
     if not seen:
         return True
     S = np.stack(seen)
-    same = (_rotation_gap(S[:, :3, :3], T[:3, :3]) < np.radians(config.new_view_deg)) & (np.linalg.norm(S[:, :3, 3] - T[:3, 3], axis=1) < config.new_view_m)
+    same = (rotation_angles(S[:, :3, :3], T[:3, :3]) < np.radians(config.new_view_deg)) & (np.linalg.norm(S[:, :3, 3] - T[:3, 3], axis=1) < config.new_view_m)
     return not bool(same.any())
 
 

@@ -98,6 +98,12 @@ def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return math.acos(max(-1.0, min(1.0, c)))
 
 
+def rotation_angles(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """``rotation_angle`` over stacks: angles (rad) between R_a (..., 3, 3) and R_b (..., 3, 3), broadcast."""
+    c = (np.einsum("...ij,...ij->...", R_a, R_b) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | None = None) -> np.ndarray:
     """Smallest rotation R (3, 3) with R @ a/|a| = b/|b|; batched over leading axes: a and b
     (..., 3) broadcast, R (..., 3, 3).

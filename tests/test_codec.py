@@ -208,3 +208,12 @@ def test_rotation_between_batches_and_turns_opposites_about_the_given_axis() -> 
     for k in range(20):
         np.testing.assert_allclose(R[k], codec.rotation_between(a[k], [0.0, 0.0, 1.0], half_turn_axis=axes[k]), atol=1e-12)
     np.testing.assert_allclose(R[7], np.diag([-1.0, 1.0, -1.0]), atol=1e-12)  # half turn about y
+
+
+def test_rotation_angles_match_the_single_rotation_angle_over_a_stack() -> None:
+    rng = np.random.default_rng(4)
+    R = np.stack([codec.matrix_from_quat(q / np.linalg.norm(q)) for q in rng.normal(size=(20, 4))])
+    angles = codec.rotation_angles(R, R[0])
+    for Ri, a in zip(R, angles):
+        assert abs(a - codec.rotation_angle(Ri, R[0])) < 1e-9
+    assert angles[0] < 1e-6 and codec.rotation_angles(R, R).max() < 1e-6
