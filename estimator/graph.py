@@ -299,7 +299,8 @@ class Counters:
     unknown_markers: int = 0
     updates: int = 0
     factors_rebuilt: int = 0  # pair factors (re)built in the graph
-    last_update_ms: float = 0.0
+    last_update_ms: float = 0.0  # wall time of the last update() call, whether or not it had work
+    last_update_rebuilt: int = 0  # pair factors that call rebuilt
 
 
 class Estimator:
@@ -558,7 +559,11 @@ class Estimator:
                 remove.append(pair.slot)
             refreshed.append(pair)
             pair.refreshed_ns, pair.dirty = now_ns, False
+        self.counters.last_update_rebuilt = len(refreshed)
         if graph.size() == 0 and not remove:
+            # A tick with nothing due still reports its own (tiny) cost: a stale figure here made
+            # the status repeat the last real update's time at 10 Hz.
+            self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
             return
         result = self.isam.update(graph, new_values, remove)
         if new_values.size() > 0:

@@ -230,6 +230,21 @@ def test_settled_pairs_stop_costing_updates_without_moving_the_answer() -> None:
         check_camera(lazy, s, cid, 40.0, 2.0, 0.1)
 
 
+def test_an_update_with_nothing_due_reports_its_own_cost() -> None:
+    """The status publishes ``last_update_ms`` every tick; a tick with no factor due must report
+    that call, not repeat the last update that rebuilt something (it did, and made the soak's
+    static-cell p99 the duration of whichever rebuild came last)."""
+    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6)], cameras=[camera("a", 0.0, 0.3)])
+    est = run(s, 1.0)
+    now = int(1.5e9)
+    est.update(now, refresh_all=True)
+    assert est.counters.last_update_rebuilt > 0
+    busy_ms = est.counters.last_update_ms
+    est.update(now)  # the same instant: everything was just rebuilt
+    assert est.counters.last_update_rebuilt == 0
+    assert est.counters.last_update_ms != busy_ms and est.counters.last_update_ms >= 0.0
+
+
 def test_biased_marker_rotations_do_not_turn_the_camera() -> None:
     """A static view's rotation bias repeats every frame (the README measured ~1 deg in-plane on the
     renderer with OpenCV's corners), so averaging cannot remove it. Here each of three anchors is seen turned by a fixed
