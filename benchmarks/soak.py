@@ -1,8 +1,9 @@
 """Soak: the demo cell under ``cellsight run --record`` for 30 minutes, with faults on a schedule.
 
 The first and last windows are fault-free; they give memory (private resident memory of every
-process of the cell, from /proc, and apart from it the shared memory each maps) and the estimator's update time (``EstimatorStatus.update_ms``) at the start
-and at the end. In between, one fault every period, cycling through: a driver SIGKILLed, the
+process of the cell, from /proc, and apart from it the shared memory each maps), the estimator's
+update time (``EstimatorStatus.update_ms``) and the pair factors it rebuilt, at the start and at
+the end. In between, one fault every period, cycling through: a driver SIGKILLed, the
 estimator SIGKILLed, the router SIGKILLed, the recorder SIGKILLed, the recognition worker
 SIGKILLed, a driver paused (SIGSTOP, so its camera stops sending) for 5 s. A fault is recovered when
 the killed process runs again under a new pid and every camera is ``localized`` again (for the
@@ -85,12 +86,14 @@ class Watch:
 
     states: list[tuple[float, dict[str, int]]] = field(default_factory=list)
     update_ms: list[tuple[float, float]] = field(default_factory=list)
+    rebuilt: list[tuple[float, float]] = field(default_factory=list)  # EstimatorStatus.factors_rebuilt, cumulative
     objects: list[float] = field(default_factory=list)
 
     def on_status(self, r) -> None:
         now = time.monotonic()
         self.states.append((now, {c.camera_id: c.state for c in r.msg.cameras}))
         self.update_ms.append((now, r.msg.update_ms))
+        self.rebuilt.append((now, float(r.msg.factors_rebuilt)))
 
     def all_localized_after(self, t: float) -> bool:
         return any(at > t and all(s.get(c) == m.CameraState.LOCALIZED for c in CAMERAS) for at, s in self.states[-50:])
@@ -251,6 +254,7 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     first = (sched.warmup_s, sched.warmup_s + sched.window_s)
     last = (end - sched.window_s, end)
     upd = [(t - t0, v) for t, v in watch.update_ms]
+    rebuilt = [(t - t0, v) for t, v in watch.rebuilt]
     rec_s = [f.recovered_at - f.at for f in faults if f.recovered_at is not None]
     # Median per process in each window; a process restarted in between counts with its new self.
     mb_first = {name: float(np.nanmedian(window(v, *first))) for name, v in rss.items()}
@@ -277,6 +281,11 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
         "shm_growth_mb_per_driver_restart_max": shm_growth_max / driver_restarts if driver_restarts else float("nan"),
         "update_ms_p99_first": float(np.nanpercentile(window(upd, *first), 99)),
         "update_ms_p99_last": float(np.nanpercentile(window(upd, *last), 99)),
+        "update_ms_p50_first": float(np.nanmedian(window(upd, *first))),
+        "update_ms_p50_last": float(np.nanmedian(window(upd, *last))),
+        # the windows are fault-free, so the estimator's counter runs on through each
+        "factors_rebuilt_first": float(np.ptp(window(rebuilt, *first))),
+        "factors_rebuilt_last": float(np.ptp(window(rebuilt, *last))),
         "log_parts": parts,
         "log_gaps": gaps,
         "log_gaps_unexplained": unexplained,

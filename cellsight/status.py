@@ -58,7 +58,7 @@ class StatusBoard:
         if self.estimator is not None:
             s = self.estimator
             flagged = f", anchors flagged: {list(s.flagged_anchors)}" if s.flagged_anchors else ""
-            t.caption = f"observations {s.observations}, rejected {s.rejected}, unknown markers {s.unknown_markers}, update {s.update_ms:.1f} ms{flagged}"
+            t.caption = f"observations {s.observations}, rejected {s.rejected}, unknown markers {s.unknown_markers}, update {s.update_ms:.1f} ms, factors rebuilt {s.factors_rebuilt}{flagged}"
         if alive is not None:
             t.caption = (t.caption or "") + "\nalive: " + ", ".join(a.split("/alive/")[1] for a in alive)
         if self.objects is None or not self.objects.objects:

@@ -72,6 +72,9 @@ def test_daemon_publishes_answers_the_map_and_survives_garbage(client_transport:
     s = scene()
     svc, statuses, replies = run_service(client_transport, s, tmp_path / "state.json", 2.0, 10**18, garbage=True)
     assert statuses and statuses[-1].cameras[0].state == m.CameraState.LOCALIZED
+    # the camera's three pair factors were built at least once, and the count only grows
+    rebuilt = [s.factors_rebuilt for s in statuses]
+    assert rebuilt[-1] >= 3 and rebuilt == sorted(rebuilt), rebuilt
     assert sum(svc._sub.bad.values()) > 0, "the garbage was not seen (test set-up)"
     assert len(replies) == 1
     poses = codec.poses_from_msg(replies[0].msg.cameras)

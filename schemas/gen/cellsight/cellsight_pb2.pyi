@@ -152,7 +152,7 @@ class CameraState(_message.Message):
     def __init__(self, camera_id: _Optional[str] = ..., state: _Optional[_Union[CameraState.State, str]] = ..., segment: _Optional[int] = ..., last_stamp_ns: _Optional[int] = ..., markers_seen: _Optional[int] = ..., position_sigma_m: _Optional[float] = ...) -> None: ...
 
 class EstimatorStatus(_message.Message):
-    __slots__ = ("stamp_ns", "cameras", "observations", "rejected", "unknown_markers", "flagged_anchors", "update_ms", "factors")
+    __slots__ = ("stamp_ns", "cameras", "observations", "rejected", "unknown_markers", "flagged_anchors", "update_ms", "factors", "factors_rebuilt")
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
     OBSERVATIONS_FIELD_NUMBER: _ClassVar[int]
@@ -161,6 +161,7 @@ class EstimatorStatus(_message.Message):
     FLAGGED_ANCHORS_FIELD_NUMBER: _ClassVar[int]
     UPDATE_MS_FIELD_NUMBER: _ClassVar[int]
     FACTORS_FIELD_NUMBER: _ClassVar[int]
+    FACTORS_REBUILT_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     cameras: _containers.RepeatedCompositeFieldContainer[CameraState]
     observations: int
@@ -169,7 +170,8 @@ class EstimatorStatus(_message.Message):
     flagged_anchors: _containers.RepeatedScalarFieldContainer[int]
     update_ms: float
     factors: int
-    def __init__(self, stamp_ns: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraState, _Mapping]]] = ..., observations: _Optional[int] = ..., rejected: _Optional[int] = ..., unknown_markers: _Optional[int] = ..., flagged_anchors: _Optional[_Iterable[int]] = ..., update_ms: _Optional[float] = ..., factors: _Optional[int] = ...) -> None: ...
+    factors_rebuilt: int
+    def __init__(self, stamp_ns: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraState, _Mapping]]] = ..., observations: _Optional[int] = ..., rejected: _Optional[int] = ..., unknown_markers: _Optional[int] = ..., flagged_anchors: _Optional[_Iterable[int]] = ..., update_ms: _Optional[float] = ..., factors: _Optional[int] = ..., factors_rebuilt: _Optional[int] = ...) -> None: ...
 
 class Map(_message.Message):
     __slots__ = ("cameras", "markers", "status")
