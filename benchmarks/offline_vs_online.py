@@ -7,8 +7,9 @@ cam2 is bumped at 14 s), each through the marker front-end, into an MCAP log wit
 The online estimate is the daemon's core fed the same frames in capture order, updated and
 published at 10 Hz; ``cellsight resolve``'s pipeline then solves the log. Figures: per camera,
 the median and RMS position / rotation error of both at the same instants (``paired``), averaged
-over ``--seeds`` noise seeds (``--quick``: one seed, 12 s at 15 Hz), and in how many runs offline
-was not worse. For a camera with two segments the median over both can favour the side whose
+over ``--seeds`` noise seeds (``--quick``: one seed, 12 s at 15 Hz), in how many runs offline
+was not worse, by how much it was behind in its worst run, and how far each side moves between
+seeds. For a camera with two segments the median over both can favour the side whose
 errors are spread: offline has one value per segment.
 """
 
@@ -99,6 +100,9 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
         out[f"{cam}_offline_mm_rms"], out[f"{cam}_online_mm_rms"] = float(a[:, 4].mean()), float(a[:, 6].mean())
         out[f"{cam}_runs_offline_not_worse_mm_p50"] = float((a[:, 0] <= a[:, 2]).sum())
         out[f"{cam}_runs_offline_not_worse_mm_rms"] = float((a[:, 4] <= a[:, 6]).sum())
+        out[f"{cam}_offline_minus_online_mm_rms_max"] = float((a[:, 4] - a[:, 6]).max())  # the worst run
+        # how much each side changes with the noise seed alone
+        out[f"{cam}_offline_mm_rms_spread"], out[f"{cam}_online_mm_rms_spread"] = float(np.ptp(a[:, 4])), float(np.ptp(a[:, 6]))
     for seg, rows in sorted(per_segment.items()):
         a = np.array(rows)
         out[f"{seg}_offline_mm"], out[f"{seg}_online_mm_p50"] = float(a[:, 0].mean()), float(a[:, 1].mean())
