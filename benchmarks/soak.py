@@ -2,8 +2,8 @@
 
 The first and last windows are fault-free; they give memory (private resident memory of every
 process of the cell, from /proc, and apart from it the shared memory each maps), the estimator's
-update time (``EstimatorStatus.update_ms``) and the pair factors it rebuilt, at the start and at
-the end. In between, one fault every period, cycling through: a driver SIGKILLed, the
+update time (``EstimatorStatus.update_ms``, and the CPU time in it) and the pair factors it
+rebuilt, at the start and at the end. In between, one fault every period, cycling through: a driver SIGKILLed, the
 estimator SIGKILLed, the router SIGKILLed, the recorder SIGKILLed, the recognition worker
 SIGKILLed, a driver paused (SIGSTOP, so its camera stops sending) for 5 s. A fault is recovered when
 the killed process runs again under a new pid and every camera is ``localized`` again (for the
@@ -86,6 +86,7 @@ class Watch:
 
     states: list[tuple[float, dict[str, int]]] = field(default_factory=list)
     update_ms: list[tuple[float, float]] = field(default_factory=list)
+    update_cpu_ms: list[tuple[float, float]] = field(default_factory=list)
     rebuilt: list[tuple[float, float]] = field(default_factory=list)  # EstimatorStatus.factors_rebuilt, cumulative
     objects: list[float] = field(default_factory=list)
 
@@ -93,6 +94,7 @@ class Watch:
         now = time.monotonic()
         self.states.append((now, {c.camera_id: c.state for c in r.msg.cameras}))
         self.update_ms.append((now, r.msg.update_ms))
+        self.update_cpu_ms.append((now, r.msg.update_cpu_ms))
         self.rebuilt.append((now, float(r.msg.factors_rebuilt)))
 
     def all_localized_after(self, t: float) -> bool:
@@ -254,6 +256,7 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     first = (sched.warmup_s, sched.warmup_s + sched.window_s)
     last = (end - sched.window_s, end)
     upd = [(t - t0, v) for t, v in watch.update_ms]
+    upd_cpu = [(t - t0, v) for t, v in watch.update_cpu_ms]
     rebuilt = [(t - t0, v) for t, v in watch.rebuilt]
     rec_s = [f.recovered_at - f.at for f in faults if f.recovered_at is not None]
     # Median per process in each window; a process restarted in between counts with its new self.
@@ -283,6 +286,8 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
         "update_ms_p99_last": float(np.nanpercentile(window(upd, *last), 99)),
         "update_ms_p50_first": float(np.nanmedian(window(upd, *first))),
         "update_ms_p50_last": float(np.nanmedian(window(upd, *last))),
+        "update_cpu_ms_p99_first": float(np.nanpercentile(window(upd_cpu, *first), 99)),
+        "update_cpu_ms_p99_last": float(np.nanpercentile(window(upd_cpu, *last), 99)),
         # the windows are fault-free, so the estimator's counter runs on through each
         "factors_rebuilt_first": float(np.ptp(window(rebuilt, *first))),
         "factors_rebuilt_last": float(np.ptp(window(rebuilt, *last))),

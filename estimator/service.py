@@ -210,7 +210,7 @@ class EstimatorService:
         msg = m.EstimatorStatus(
             stamp_ns=stamp_ns, observations=c.observations, rejected=c.rejected + sum(self._sub.bad.values()),
             unknown_markers=c.unknown_markers, update_ms=c.last_update_ms, factors=len(self.estimator.pairs) + len(self.estimator.anchors),
-            factors_rebuilt=c.factors_rebuilt,
+            factors_rebuilt=c.factors_rebuilt, update_cpu_ms=c.last_update_cpu_ms,
         )  # fmt: skip
         msg.flagged_anchors.extend(est.flagged_anchors)
         for cam in sorted(est.cameras.values(), key=lambda x: x.camera_id):

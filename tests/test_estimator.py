@@ -239,6 +239,7 @@ def test_an_update_with_nothing_due_reports_its_own_cost() -> None:
     now = int(1.5e9)
     est.update(now, refresh_all=True)
     assert est.counters.last_update_rebuilt > 0
+    assert est.counters.last_update_cpu_ms > 0.0  # building and solving is CPU work
     busy_ms = est.counters.last_update_ms
     est.update(now)  # the same instant: everything was just rebuilt
     assert est.counters.last_update_rebuilt == 0

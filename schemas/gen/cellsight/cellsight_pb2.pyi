@@ -152,7 +152,7 @@ class CameraState(_message.Message):
     def __init__(self, camera_id: _Optional[str] = ..., state: _Optional[_Union[CameraState.State, str]] = ..., segment: _Optional[int] = ..., last_stamp_ns: _Optional[int] = ..., markers_seen: _Optional[int] = ..., position_sigma_m: _Optional[float] = ...) -> None: ...
 
 class EstimatorStatus(_message.Message):
-    __slots__ = ("stamp_ns", "cameras", "observations", "rejected", "unknown_markers", "flagged_anchors", "update_ms", "factors", "factors_rebuilt")
+    __slots__ = ("stamp_ns", "cameras", "observations", "rejected", "unknown_markers", "flagged_anchors", "update_ms", "factors", "factors_rebuilt", "update_cpu_ms")
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
     OBSERVATIONS_FIELD_NUMBER: _ClassVar[int]
@@ -162,6 +162,7 @@ class EstimatorStatus(_message.Message):
     UPDATE_MS_FIELD_NUMBER: _ClassVar[int]
     FACTORS_FIELD_NUMBER: _ClassVar[int]
     FACTORS_REBUILT_FIELD_NUMBER: _ClassVar[int]
+    UPDATE_CPU_MS_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     cameras: _containers.RepeatedCompositeFieldContainer[CameraState]
     observations: int
@@ -171,7 +172,8 @@ class EstimatorStatus(_message.Message):
     update_ms: float
     factors: int
     factors_rebuilt: int
-    def __init__(self, stamp_ns: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraState, _Mapping]]] = ..., observations: _Optional[int] = ..., rejected: _Optional[int] = ..., unknown_markers: _Optional[int] = ..., flagged_anchors: _Optional[_Iterable[int]] = ..., update_ms: _Optional[float] = ..., factors: _Optional[int] = ..., factors_rebuilt: _Optional[int] = ...) -> None: ...
+    update_cpu_ms: float
+    def __init__(self, stamp_ns: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraState, _Mapping]]] = ..., observations: _Optional[int] = ..., rejected: _Optional[int] = ..., unknown_markers: _Optional[int] = ..., flagged_anchors: _Optional[_Iterable[int]] = ..., update_ms: _Optional[float] = ..., factors: _Optional[int] = ..., factors_rebuilt: _Optional[int] = ..., update_cpu_ms: _Optional[float] = ...) -> None: ...
 
 class Map(_message.Message):
     __slots__ = ("cameras", "markers", "status")
