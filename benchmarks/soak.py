@@ -6,9 +6,10 @@ update time (``EstimatorStatus.update_ms``, and the CPU time in it) and the pair
 rebuilt, at the start and at the end. In between, one fault every period, cycling through: a
 driver SIGKILLed, the estimator SIGKILLed, the router SIGKILLed, the recorder SIGKILLed, the
 recognition worker SIGKILLed, a driver paused (SIGSTOP, so its camera stops sending) for 5 s. A
-fault is recovered when the killed process runs again under a new pid and every camera is ``localized`` again (for the
-recognition worker: objects published again). Afterwards the recording (every part) is checked
-for gaps: each camera's marker observations must be continuous apart from windows when a fault
+fault is recovered when the killed process runs again under a new pid and every camera is
+``localized`` again (for the recognition worker: objects published again). Afterwards the
+recording (every part) is checked for gaps: each camera's marker observations must be continuous
+apart from windows when a fault
 had the driver, the router or the recorder down.
 """
 
