@@ -9,8 +9,7 @@ recognition worker SIGKILLed, a driver paused (SIGSTOP, so its camera stops send
 fault is recovered when the killed process runs again under a new pid and every camera is
 ``localized`` again (for the recognition worker: objects published again). Afterwards the
 recording (every part) is checked for gaps: each camera's marker observations must be continuous
-apart from windows when a fault
-had the driver, the router or the recorder down.
+apart from windows when a fault had the driver, the router or the recorder down.
 """
 
 from __future__ import annotations
