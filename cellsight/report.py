@@ -21,6 +21,7 @@ from schemas.codec import StampedPose
 from schemas.log import ReadReport, read_log
 
 STATE_NAMES = {1: "localized", 2: "unanchored", 3: "moving", 4: "stale"}
+MATCH_GAP_NS = 200_000_000  # an estimate and a truth sample further apart than this are not compared
 
 
 @dataclass
@@ -86,7 +87,12 @@ class Timeline:
         best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns))
         return self.poses[child][best]
 
-    def interpolated(self, child: str, stamp_ns: int, max_gap_ns: int = 200_000_000) -> np.ndarray | None:
+    def near(self, child: str, stamp_ns: int, max_gap_ns: int = MATCH_GAP_NS) -> StampedPose | None:
+        """``at``, or None when the nearest sample is ``max_gap_ns`` or more away (ns)."""
+        t = self.at(child, stamp_ns)
+        return t if t is not None and abs(t.stamp_ns - stamp_ns) < max_gap_ns else None
+
+    def interpolated(self, child: str, stamp_ns: int, max_gap_ns: int = MATCH_GAP_NS) -> np.ndarray | None:
         """world_T_child (4x4) at ``stamp_ns`` between the two samples around it (position linear,
         rotation along the geodesic); None outside the samples or across a gap over ``max_gap_ns``.
         For a moving body whose samples were thinned (truth is kept at <= 10 Hz)."""
@@ -155,8 +161,8 @@ def camera_errors(d: RunData, cam: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     """(stamps ns, position errors mm, rotation errors deg) of every published pose of ``cam``."""
     rows = []
     for p in d.est_cameras.poses.get(cam, []):
-        t = d.truth_cameras.at(cam, p.stamp_ns)
-        if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
+        t = d.truth_cameras.near(cam, p.stamp_ns)
+        if t is not None:
             rows.append((p.stamp_ns, *pose_error(p.T, t.T)))
     a = np.array(rows) if rows else np.zeros((0, 3))
     return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
@@ -166,8 +172,8 @@ def object_errors(d: RunData, frame: str) -> tuple[np.ndarray, np.ndarray, np.nd
     """(stamps ns, position errors mm, tilt errors deg) of every published pose of object ``frame``."""
     rows = []
     for p in d.est_objects.poses.get(frame, []):
-        t = d.truth_objects.at(frame, p.stamp_ns)
-        if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
+        t = d.truth_objects.near(frame, p.stamp_ns)
+        if t is not None:
             cos_tilt = float(np.clip(p.T[:3, 2] @ t.T[:3, 2], -1.0, 1.0))
             rows.append((p.stamp_ns, np.linalg.norm(p.T[:3, 3] - t.T[:3, 3]) * 1000, math.degrees(math.acos(cos_tilt))))
     a = np.array(rows) if rows else np.zeros((0, 3))

@@ -339,8 +339,8 @@ def evaluate(result: ResolveResult, side: Side) -> dict:
             seg = segment_at(result, cam, p.stamp_ns)
             if seg is not None:
                 on_off.append(pose_error(p.T, seg.world_T_camera))
-            t = side.truth_cameras.at(cam, p.stamp_ns)
-            if t is not None and abs(t.stamp_ns - p.stamp_ns) < 200_000_000:
+            t = side.truth_cameras.near(cam, p.stamp_ns)
+            if t is not None:
                 on_truth.append(pose_error(p.T, t.T))
                 if seg is not None:
                     paired.append((*pose_error(seg.world_T_camera, t.T), *pose_error(p.T, t.T)))
