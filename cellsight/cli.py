@@ -727,15 +727,14 @@ def resolve_cmd(
         run = run_resolve(log_file, out, cfg, lambda done, total: bar.update(task, completed=done))
     r = run.result
     typer.echo(f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers")
-    for cam, v in run.figures["cameras"].items():
-        off = v["offline_vs_truth_mm_deg"]
-        on = v["online_vs_truth_mm_deg"]
+    for cam, c in run.figures.cameras.items():
+        off, on = c.offline_vs_truth_mm_deg, c.online_vs_truth_mm_deg
         if off is not None:
-            moving = f"; {v['moving_frames']} moving frames solved" if v["moving_frames"] else ""
+            moving = f"; {c.moving_frames} moving frames solved" if c.moving_frames else ""
             typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else "") + moving)
-    for child, v in run.figures["object_markers"].items():
-        off = v["offline_vs_truth_mm_deg"]
-        typer.echo(f"  {child}: {v['poses']} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))
+    for child, o in run.figures.object_markers.items():
+        off = o.offline_vs_truth_mm_deg
+        typer.echo(f"  {child}: {o.poses} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))
     if run.read.stopped_early:
         _stderr().print(f"[yellow]warning:[/] the log ended early ({run.read.stopped_early}); resolved from the {run.read.messages} messages before it")
 

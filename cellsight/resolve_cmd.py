@@ -18,7 +18,7 @@ import json
 import math
 import tempfile
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, TextIO
 
@@ -129,13 +129,69 @@ def peek_config(path: Path) -> CellConfig | None:
     return config_of_log(report)
 
 
+MmDeg = tuple[float, float]  # (position error mm, rotation error deg)
+
+
+@dataclass(frozen=True)
+class Paired:
+    """Offline and online errors against ground truth at the same instants (``stamps`` of them):
+    medians and RMS, (mm, deg)."""
+
+    stamps: int
+    offline_mm_deg_p50: MmDeg
+    online_mm_deg_p50: MmDeg
+    offline_mm_deg_rms: MmDeg
+    online_mm_deg_rms: MmDeg
+
+
+@dataclass(frozen=True)
+class CameraFigures:
+    """One camera's median errors (mm, deg); those against truth are None in logs without it."""
+
+    offline_vs_truth_mm_deg: MmDeg | None
+    online_vs_truth_mm_deg: MmDeg | None
+    online_vs_offline_mm_deg: MmDeg | None
+    paired: Paired | None
+    moving_frames: int  # frames of a moving camera solved as poses of their own
+    moving_frames_vs_truth_mm_deg: MmDeg | None
+
+
+@dataclass(frozen=True)
+class ObjectFigures:
+    """One object marker: poses written, median errors (mm, deg) against truth."""
+
+    poses: int
+    offline_vs_truth_mm_deg: MmDeg | None
+    online_vs_truth_mm_deg: MmDeg | None
+
+
+@dataclass(frozen=True)
+class ResolveFigures:
+    """The figures behind the report; ``resolve.json`` is this, field for field."""
+
+    cameras: dict[str, CameraFigures]
+    marker_position_error_mm_p50: float | None
+    object_markers: dict[str, ObjectFigures]
+    observations: int
+    frames: int
+    messages_read: int
+    log_complete: bool
+    stopped_early: str | None
+    unanchored: list[str]
+    flagged_anchors: list[int]
+    lm_iterations: int
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2, default=float)
+
+
 @dataclass
 class ResolveRun:
     result: ResolveResult
     read: ReadReport
     side: Side
     out: Path
-    figures: dict
+    figures: ResolveFigures
 
 
 class ObjectSpool:
@@ -228,7 +284,7 @@ def segment_at(result: ResolveResult, cam: str, stamp: int):
 
 
 def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Path, cell: str, spool: ObjectSpool | None = None,
-                  object_markers: list[int] | None = None) -> dict:  # fmt: skip
+                  object_markers: list[int] | None = None) -> ResolveFigures:  # fmt: skip
     end = max((s.last_stamp_ns for s in result.segments), default=0)
     # resolved.mcap: each segment's pose at its first and last frame, object markers over time,
     # static markers and tf at the end.
@@ -265,14 +321,13 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
         rows += [(k.stamp_ns, tum_pose(k.world_T_camera)) for k in result.keyframes if k.camera_id == cam]
         lines = [f"{stamp / 1e9:.9f} {text}" for stamp, text in sorted(rows)]
         (tdir / f"{cam}.tum").write_text("\n".join(lines) + ("\n" if lines else ""))
-    figures = evaluate(result, side)
-    figures["object_markers"] = objects.summary(side)
-    figures.update({
-        "observations": result.observations, "frames": result.frames, "messages_read": report.messages,
-        "log_complete": report.stopped_early is None, "stopped_early": report.stopped_early,
-        "unanchored": result.unanchored, "flagged_anchors": result.flagged_anchors, "lm_iterations": result.iterations,
-    })  # fmt: skip
-    (out / "resolve.json").write_text(json.dumps(figures, indent=2, default=float))
+    figures = ResolveFigures(
+        cameras=evaluate(result, side), marker_position_error_mm_p50=marker_error_p50(result, side),
+        object_markers=objects.summary(side), observations=result.observations, frames=result.frames,
+        messages_read=report.messages, log_complete=report.stopped_early is None, stopped_early=report.stopped_early,
+        unanchored=result.unanchored, flagged_anchors=result.flagged_anchors, lm_iterations=result.iterations,
+    )  # fmt: skip
+    (out / "resolve.json").write_text(figures.to_json())
     plots(result, side, out)
     (out / "report.html").write_text(html_report(result, figures))
     return figures
@@ -296,7 +351,7 @@ class ObjectErrors:
         if t is not None and abs(t.stamp_ns - p.stamp_ns) <= OBJECT_GAP_NS // 2:
             self.offline.setdefault(p.child, []).append((p.stamp_ns / 1e9, *pose_error(p.T, t.T)))
 
-    def summary(self, side: Side) -> dict:
+    def summary(self, side: Side) -> dict[str, ObjectFigures]:
         out = {}
         for child in sorted(self.poses):
             online = []
@@ -305,26 +360,25 @@ class ObjectErrors:
                 if t is not None and abs(t.stamp_ns - p.stamp_ns) <= OBJECT_GAP_NS // 2:
                     online.append(pose_error(p.T, t.T))
             off = [e[1:] for e in self.offline.get(child, [])]
-            out[child] = {"poses": self.poses[child], "offline_vs_truth_mm_deg": _median_pair(off), "online_vs_truth_mm_deg": _median_pair(online)}
+            out[child] = ObjectFigures(self.poses[child], _median_pair(off), _median_pair(online))
         return out
 
 
-def _median_pair(rows: list) -> list[float] | None:
+def _median_pair(rows: list[MmDeg]) -> MmDeg | None:
     """Median position and rotation error of (mm, deg) rows, None without rows."""
-    return [float(np.median([r[0] for r in rows])), float(np.median([r[1] for r in rows]))] if rows else None
+    return (float(np.median([r[0] for r in rows])), float(np.median([r[1] for r in rows]))) if rows else None
 
 
-def _paired(rows: list[tuple[float, float, float, float]]) -> dict | None:
+def _paired(rows: list[tuple[float, float, float, float]]) -> Paired | None:
     """Rows of (offline mm, offline deg, online mm, online deg) at the same instants."""
     if not rows:
         return None
     a = np.array(rows)
-    med, rms = np.median(a, axis=0), np.sqrt(np.mean(a**2, axis=0))
-    return {"stamps": len(rows), "offline_mm_deg_p50": [float(med[0]), float(med[1])], "online_mm_deg_p50": [float(med[2]), float(med[3])],
-            "offline_mm_deg_rms": [float(rms[0]), float(rms[1])], "online_mm_deg_rms": [float(rms[2]), float(rms[3])]}  # fmt: skip
+    med, rms = np.median(a, axis=0).tolist(), np.sqrt(np.mean(a**2, axis=0)).tolist()
+    return Paired(len(rows), (med[0], med[1]), (med[2], med[3]), (rms[0], rms[1]), (rms[2], rms[3]))
 
 
-def evaluate(result: ResolveResult, side: Side) -> dict:
+def evaluate(result: ResolveResult, side: Side) -> dict[str, CameraFigures]:
     """Offline vs online vs truth, per camera: median position / rotation errors.
 
     ``paired``: at every online estimate's stamp that a solved segment covers and ground truth
@@ -332,7 +386,7 @@ def evaluate(result: ResolveResult, side: Side) -> dict:
     ``moving_frames``: how many of the camera's moving frames were solved as poses of their own,
     and their median error against ground truth interpolated to their stamps.
     """
-    cams: dict[str, dict] = {}
+    cams: dict[str, CameraFigures] = {}
     for cam in sorted({s.camera_id for s in result.segments}):
         off_truth, on_truth, on_off, paired = [], [], [], []
         for p in side.online.poses.get(cam, []):
@@ -351,15 +405,15 @@ def evaluate(result: ResolveResult, side: Side) -> dict:
         moving = [k for k in result.keyframes if k.camera_id == cam]
         at_truth = [(k, side.truth_cameras.interpolated(cam, k.stamp_ns)) for k in moving]  # truth is kept at <= 10 Hz
         moving_truth = [pose_error(k.world_T_camera, T) for k, T in at_truth if T is not None]
-        cams[cam] = {"offline_vs_truth_mm_deg": _median_pair(off_truth), "online_vs_truth_mm_deg": _median_pair(on_truth),
-                     "online_vs_offline_mm_deg": _median_pair(on_off), "paired": _paired(paired),
-                     "moving_frames": len(moving), "moving_frames_vs_truth_mm_deg": _median_pair(moving_truth)}  # fmt: skip
-    marker_err = []
-    for k, (T, _) in result.markers.items():
-        t = side.truth_markers.get(f"marker_{k}")
-        if t is not None:
-            marker_err.append(pose_error(T, t.T)[0])
-    return {"cameras": cams, "marker_position_error_mm_p50": float(np.median(marker_err)) if marker_err else None}
+        cams[cam] = CameraFigures(_median_pair(off_truth), _median_pair(on_truth), _median_pair(on_off), _paired(paired),
+                                  len(moving), _median_pair(moving_truth))  # fmt: skip
+    return cams
+
+
+def marker_error_p50(result: ResolveResult, side: Side) -> float | None:
+    """Median position error (mm) of the solved static markers that ground truth has."""
+    err = [pose_error(T, t.T)[0] for k, (T, _) in result.markers.items() if (t := side.truth_markers.get(f"marker_{k}")) is not None]
+    return float(np.median(err)) if err else None
 
 
 def plots(result: ResolveResult, side: Side, out: Path) -> None:
@@ -427,14 +481,14 @@ def plots(result: ResolveResult, side: Side, out: Path) -> None:
     plt.close(fig)
 
 
-def html_report(result: ResolveResult, fig: dict) -> str:
-    def fmt(v) -> str:
+def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
+    def fmt(v: MmDeg | None) -> str:
         return "-" if v is None else f"{v[0]:.2f} mm / {v[1]:.3f} deg"
 
     rows = "".join(
-        f"<tr><td>{html.escape(c)}</td><td>{fmt(v['offline_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_offline_mm_deg'])}</td>"
-        f"<td>{v['moving_frames']}</td><td>{fmt(v['moving_frames_vs_truth_mm_deg'])}</td></tr>"
-        for c, v in fig["cameras"].items()
+        f"<tr><td>{html.escape(c)}</td><td>{fmt(v.offline_vs_truth_mm_deg)}</td><td>{fmt(v.online_vs_truth_mm_deg)}</td><td>{fmt(v.online_vs_offline_mm_deg)}</td>"
+        f"<td>{v.moving_frames}</td><td>{fmt(v.moving_frames_vs_truth_mm_deg)}</td></tr>"
+        for c, v in fig.cameras.items()
     )
     segs = "".join(
         f"<tr><td>{html.escape(s.camera_id)}</td><td>{s.segment}</td><td>{s.frames}</td><td>{' '.join(f'{v:+.4f}' for v in s.world_T_camera[:3, 3])}</td>"
@@ -442,20 +496,20 @@ def html_report(result: ResolveResult, fig: dict) -> str:
         for s in result.segments
     )
     objects = "".join(
-        f"<tr><td>{html.escape(c)}</td><td>{v['poses']}</td><td>{fmt(v['offline_vs_truth_mm_deg'])}</td><td>{fmt(v['online_vs_truth_mm_deg'])}</td></tr>"
-        for c, v in fig.get("object_markers", {}).items()
+        f"<tr><td>{html.escape(c)}</td><td>{v.poses}</td><td>{fmt(v.offline_vs_truth_mm_deg)}</td><td>{fmt(v.online_vs_truth_mm_deg)}</td></tr>"
+        for c, v in fig.object_markers.items()
     )
     objects_html = (
         "<h2>Object markers (placed through the solved cameras, at most 10 Hz; median errors)</h2>"
         f"<table><tr><th>marker</th><th>poses</th><th>offline vs truth</th><th>online vs truth</th></tr>{objects}</table>"
     ) if objects else ""
-    warn = "" if fig["log_complete"] else f"<p class=warn>The log was not complete ({html.escape(str(fig['stopped_early']))}); this covers what was readable.</p>"
+    warn = "" if fig.log_complete else f"<p class=warn>The log was not complete ({html.escape(str(fig.stopped_early))}); this covers what was readable.</p>"
     return f"""<!doctype html><html><head><meta charset=utf-8><title>cellsight resolve</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
 <h1>Offline re-solve</h1>{warn}
-<p>{fig['frames']} frames, {fig['observations']} marker observations, {len(result.segments)} camera segments, {len(result.markers)} markers;
-Levenberg-Marquardt {fig['lm_iterations']} iterations. Unanchored cameras: {', '.join(fig['unanchored']) or 'none'}.
-Anchors flagged as moved: {', '.join(map(str, fig['flagged_anchors'])) or 'none'}.</p>
+<p>{fig.frames} frames, {fig.observations} marker observations, {len(result.segments)} camera segments, {len(result.markers)} markers;
+Levenberg-Marquardt {fig.lm_iterations} iterations. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
+Anchors flagged as moved: {', '.join(map(str, fig.flagged_anchors)) or 'none'}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
 <table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>
 {objects_html}
