@@ -643,7 +643,7 @@ def demo(
 
     Console().print(Markdown((out / "summary.md").read_text()))
     typer.echo(f"wrote {out}/: log.mcap, config.toml, summary.json, summary.md, top_view.png, errors.png")
-    if not summary["log_complete"]:
+    if not summary.log_complete:
         _stderr().print("[yellow]warning:[/] the log was not complete; the summary covers what was readable")
 
 

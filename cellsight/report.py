@@ -220,20 +220,28 @@ def summarize(d: RunData) -> tuple[list[CameraSummary], list[MarkerSummary]]:
     return cams, markers
 
 
-def write_report(log_path: Path, cell: str, out_dir: Path) -> dict:
-    """summary.json, summary.md, top_view.png and errors.png in ``out_dir``; returns the summary dict."""
+@dataclass(frozen=True)
+class RunSummary:
+    """What ``summary.json`` holds, field for field."""
+
+    log: str
+    messages_read: int
+    log_complete: bool
+    cameras: list[CameraSummary]
+    markers: list[MarkerSummary]
+    objects: list[ObjectSummary]
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2)
+
+
+def write_report(log_path: Path, cell: str, out_dir: Path) -> RunSummary:
+    """summary.json, summary.md, top_view.png and errors.png in ``out_dir``; returns the summary."""
     d = load_run(log_path, cell)
     cams, markers = summarize(d)
     objects = summarize_objects(d)
-    summary = {
-        "log": str(log_path),
-        "messages_read": d.read.messages,
-        "log_complete": d.read.stopped_early is None,
-        "cameras": [asdict(c) for c in cams],
-        "markers": [asdict(m) for m in markers],
-        "objects": [asdict(o) for o in objects],
-    }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    summary = RunSummary(str(log_path), d.read.messages, d.read.stopped_early is None, cams, markers, objects)
+    (out_dir / "summary.json").write_text(summary.to_json())
     (out_dir / "summary.md").write_text(markdown(cams, markers, objects))
     plot_top_view(d, out_dir / "top_view.png")
     plot_errors(d, out_dir / "errors.png")
