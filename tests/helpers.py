@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import time
-from typing import Callable
+from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
+from google.protobuf.message import Message
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -34,3 +38,11 @@ def wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
             return
         time.sleep(0.02)
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def logged_messages(path: Path, log_time_order: bool = True) -> Iterator[tuple[str, Message]]:
+    """(topic, decoded protobuf) of every message in an MCAP file, through mcap's own reader and
+    the schemas embedded in the file: an independent check of what our writer wrote."""
+    with path.open("rb") as f:
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(log_time_order=log_time_order):
+            yield channel.topic, msg

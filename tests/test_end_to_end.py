@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from mcap_protobuf.reader import read_protobuf_messages
+
+from tests.helpers import logged_messages
 
 pytestmark = pytest.mark.slow
 
@@ -69,8 +70,8 @@ def test_demo_reports_the_objects_near_truth(demo_run: Path) -> None:
 def test_demo_log_decodes_with_plain_mcap_readers(demo_run: Path) -> None:
     """No project code: mcap + mcap-protobuf-support, with Foxglove's schema names for images and tf."""
     types: dict[str, str] = {}
-    for m in read_protobuf_messages(str(demo_run / "log.mcap"), log_time_order=False):
-        types.setdefault(m.topic, m.proto_msg.DESCRIPTOR.full_name)
+    for topic, msg in logged_messages(demo_run / "log.mcap", log_time_order=False):
+        types.setdefault(topic, msg.DESCRIPTOR.full_name)
     assert types["cellsight/demo/cam1/color/image_raw"] == "foxglove.RawImage"
     assert types["cellsight/demo/cam1/depth/image_raw"] == "foxglove.RawImage"
     assert types["cellsight/demo/cam1/camera_info"] == "foxglove.CameraCalibration"

@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mcap_protobuf.reader import read_protobuf_messages
 
 from cellsight.record import Recorder
 from drivers.replay import replay
@@ -18,7 +17,7 @@ from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.log import LogWriter, ReadReport, read_log
-from tests.helpers import wait_until
+from tests.helpers import logged_messages, wait_until
 
 CELL = "rr"
 
@@ -40,7 +39,7 @@ def test_recorder_writes_what_decodes_and_skips_garbage(client_transport: Transp
             raw.put(b"\xff\xfe garbage")
         wait_until(lambda: rec.messages >= n0 + 50, 5.0, "50 messages recorded")
         rec.close()
-    frames = [x.proto_msg.frames for x in read_protobuf_messages(str(path)) if x.proto_msg.frames > 0]
+    frames = [msg.frames for _, msg in logged_messages(path) if msg.frames > 0]
     assert frames == list(range(1, 51))
     assert rec.bad[keys.status(CELL, "cam1")] == 50
 
