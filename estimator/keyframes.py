@@ -6,9 +6,9 @@ of the solved map becomes a pose (key ``k``) with one factor per marker. Every o
 somewhere new, with a bias of its own, where a static view repeats one bias in every frame and
 its fused factor counts at most ``max_fused`` of them. A frame that is the same view as one of
 its camera's segments (a camera settling after a move) would count that view's bias again and is
-left out. On the demo cell at the sensors' 30 Hz (``benchmarks.offline_vs_online``, five seeds)
-the 20 kept frames of cam1's tilt put cam3 and cam4 at 0.49 and 0.45 mm RMS, against 0.73 and
-0.78 online.
+left out. On the demo cell at the sensors' 30 Hz (``benchmarks.offline_vs_online``, ten seeds)
+the 20 kept frames of cam1's tilt put cam3 and cam4 at 0.52 and 0.47 mm RMS, against 0.73 and
+0.78 online (and 0.79-0.85 and 0.62-0.68 offline without them).
 
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
