@@ -10,8 +10,8 @@ the median and RMS position / rotation error of both at the same instants (``pai
 over ``--seeds`` noise seeds (``--quick``: one seed, 12 s at 15 Hz), in how many runs offline
 was not worse, by how much it was behind in its worst run and on average (with a one-sided 95 %
 upper bound over the runs: a non-inferiority margin is met when the bound is under it), and how
-far each side moves between seeds. For a camera with two segments the median over both can favour the side whose
-errors are spread: offline has one value per segment.
+far each side moves between seeds. For a camera with two segments the median over both can
+favour the side whose errors are spread: offline has one value per segment.
 """
 
 from __future__ import annotations

@@ -6,7 +6,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from benchmarks.offline_vs_online import upper_bound_95
 from benchmarks.scenes import NoiseSettings, demo, estimator_config, flip, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_cmd import peek_config, run_resolve
@@ -274,3 +276,12 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     assert kept[-1] - kept[0] >= 0.4, kept  # and still spread over the 1 s move, not its first frames
     off = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(enabled=False)})})
     assert run_resolve(log, tmp_path / "off", off).result.keyframes == []
+
+
+@pytest.mark.parametrize(("n", "t_table"), [(5, 2.132), (10, 1.833), (30, 1.699)])
+def test_the_benchmarks_non_inferiority_bound_is_students_t(n: int, t_table: float) -> None:
+    """offline_vs_online's one-sided 95 % bound on the mean against Student's t table (df = n - 1),
+    to 1 %: the bound the README's non-inferiority claim rests on."""
+    x = np.random.default_rng(n).normal(size=n)
+    t = (upper_bound_95(x) - x.mean()) / (x.std(ddof=1) / np.sqrt(n))
+    assert abs(t / t_table - 1) < 0.01, f"n={n}: t={t:.4f}, table {t_table}"
