@@ -25,8 +25,8 @@ from typing import Callable, Iterator, TextIO
 import numpy as np
 
 from cellsight.config import CellConfig, parse_config, save_used
-from cellsight.report import Timeline, draw_ellipse, pose_error
-from estimator.resolve import FrameBlock, ObjectRows, ResolveResult, place_objects, resolve
+from cellsight.report import MATCH_GAP_NS, Timeline, draw_ellipse, pose_error
+from estimator.resolve import FrameBlock, ObjectRows, ResolveResult, SegmentResult, place_objects, resolve
 from estimator.service import marker_frame
 from schemas import codec, keys
 from schemas import messages as m
@@ -274,7 +274,7 @@ def object_poses(spool: ObjectSpool, result: ResolveResult) -> Iterator[StampedP
         yield best[key][1]
 
 
-def segment_at(result: ResolveResult, cam: str, stamp: int):
+def segment_at(result: ResolveResult, cam: str, stamp: int) -> SegmentResult | None:
     """The solved segment of ``cam`` that covers ``stamp`` (None if it was moving or unanchored)."""
     best = None
     for s in result.segments:
@@ -389,11 +389,9 @@ def evaluate(result: ResolveResult, side: Side) -> dict[str, CameraFigures]:
     cams: dict[str, CameraFigures] = {}
     for cam in sorted({s.camera_id for s in result.segments}):
         off_truth, on_truth, on_off, paired = [], [], [], []
-        for p in side.online.poses.get(cam, []):
-            seg = segment_at(result, cam, p.stamp_ns)
+        for p, seg, t in at_online_stamps(result, side, cam):
             if seg is not None:
                 on_off.append(pose_error(p.T, seg.world_T_camera))
-            t = side.truth_cameras.near(cam, p.stamp_ns)
             if t is not None:
                 on_truth.append(pose_error(p.T, t.T))
                 if seg is not None:
@@ -403,11 +401,26 @@ def evaluate(result: ResolveResult, side: Side) -> dict[str, CameraFigures]:
             if seg is not None:
                 off_truth.append(pose_error(seg.world_T_camera, t.T))
         moving = [k for k in result.keyframes if k.camera_id == cam]
-        at_truth = [(k, side.truth_cameras.interpolated(cam, k.stamp_ns)) for k in moving]  # truth is kept at <= 10 Hz
-        moving_truth = [pose_error(k.world_T_camera, T) for k, T in at_truth if T is not None]
         cams[cam] = CameraFigures(_median_pair(off_truth), _median_pair(on_truth), _median_pair(on_off), _paired(paired),
-                                  len(moving), _median_pair(moving_truth))  # fmt: skip
+                                  len(moving), _median_pair([e for _, e in moving_vs_truth(result, side, cam)]))  # fmt: skip
     return cams
+
+
+def at_online_stamps(result: ResolveResult, side: Side, cam: str) -> Iterator[tuple[StampedPose, SegmentResult | None, StampedPose | None]]:
+    """Each online estimate of ``cam`` with the solved segment covering its stamp and the ground
+    truth within ``MATCH_GAP_NS`` of it (either None where there is none)."""
+    for p in side.online.poses.get(cam, []):
+        yield p, segment_at(result, cam, p.stamp_ns), side.truth_cameras.near(cam, p.stamp_ns)
+
+
+def moving_vs_truth(result: ResolveResult, side: Side, cam: str) -> list[tuple[int, MmDeg]]:
+    """(stamp ns, error) of each of ``cam``'s moving frames solved on their own, against ground
+    truth interpolated to the frame's stamp (truth is kept at <= 10 Hz)."""
+    out = []
+    for k in result.keyframes:
+        if k.camera_id == cam and (T := side.truth_cameras.interpolated(cam, k.stamp_ns)) is not None:
+            out.append((k.stamp_ns, pose_error(k.world_T_camera, T)))
+    return out
 
 
 def marker_error_p50(result: ResolveResult, side: Side) -> float | None:
@@ -463,8 +476,31 @@ def plots(result: ResolveResult, side: Side, out: Path) -> None:
     fig.savefig(out / "outliers.png", dpi=100)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(8, 3.5))
+    truth_cams = [cam for cam in sorted({s.camera_id for s in result.segments}) if side.truth_cameras.poses.get(cam)]
     t0 = min((s[0] for s in side.online.stamps.values() if s), default=0)
+    if truth_cams:  # simulator logs: both solutions against ground truth, over time
+        fig, axes = plt.subplots(len(truth_cams), 1, figsize=(8, 1.9 * len(truth_cams) + 0.6), sharex=True, squeeze=False)
+        for ax, cam in zip(axes[:, 0], truth_cams):
+            online = [((p.stamp_ns - t0) / 1e9, pose_error(p.T, t.T)[0]) for p, _, t in at_online_stamps(result, side, cam) if t is not None]
+            if online:
+                ax.plot(*zip(*_gaps_broken(online, MATCH_GAP_NS / 1e9)), "-", lw=0.9, color="tab:gray", label="online")
+            # NaN where no segment covers the stamp: the line breaks while the camera moves
+            offline = [((t.stamp_ns - t0) / 1e9, np.nan if (seg := segment_at(result, cam, t.stamp_ns)) is None else pose_error(seg.world_T_camera, t.T)[0])
+                       for t in side.truth_cameras.poses[cam]]  # fmt: skip
+            ax.plot(*zip(*offline), "-", lw=1.6, color="tab:blue", label="offline (segment)")
+            moving = moving_vs_truth(result, side, cam)
+            if moving:
+                ax.plot([(s - t0) / 1e9 for s, _ in moving], [e[0] for _, e in moving], ".", ms=4, color="tab:red", label="offline (moving frame)")
+            ax.set_ylabel(f"{cam} (mm)")
+            ax.grid(alpha=0.3)
+        axes[0, 0].set_title("Position error against ground truth")
+        axes[0, 0].legend(fontsize=8, ncol=3, loc="upper right")
+        axes[-1, 0].set_xlabel("log time (s)")
+        fig.tight_layout()
+        fig.savefig(out / "errors_vs_truth.png", dpi=100)
+        plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
     for cam, poses in sorted(side.online.poses.items()):
         rows = [((p.stamp_ns - t0) / 1e9, pose_error(p.T, seg.world_T_camera)[0]) for p in poses if (seg := segment_at(result, cam, p.stamp_ns)) is not None]
         if rows:
@@ -479,6 +515,17 @@ def plots(result: ResolveResult, side: Side, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "online_vs_offline.png", dpi=100)
     plt.close(fig)
+
+
+def _gaps_broken(rows: list[tuple[float, float]], gap_s: float) -> list[tuple[float, float]]:
+    """(t s, value) rows with a NaN inserted where consecutive stamps are over ``gap_s`` apart, so
+    a plotted line breaks there (the online estimate is not published while a camera moves)."""
+    out = rows[:1]
+    for a, b in zip(rows, rows[1:]):
+        if b[0] - a[0] > gap_s:
+            out.append((a[0], np.nan))
+        out.append(b)
+    return out
 
 
 def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
@@ -503,6 +550,7 @@ def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
         "<h2>Object markers (placed through the solved cameras, at most 10 Hz; median errors)</h2>"
         f"<table><tr><th>marker</th><th>poses</th><th>offline vs truth</th><th>online vs truth</th></tr>{objects}</table>"
     ) if objects else ""
+    truth_img = '<h2>Against ground truth</h2><img src="errors_vs_truth.png">' if any(c.offline_vs_truth_mm_deg for c in fig.cameras.values()) else ""
     warn = "" if fig.log_complete else f"<p class=warn>The log was not complete ({html.escape(str(fig.stopped_early))}); this covers what was readable.</p>"
     return f"""<!doctype html><html><head><meta charset=utf-8><title>cellsight resolve</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
@@ -517,5 +565,5 @@ Anchors flagged as moved: {', '.join(map(str, fig.flagged_anchors)) or 'none'}.<
 <h2>Top view</h2><img src="top_view.png">
 <h2>Residuals</h2><img src="residuals.png">
 <h2>Outliers</h2><img src="outliers.png">
-<h2>Online vs offline</h2><img src="online_vs_offline.png">
+<h2>Online vs offline</h2><img src="online_vs_offline.png">{truth_img}
 </body></html>"""

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,18 +14,22 @@ import pytest
 from benchmarks.offline_vs_online import upper_bound_95
 from benchmarks.scenes import NoiseSettings, demo, estimator_config, flip, frame_observations, observations_msg
 from cellsight.config import CellConfig
+from cellsight.record import Recorder
 from cellsight.resolve_cmd import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
+from drivers.replay import replay
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
 from estimator.config import KeyframeConfig
 from estimator.graph import Estimator
 from estimator.keyframes import MovingFrame, place_frame
 from estimator.observation import observations_of
 from schemas import codec, keys
+from schemas import messages as m
+from schemas.bus import Bus, TransportConfig
 from schemas.codec import invert_pose
 from schemas.log import LogWriter, read_log
 from schemas.spec import PoseSpec
-from tests.helpers import assert_pose_close
+from tests.helpers import assert_pose_close, wait_until
 
 CELL = "res"
 
@@ -69,8 +76,10 @@ def test_resolve_recovers_the_cameras_and_writes_the_report(tmp_path: Path) -> N
     assert set(segs) == {"a", "b"} and run.result.unanchored == []
     for cid, seg in segs.items():
         assert_pose_close(seg.world_T_camera, s.camera(cid).world_T_camera(0.0), 0.005, 0.1, cid)
-    for name in ("resolved.mcap", "report.html", "top_view.png", "residuals.png", "outliers.png", "online_vs_offline.png", "resolve.json", "config.toml"):
+    for name in ("resolved.mcap", "report.html", "top_view.png", "residuals.png", "outliers.png", "online_vs_offline.png",
+                 "errors_vs_truth.png", "resolve.json", "config.toml"):  # fmt: skip
         assert (tmp_path / "out" / name).stat().st_size > 0, name
+    assert 'src="errors_vs_truth.png"' in (tmp_path / "out" / "report.html").read_text()  # the log has ground truth
     tum = (tmp_path / "out" / "trajectories" / "a.tum").read_text().splitlines()
     assert len(tum) >= 140 and len(tum[0].split()) == 8  # t x y z qx qy qz qw, one per frame
     figures = json.loads((tmp_path / "out" / "resolve.json").read_text())
@@ -144,9 +153,6 @@ def test_corrupt_chunk_stops_reading_with_a_warning(tmp_path: Path) -> None:
 
 
 def test_log_without_config_is_refused_with_a_clear_error(tmp_path: Path) -> None:
-    import subprocess
-    import sys
-
     log = tmp_path / "plain.mcap"
     LogWriter(log).close()
     out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(log)], capture_output=True, text=True, timeout=60)
@@ -285,3 +291,52 @@ def test_the_benchmarks_non_inferiority_bound_is_students_t(n: int, t_table: flo
     x = np.random.default_rng(n).normal(size=n)
     t = (upper_bound_95(x) - x.mean()) / (x.std(ddof=1) / np.sqrt(n))
     assert abs(t / t_table - 1) < 0.01, f"n={n}: t={t:.4f}, table {t_table}"
+
+
+def test_a_log_recorded_from_cellsight_replay_resolves_like_the_original(client_transport: TransportConfig, tmp_path: Path) -> None:
+    """Replay a log over zenoh (loopback router) into the recorder, then resolve the recording:
+    every marker message survives the trip with its stamps, so the solve is the original's."""
+    s = scene()
+    original = tmp_path / "original.mcap"
+    cfg = write_log(original, s, 3.0)
+    recorded = tmp_path / "recorded.mcap"
+    with Bus(client_transport, CELL) as rec_bus, Bus(client_transport, CELL) as pub_bus:
+        rec = Recorder(rec_bus, recorded, metadata={"config": cfg.to_toml()})
+        time.sleep(0.5)  # the recorder's subscription reaches the router
+        result = replay(pub_bus, original, rate=5.0)
+        wait_until(lambda: rec.messages >= result.published, 10.0, f"{result.published} replayed messages recorded")
+        rec.close()
+    assert result.published == sum(1 for _ in read_log(original, None))
+    a = run_resolve(original, tmp_path / "a", cfg).result
+    b = run_resolve(recorded, tmp_path / "b", peek_config(recorded)).result
+    assert b.observations == a.observations and b.frames == a.frames
+    segs = {(x.camera_id, x.segment): x for x in a.segments}
+    assert sorted(segs) == sorted((x.camera_id, x.segment) for x in b.segments)
+    for x in b.segments:
+        assert_pose_close(x.world_T_camera, segs[(x.camera_id, x.segment)].world_T_camera, 1e-5, 1e-4, f"{x.camera_id}.{x.segment}")
+
+
+def test_a_log_from_the_openni2_driver_resolves_to_an_unanchored_camera(router_endpoint: str, client_transport: TransportConfig, tmp_path: Path) -> None:
+    """The real OpenNI2 runtime's Dummy device (blank images: frames but no markers) through the
+    driver process and the recorder: resolve reads its frames and reports the camera unanchored,
+    with the report written, instead of failing on a log with nothing to solve."""
+    from cellsight.scenario_config import demo_config
+
+    log = tmp_path / "openni2.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "driver", "openni2", "--camera", "kinect", "--uri", "Dummy",
+                             "--duration", "30", "-e", router_endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        with Bus(client_transport, "demo") as bus:
+            rec = Recorder(bus, log)
+            marker_msgs = bus.subscribe(keys.markers("demo", "kinect"), m.MarkerObservations, capacity=100)
+            wait_until(lambda: marker_msgs.received >= 20, 30.0, "20 marker messages from the driver")
+            rec.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    run = run_resolve(log, tmp_path / "out", demo_config())
+    assert run.result.frames >= 15 and run.result.observations == 0
+    assert run.result.segments == [] and run.result.unanchored == ["kinect"]
+    figures = json.loads((tmp_path / "out" / "resolve.json").read_text())
+    assert figures["log_complete"] and figures["unanchored"] == ["kinect"]
+    assert (tmp_path / "out" / "report.html").stat().st_size > 0
