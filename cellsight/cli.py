@@ -731,7 +731,8 @@ def resolve_cmd(
         off, on = c.offline_vs_truth_mm_deg, c.online_vs_truth_mm_deg
         if off is not None:
             moving = f"; {c.moving_frames} moving frames solved" if c.moving_frames else ""
-            typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else "") + moving)
+            paired = f" (RMS at the same instants {c.paired.offline_mm_deg_rms[0]:.2f} / {c.paired.online_mm_deg_rms[0]:.2f} mm)" if c.paired else ""
+            typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else "") + paired + moving)
     for child, o in run.figures.object_markers.items():
         off = o.offline_vs_truth_mm_deg
         typer.echo(f"  {child}: {o.poses} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))

@@ -532,9 +532,12 @@ def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
     def fmt(v: MmDeg | None) -> str:
         return "-" if v is None else f"{v[0]:.2f} mm / {v[1]:.3f} deg"
 
+    def rms(p: Paired | None) -> str:
+        return "-" if p is None else f"{p.offline_mm_deg_rms[0]:.2f} / {p.online_mm_deg_rms[0]:.2f} mm ({p.stamps})"
+
     rows = "".join(
-        f"<tr><td>{html.escape(c)}</td><td>{fmt(v.offline_vs_truth_mm_deg)}</td><td>{fmt(v.online_vs_truth_mm_deg)}</td><td>{fmt(v.online_vs_offline_mm_deg)}</td>"
-        f"<td>{v.moving_frames}</td><td>{fmt(v.moving_frames_vs_truth_mm_deg)}</td></tr>"
+        f"<tr><td>{html.escape(c)}</td><td>{fmt(v.offline_vs_truth_mm_deg)}</td><td>{fmt(v.online_vs_truth_mm_deg)}</td><td>{rms(v.paired)}</td>"
+        f"<td>{fmt(v.online_vs_offline_mm_deg)}</td><td>{v.moving_frames}</td><td>{fmt(v.moving_frames_vs_truth_mm_deg)}</td></tr>"
         for c, v in fig.cameras.items()
     )
     segs = "".join(
@@ -559,7 +562,7 @@ def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
 Levenberg-Marquardt {fig.lm_iterations} iterations. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
 Anchors flagged as moved: {', '.join(map(str, fig.flagged_anchors)) or 'none'}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
-<table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>
+<table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>RMS at the same instants, offline / online (instants)</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>
 {objects_html}
 <h2>Segments</h2><table><tr><th>camera</th><th>segment</th><th>frames</th><th>position (m)</th><th>sigma (mm)</th></tr>{segs}</table>
 <h2>Top view</h2><img src="top_view.png">
