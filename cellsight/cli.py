@@ -726,7 +726,8 @@ def resolve_cmd(
         task = bar.add_task("reading and solving", total=log_file.stat().st_size)
         run = run_resolve(log_file, out, cfg, lambda done, total: bar.update(task, completed=done))
     r = run.result
-    typer.echo(f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers")
+    typer.echo(f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers"
+               + (f", {r.object_links} object-marker instants linking cameras" if r.object_links else ""))
     for cam, c in run.figures.cameras.items():
         off, on = c.offline_vs_truth_mm_deg, c.online_vs_truth_mm_deg
         if off is not None:

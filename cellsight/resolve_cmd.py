@@ -180,6 +180,7 @@ class ResolveFigures:
     unanchored: list[str]
     flagged_anchors: list[int]
     lm_iterations: int
+    object_links: int  # instants at which an object marker linked two or more cameras
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2, default=float)
@@ -326,6 +327,7 @@ def write_outputs(result: ResolveResult, side: Side, report: ReadReport, out: Pa
         object_markers=objects.summary(side), observations=result.observations, frames=result.frames,
         messages_read=report.messages, log_complete=report.stopped_early is None, stopped_early=report.stopped_early,
         unanchored=result.unanchored, flagged_anchors=result.flagged_anchors, lm_iterations=result.iterations,
+        object_links=result.object_links,
     )  # fmt: skip
     (out / "resolve.json").write_text(figures.to_json())
     plots(result, side, out)
@@ -559,7 +561,8 @@ def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
 <h1>Offline re-solve</h1>{warn}
 <p>{fig.frames} frames, {fig.observations} marker observations, {len(result.segments)} camera segments, {len(result.markers)} markers;
-Levenberg-Marquardt {fig.lm_iterations} iterations. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
+Levenberg-Marquardt {fig.lm_iterations} iterations; {sum(c.moving_frames for c in fig.cameras.values())} moving frames and
+{fig.object_links} object-marker instants seen by several cameras solved as poses of their own. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
 Anchors flagged as moved: {', '.join(map(str, fig.flagged_anchors)) or 'none'}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
 <table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>RMS at the same instants, offline / online (instants)</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>

@@ -37,6 +37,20 @@ class KeyframeConfig(BaseModel):
     new_view_m: float = Field(default=0.005, ge=0, description="see new_view_deg")
 
 
+class LinkConfig(BaseModel):
+    """Object markers seen by several cameras at one instant, in the offline solve (``estimator.links``)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    enabled: bool = Field(default=True, description="link cameras through object markers they see at the same instant")
+    min_gap_s: float = Field(default=0.2, gt=0, description="at most one linked instant per marker this often")
+    sync_ms: float = Field(
+        default=2.0, ge=0,
+        description="sightings further apart than this are not the same instant (an object at 0.5 m/s moves 1 mm in 2 ms)",
+    )
+    max_links: int = Field(default=2000, ge=1, description="past this, every other instant is dropped and the gap doubles")
+
+
 class EstimatorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
@@ -82,3 +96,4 @@ class EstimatorConfig(BaseModel):
     anchor_check_m: float = Field(default=0.05, gt=0, description="anchor disagreement that flags a moved anchor")
     state_file: Path | None = Field(default=None, description="where the daemon persists its map")
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    links: LinkConfig = Field(default_factory=LinkConfig)

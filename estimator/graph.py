@@ -60,6 +60,11 @@ def keyframe_symbol(index: int) -> int:
     return gtsam.symbol("k", index)
 
 
+def object_symbol(index: int) -> int:
+    """An object marker at one instant seen by several cameras (offline only, ``estimator.links``)."""
+    return gtsam.symbol("o", index)
+
+
 def project_rotation(M: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (chordal L2 mean of a sum of rotations)."""
     U, _, Vt = np.linalg.svd(M)

@@ -74,25 +74,34 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tu
     rows = [j for j, mk in enumerate(frame.ids.tolist()) if mk in world_T_marker]
     if len(rows) < 2:
         return None
-    implied = np.stack([world_T_marker[int(frame.ids[j])] @ invert_pose(T) for j in rows for T in (frame.poses[j], frame.alternatives[j])])
+    implied = np.stack([[world_T_marker[int(frame.ids[j])] @ invert_pose(T) for T in (frame.poses[j], frame.alternatives[j])] for j in rows])
+    agreed = consensus(implied)
+    if agreed is None:
+        return None
+    best, chosen = agreed
+    return best, [rows[i] for i, _ in chosen], [(frame.poses[rows[i]], frame.alternatives[rows[i]])[k] for i, k in chosen]
+
+
+def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] | None:
+    """The pose most witnesses agree on, from each witness's two IPPE branches (K, 2, 4, 4), and
+    (witness, branch) of those that agree with it (within ``AGREE_RAD`` and ``AGREE_M``); None
+    unless two witnesses agree."""
+    flat = implied.reshape(-1, 4, 4)
     best, best_votes = None, 0
-    for c in implied:
-        close = (rotation_angles(implied[:, :3, :3], c[:3, :3]) < AGREE_RAD) & (np.linalg.norm(implied[:, :3, 3] - c[:3, 3], axis=1) < AGREE_M)
-        votes = int(close.reshape(-1, 2).any(axis=1).sum())  # markers with a branch near this pose
+    for c in flat:
+        close = (rotation_angles(flat[:, :3, :3], c[:3, :3]) < AGREE_RAD) & (np.linalg.norm(flat[:, :3, 3] - c[:3, 3], axis=1) < AGREE_M)
+        votes = int(close.reshape(-1, 2).any(axis=1).sum())  # witnesses with a branch near this pose
         if votes > best_votes:
             best, best_votes = c, votes
     if best is None or best_votes < 2:
         return None
-    kept, branches = [], []
-    for i, j in enumerate(rows):
-        a, b = implied[2 * i], implied[2 * i + 1]
+    chosen = []
+    for i, (a, b) in enumerate(implied):
         gap = rotation_angles(np.stack([a[:3, :3], b[:3, :3]]), best[:3, :3])
         k = int(np.argmin(gap))
-        near = (a, b)[k]
-        if gap[k] < AGREE_RAD and np.linalg.norm(near[:3, 3] - best[:3, 3]) < AGREE_M:
-            kept.append(j)
-            branches.append((frame.poses[j], frame.alternatives[j])[k])
-    return best, kept, branches
+        if gap[k] < AGREE_RAD and np.linalg.norm((a, b)[k][:3, 3] - best[:3, 3]) < AGREE_M:
+            chosen.append((i, k))
+    return best, chosen
 
 
 def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) -> bool:

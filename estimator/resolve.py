@@ -7,8 +7,9 @@ Levenberg-Marquardt (robust Huber factors, from the incremental solution) solves
 problem to convergence, and gtsam's ``Marginals`` give every pose's covariance. Per pair the
 whitened residual is kept for the report. Object markers are not in the map: their observations
 go to a caller's sink and are placed through the solved cameras afterwards (``place_objects``).
-Frames of a moving camera, which the daemon leaves out, join the batch as poses of their own
-(``estimator.keyframes``), and the problem is solved again with them.
+Frames of a moving camera, which the daemon leaves out, and object markers that several cameras
+see at one instant join the batch as poses of their own (``estimator.keyframes``,
+``estimator.links``), and the problem is solved again with them.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.graph import Estimator, camera_symbol, marker_symbol, through_camera
 from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes
+from estimator.links import ObjectLinks, Sighting, add_links
 from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam
 
 log = logging.getLogger(__name__)
@@ -97,6 +99,7 @@ class ResolveResult:
     iterations: int
     frame_stamps: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # camera -> (stamp, segment)
     keyframes: list[KeyframeResult] = field(default_factory=list)  # in log order per camera
+    object_links: int = 0  # object-marker instants that linked two or more cameras
 
 
 def resolve(
@@ -114,6 +117,7 @@ def resolve(
     """
     est = Estimator(config)
     moving = MovingFrames(config.keyframes)
+    links = ObjectLinks(config.links)
     last_update = None
     n_frames = n_obs = 0
     stamps: dict[str, list[tuple[int, int]]] = {}
@@ -125,6 +129,8 @@ def resolve(
             _object_rows(block, segs, est.object_markers, objects)
         if config.keyframes.enabled:
             _moving_frames(block, segs, est.object_markers, moving)
+        if config.links.enabled and est.object_markers:
+            _sightings(block, segs, est.object_markers, links)
         for stamp, seg in zip(block.stamps.tolist(), segs):
             if seg is None:
                 continue
@@ -150,7 +156,9 @@ def resolve(
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, est.values, params)
     values = optimizer.optimize()
     added = _add_moving_frames(graph, values, est, moving.frames)
-    if added:
+    segment_keys = {cam: camera_symbol(i) for cam, i in est.camera_index.items() if values.exists(camera_symbol(i))}
+    linked = add_links(graph, values, links, segment_keys, config.max_fused, gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k))
+    if added or linked:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
     marginals = gtsam.Marginals(graph, values)
@@ -180,7 +188,7 @@ def resolve(
     flagged = est.estimate(last_update or 0, with_covariance=False).flagged_anchors
     return ResolveResult(
         segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
-        float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes,
+        float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes, linked,
     )  # fmt: skip
 
 
@@ -203,6 +211,15 @@ def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: se
     for f in [i for i, g in enumerate(segs) if g is None]:
         rows = (a.frame == f) & ~np.isin(a.ids, list(object_markers))
         sink.add(MovingFrame(block.camera_id, int(block.stamps[f]), a.ids[rows], a.poses[rows], a.alternatives[rows], a.covariances[rows]))
+
+
+def _sightings(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: ObjectLinks) -> None:
+    """The object markers seen in the block's frames that joined a static segment."""
+    a = block.arrays
+    for j in np.flatnonzero(np.isin(a.ids, list(object_markers))).tolist():
+        seg = segs[int(a.frame[j])]
+        if seg is not None:
+            sink.add(int(a.ids[j]), Sighting(block.camera_id, seg, int(block.stamps[a.frame[j]]), a.poses[j], a.alternatives[j], a.covariances[j]))
 
 
 def _object_rows(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]) -> None:

@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -19,14 +20,15 @@ from cellsight.resolve_cmd import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
 from drivers.replay import replay
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
-from estimator.config import KeyframeConfig
-from estimator.graph import Estimator
+from estimator.config import KeyframeConfig, LinkConfig
+from estimator.graph import Estimator, camera_symbol
 from estimator.keyframes import MovingFrame, place_frame
+from estimator.links import ObjectLinks, Sighting, add_links
 from estimator.observation import observations_of
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
-from schemas.codec import invert_pose
+from schemas.codec import invert_pose, make_pose
 from schemas.log import LogWriter, read_log
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close, wait_until
@@ -114,7 +116,10 @@ def test_object_markers_are_placed_over_time_through_the_solved_cameras(tmp_path
         nees.append(float(e @ R @ np.linalg.solve(p.covariance[:3, :3], R.T @ e)))
     assert np.mean(np.array(nees) < 7.81) >= 0.8, sorted(nees)
     assert np.median([np.sqrt(np.trace(p.covariance[:3, :3])) for p in poses]) < 0.01
-    figures = json.loads((tmp_path / "out" / "resolve.json").read_text())["object_markers"]["marker_7"]
+    figures = json.loads((tmp_path / "out" / "resolve.json").read_text())
+    # both cameras render at the same stamps: the box's marker linked them at every 0.2 s instant
+    assert figures["object_links"] == run.result.object_links >= 20
+    figures = figures["object_markers"]["marker_7"]
     assert figures["poses"] == len(poses) and figures["offline_vs_truth_mm_deg"][0] < 4.0
     assert len((tmp_path / "out" / "trajectories" / "marker_7.tum").read_text().splitlines()) == len(poses)
     from cellsight.compare import newest_poses
@@ -340,3 +345,53 @@ def test_a_log_from_the_openni2_driver_resolves_to_an_unanchored_camera(router_e
     figures = json.loads((tmp_path / "out" / "resolve.json").read_text())
     assert figures["log_complete"] and figures["unanchored"] == ["kinect"]
     assert (tmp_path / "out" / "report.html").stat().st_size > 0
+
+
+def _sighting(cam: str, world_T_camera: np.ndarray, world_T_marker: np.ndarray, stamp_ns: int) -> Sighting:
+    T = invert_pose(world_T_camera) @ world_T_marker
+    return Sighting(cam, 0, stamp_ns, T, flip(T), np.diag([1e-6, 1e-6, 4e-6, 1e-4, 1e-4, 1e-4]))
+
+
+def test_object_marker_instants_alone_place_a_camera() -> None:
+    """Camera b sees no static marker: only an object marker that a (held by a prior) also sees,
+    at four non-collinear places. The position-only links fix b's position and rotation; exact
+    sightings give b back exactly (to the solver's tolerance). A sighting 5 ms off the instant
+    (more than sync_ms / 2) is not an instant."""
+    a_T = make_pose(np.eye(3), np.array([0.0, 0.0, 1.2])) @ _look(np.array([0.3, 2.0, 1.0]) - np.array([0.0, 0.0, 1.2]))
+    b_T = make_pose(np.eye(3), np.array([0.8, 0.1, 1.3])) @ _look(np.array([0.3, 2.0, 1.0]) - np.array([0.8, 0.1, 1.3]))
+    links = ObjectLinks(LinkConfig(min_gap_s=0.5, sync_ms=2.0))
+    for i, (x, z) in enumerate([(0.0, 0.9), (0.4, 0.9), (0.4, 1.2), (0.0, 1.3)]):
+        world_T_marker = make_pose(np.eye(3), np.array([x, 1.8, z])) @ _look(np.array([0.0, -1.0, 0.0]))
+        stamp = i * 500_000_000
+        links.add(7, _sighting("a", a_T, world_T_marker, stamp))
+        links.add(7, _sighting("b", b_T, world_T_marker, stamp + (5_000_000 if i == 3 else 1_000_000)))
+    assert [len(s) for _, s in links.groups()] == [2, 2, 2]  # the fourth instant has a only
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    ka, kb = camera_symbol(0), camera_symbol(1)
+    graph.add(gtsam.PriorFactorPose3(ka, gtsam.Pose3(a_T), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    values.insert(ka, gtsam.Pose3(a_T))
+    values.insert(kb, gtsam.Pose3(b_T).compose(gtsam.Pose3(gtsam.Rot3.RzRyRx(0.01, -0.01, 0.02), gtsam.Point3(0.02, -0.01, 0.01))))
+    added = add_links(graph, values, links, {("a", 0): ka, ("b", 0): kb}, 4, gtsam.noiseModel.mEstimator.Huber.Create(1.345))
+    assert added == 3
+    solved = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    assert_pose_close(solved.atPose3(kb).matrix(), b_T, 1e-5, 1e-3, "camera b from the links alone")
+
+
+def _look(direction: np.ndarray) -> np.ndarray:
+    """A pose whose z axis points along ``direction`` (rotation only)."""
+    from schemas.codec import rotation_between
+
+    return make_pose(rotation_between(np.array([0.0, 0.0, 1.0]), direction), np.zeros(3))
+
+
+def test_object_link_instants_stay_bounded_and_on_their_grid() -> None:
+    """Past max_links the grid doubles: what is kept spans the whole log on the coarser grid."""
+    links = ObjectLinks(LinkConfig(min_gap_s=0.1, max_links=10))
+    T = make_pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
+    for i in range(100):  # 10 s at 0.1 s
+        for cam in ("a", "b"):
+            links.add(7, _sighting(cam, np.eye(4), T, i * 100_000_000))
+    groups = links.groups()
+    assert len(groups) <= 10 and links.gap_ns == 1_600_000_000
+    stamps = [s[0].stamp_ns for _, s in groups]
+    assert all(t % links.gap_ns == 0 for t in stamps) and stamps[0] == 0 and stamps[-1] >= 10e9 - 2 * links.gap_ns
