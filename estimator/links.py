@@ -51,8 +51,16 @@ class ObjectLinks:
         self.sync_ns = int(config.sync_ms * 1e6)
         self.instants: dict[tuple[int, int], dict[str, Sighting]] = {}
 
+    def near_instant(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """Which stamps (N,) int ns lie within ``sync_ms`` / 2 of a grid instant (N,) bool: the
+        cheap test that spares building sightings ``add`` would drop."""
+        n = (stamps_ns + self.gap_ns // 2) // self.gap_ns
+        return 2 * np.abs(stamps_ns - n * self.gap_ns) <= self.sync_ns
+
     def add(self, marker_id: int, s: Sighting) -> None:
-        n = round(s.stamp_ns / self.gap_ns)
+        """Keep ``s`` if it is its camera's nearest to a grid instant so far (its arrays are kept:
+        pass copies, not views into a larger batch)."""
+        n = (s.stamp_ns + self.gap_ns // 2) // self.gap_ns
         off = abs(s.stamp_ns - n * self.gap_ns)
         if 2 * off > self.sync_ns:
             return

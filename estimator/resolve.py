@@ -216,10 +216,13 @@ def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: se
 def _sightings(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: ObjectLinks) -> None:
     """The object markers seen in the block's frames that joined a static segment."""
     a = block.arrays
-    for j in np.flatnonzero(np.isin(a.ids, list(object_markers))).tolist():
+    rows = np.flatnonzero(np.isin(a.ids, list(object_markers)))
+    rows = rows[sink.near_instant(block.stamps[a.frame[rows]])]
+    for j in rows.tolist():
         seg = segs[int(a.frame[j])]
-        if seg is not None:
-            sink.add(int(a.ids[j]), Sighting(block.camera_id, seg, int(block.stamps[a.frame[j]]), a.poses[j], a.alternatives[j], a.covariances[j]))
+        if seg is not None:  # copies: a view would keep the whole block's arrays alive
+            sighting = Sighting(block.camera_id, seg, int(block.stamps[a.frame[j]]), a.poses[j].copy(), a.alternatives[j].copy(), a.covariances[j].copy())
+            sink.add(int(a.ids[j]), sighting)
 
 
 def _object_rows(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]) -> None:
