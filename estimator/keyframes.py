@@ -6,9 +6,13 @@ of the solved map becomes a pose (key ``k``) with one factor per marker. Every o
 somewhere new, with a bias of its own, where a static view repeats one bias in every frame and
 its fused factor counts at most ``max_fused`` of them. A frame that is the same view as one of
 its camera's segments (a camera settling after a move) would count that view's bias again and is
-left out. On the demo cell at the sensors' 30 Hz (``benchmarks.offline_vs_online``, ten seeds)
-the 20 kept frames of cam1's tilt put cam3 and cam4 at 0.52 and 0.47 mm RMS, against 0.73 and
-0.78 online (and 0.79-0.85 and 0.62-0.68 offline without them).
+left out. On the demo cell at the sensors' 30 Hz (``benchmarks.offline_vs_online``, ten seeds,
+before ``estimator.links``) the 20 kept frames of cam1's tilt put cam3 and cam4 at 0.52 and
+0.47 mm RMS, against 0.73 and 0.78 online (and 0.79-0.85 and 0.62-0.68 offline without them).
+
+A move that leaves fewer than ``min_frames`` such frames adds none: a handful of single frames
+brings its noise and biases more than it informs (in the real-time demo, ~5 frames/s per camera,
+cam1's tilt left 3-4, and with them offline was behind online for every camera on average).
 
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
@@ -16,6 +20,7 @@ other frame is dropped and the gap doubles, so the kept frames still cover the w
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import gtsam
@@ -40,6 +45,7 @@ class MovingFrame:
     poses: np.ndarray
     alternatives: np.ndarray
     covariances: np.ndarray
+    move: int = 0  # the segment the camera left: frames of one move share it
 
 
 class MovingFrames:
@@ -120,18 +126,24 @@ def add_keyframes(
     """Add each frame that ``place_frame`` can place and that is a new view (not its camera's
     segments' ``segment_poses`` nor the frame kept before it) to ``graph`` and ``values`` (in
     place): a pose ``k<i>`` and one robust factor per agreeing marker, its single-frame covariance
-    plus the view's rotation floor. Returns (key, frame, markers used) of the frames added."""
-    added = []
+    plus the view's rotation floor. A move with fewer than ``config.min_frames`` such frames adds
+    none. Returns (key, frame, markers used) of the frames added."""
+    placed = []
     last: dict[str, np.ndarray] = {}
     for i, frame in enumerate(frames):
-        placed = place_frame(frame, world_T_marker)
-        if placed is None:
+        p = place_frame(frame, world_T_marker)
+        if p is None:
             continue
-        world_T_camera, kept, branches = placed
         seen = segment_poses.get(frame.camera_id, []) + ([last[frame.camera_id]] if frame.camera_id in last else [])
-        if not _is_new_view(world_T_camera, seen, config):
+        if not _is_new_view(p[0], seen, config):
             continue
-        last[frame.camera_id] = world_T_camera
+        last[frame.camera_id] = p[0]
+        placed.append((i, frame, *p))
+    per_move = Counter((frame.camera_id, frame.move) for _, frame, *_ in placed)
+    added = []
+    for i, frame, world_T_camera, kept, branches in placed:
+        if per_move[(frame.camera_id, frame.move)] < config.min_frames:
+            continue
         key = keyframe_symbol(i)
         values.insert(key, gtsam.Pose3(world_T_camera))
         for j, T in zip(kept, branches):

@@ -4,7 +4,7 @@ DESIGN's object-marker poses per time step. A marker on an object is never fused
 does not stay put), but at one instant it is one pose that every camera seeing it observes: a link
 between those cameras, like a shared static marker, and from a new view each time the object has
 moved, so its views' biases differ where a static marker repeats one. Sightings are gathered per
-marker on a time grid (``min_gap_s``): per grid instant each camera keeps its sighting nearest the
+marker on a time grid (``min_gap_s``, from the first stamp seen): per grid instant each camera keeps its sighting nearest the
 instant if it lies within ``sync_ms`` / 2 of it, so any two kept are within ``sync_ms`` of each
 other (a moving object must not be compared across frames taken at different times). An instant
 two or more cameras kept becomes a variable (key ``o``) with one factor per camera whose sighting
@@ -49,24 +49,31 @@ class ObjectLinks:
         self.gap_ns = int(config.min_gap_s * 1e9)
         self.max_links = config.max_links
         self.sync_ns = int(config.sync_ms * 1e6)
+        self.origin_ns: int | None = None  # the grid starts at the first stamp seen: cameras on a shared frame clock hit it
         self.instants: dict[tuple[int, int], dict[str, Sighting]] = {}
 
     def near_instant(self, stamps_ns: np.ndarray) -> np.ndarray:
         """Which stamps (N,) int ns lie within ``sync_ms`` / 2 of a grid instant (N,) bool: the
         cheap test that spares building sightings ``add`` would drop."""
-        n = (stamps_ns + self.gap_ns // 2) // self.gap_ns
-        return 2 * np.abs(stamps_ns - n * self.gap_ns) <= self.sync_ns
+        if self.origin_ns is None and len(stamps_ns):
+            self.origin_ns = int(stamps_ns.min())
+        t = stamps_ns - (self.origin_ns or 0)
+        n = (t + self.gap_ns // 2) // self.gap_ns
+        return 2 * np.abs(t - n * self.gap_ns) <= self.sync_ns
 
     def add(self, marker_id: int, s: Sighting) -> None:
         """Keep ``s`` if it is its camera's nearest to a grid instant so far (its arrays are kept:
         pass copies, not views into a larger batch)."""
-        n = (s.stamp_ns + self.gap_ns // 2) // self.gap_ns
-        off = abs(s.stamp_ns - n * self.gap_ns)
+        if self.origin_ns is None:
+            self.origin_ns = s.stamp_ns
+        t = s.stamp_ns - self.origin_ns
+        n = (t + self.gap_ns // 2) // self.gap_ns
+        off = abs(t - n * self.gap_ns)
         if 2 * off > self.sync_ns:
             return
         cams = self.instants.setdefault((marker_id, n), {})
         old = cams.get(s.camera_id)
-        if old is None or off < abs(old.stamp_ns - n * self.gap_ns):
+        if old is None or off < abs(old.stamp_ns - self.origin_ns - n * self.gap_ns):
             cams[s.camera_id] = s
         if len(self.instants) > self.max_links:
             self.instants = {(mk, i // 2): c for (mk, i), c in self.instants.items() if i % 2 == 0}

@@ -128,7 +128,7 @@ def resolve(
         if objects is not None and est.object_markers:
             _object_rows(block, segs, est.object_markers, objects)
         if config.keyframes.enabled:
-            _moving_frames(block, segs, est.object_markers, moving)
+            _moving_frames(block, segs, est.object_markers, moving, est.tracks[cam].segment)
         if config.links.enabled and est.object_markers:
             _sightings(block, segs, est.object_markers, links)
         for stamp, seg in zip(block.stamps.tolist(), segs):
@@ -205,12 +205,16 @@ def _add_moving_frames(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     return add_keyframes(graph, values, frames, solved, segment_poses, est.rotation_floor_rad, huber, est.config.keyframes)
 
 
-def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames) -> None:
-    """The static markers seen in the block's frames that joined no segment (the camera moved)."""
+def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames, segment_now: int) -> None:
+    """The static markers seen in the block's frames that joined no segment (the camera moved).
+    ``segment_now``: the camera's segment after the block; a moving frame's move is the segment
+    it left (one before the next static frame's, if the camera settled within the block)."""
     a = block.arrays
     for f in [i for i, g in enumerate(segs) if g is None]:
         rows = (a.frame == f) & ~np.isin(a.ids, list(object_markers))
-        sink.add(MovingFrame(block.camera_id, int(block.stamps[f]), a.ids[rows], a.poses[rows], a.alternatives[rows], a.covariances[rows]))
+        later = next((g for g in segs[f + 1:] if g is not None), None)
+        move = segment_now if later is None else later - 1
+        sink.add(MovingFrame(block.camera_id, int(block.stamps[f]), a.ids[rows], a.poses[rows], a.alternatives[rows], a.covariances[rows], move))
 
 
 def _sightings(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: ObjectLinks) -> None:

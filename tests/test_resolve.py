@@ -251,7 +251,7 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     trajectory. A single frame of 2-4 markers at ~2 m under the synthetic noise is good to ~15 mm:
     each error must lie inside its reported covariance (position NEES under 16.3, chi-square 3 dof
     99.9 %), the median under the median sigma. With ``max_frames`` 3 the kept frames still span
-    the move; with keyframes off there are none."""
+    the move; with keyframes off, or fewer frames than ``min_frames``, there are none."""
     s = scene()
     s.cameras[1].motion = [CameraMotion(kind="slide", offset=(0.3, 0.0, 0.0), start_s=2.0, end_s=3.0)]
     log = tmp_path / "log.mcap"
@@ -280,13 +280,15 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     assert figures["moving_frames"] == len(frames)
     # The log's truth is thinned to 10 Hz; interpolated along the straight slide it is exact.
     assert abs(figures["moving_frames_vs_truth_mm_deg"][0] - 1e3 * np.median(errors)) < 0.01
-    few = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(max_frames=3)})})
+    few = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(max_frames=3, min_frames=1)})})
     kept = sorted((k.stamp_ns - t0) / 1e9 for k in run_resolve(log, tmp_path / "few", few).result.keyframes)
     assert kept, "no moving frame survived the thinning"
     assert len(kept) <= 3 < len(frames), (kept, len(frames))  # bounded: fewer than without the bound
     assert kept[-1] - kept[0] >= 0.4, kept  # and still spread over the 1 s move, not its first frames
     off = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(enabled=False)})})
     assert run_resolve(log, tmp_path / "off", off).result.keyframes == []
+    sparse = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(min_frames=len(frames) + 1)})})
+    assert run_resolve(log, tmp_path / "sparse", sparse).result.keyframes == []  # a move with too few frames adds none
 
 
 @pytest.mark.parametrize(("n", "t_table"), [(5, 2.132), (10, 1.833), (30, 1.699)])
