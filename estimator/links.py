@@ -4,12 +4,13 @@ DESIGN's object-marker poses per time step. A marker on an object is never fused
 does not stay put), but at one instant it is one pose that every camera seeing it observes: a link
 between those cameras, like a shared static marker, and from a new view each time the object has
 moved, so its views' biases differ where a static marker repeats one. Sightings are gathered per
-marker on a time grid (``min_gap_s``, from the first stamp seen): per grid instant each camera keeps its sighting nearest the
-instant if it lies within ``sync_ms`` / 2 of it, so any two kept are within ``sync_ms`` of each
-other (a moving object must not be compared across frames taken at different times). An instant
-two or more cameras kept becomes a variable (key ``o``) with one factor per camera whose sighting
-agrees on where the marker is. The simulator's cameras share stamps; free-running sensors land
-within a few ms of each other on a few frames in a hundred, so they get fewer links.
+marker on a time grid (``min_gap_s``, from the first stamp seen): per grid instant each camera
+keeps its sighting nearest the instant if it lies within ``sync_ms`` / 2 of it, so any two kept
+are within ``sync_ms`` of each other (a moving object must not be compared across frames taken at
+different times). An instant two or more cameras kept becomes a variable (key ``o``) with one
+factor per camera whose sighting agrees on where the marker is. The simulator's cameras render on
+one frame clock; free-running sensors land within a few ms of each other on a few frames in a
+hundred, so they get fewer links.
 
 Memory stays bounded: past ``max_links`` instants every other one is dropped and the grid doubles.
 """
@@ -49,7 +50,7 @@ class ObjectLinks:
         self.gap_ns = int(config.min_gap_s * 1e9)
         self.max_links = config.max_links
         self.sync_ns = int(config.sync_ms * 1e6)
-        self.origin_ns: int | None = None  # the grid starts at the first stamp seen: cameras on a shared frame clock hit it
+        self.origin_ns: int | None = None  # the grid starts at the first stamp: cameras on one frame clock then hit it
         self.instants: dict[tuple[int, int], dict[str, Sighting]] = {}
 
     def near_instant(self, stamps_ns: np.ndarray) -> np.ndarray:
