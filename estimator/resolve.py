@@ -155,9 +155,10 @@ def resolve(
     params.setRelativeErrorTol(1e-9)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, est.values, params)
     values = optimizer.optimize()
-    added = _add_moving_frames(graph, values, est, moving.frames)
-    segment_keys = {cam: camera_symbol(i) for cam, i in est.camera_index.items() if values.exists(camera_symbol(i))}
-    linked = add_links(graph, values, links, segment_keys, config.max_fused, gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k))
+    robust = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
+    segment_keys = {seg: camera_symbol(i) for seg, i in est.camera_index.items() if values.exists(camera_symbol(i))}
+    added = _add_moving_frames(graph, values, est, moving.frames, segment_keys, robust)
+    linked = add_links(graph, values, links, segment_keys, config.max_fused, robust)
     if added or linked:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         values = optimizer.optimize()
@@ -184,7 +185,7 @@ def resolve(
         residuals.append(PairResidual(cam, seg, mk, pair.n, pair.rejected, math.sqrt(2.0 * factor.error(values))))
     keyframes = [KeyframeResult(f.camera_id, f.stamp_ns, values.atPose3(k).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(k)), n)
                  for k, f, n in added]  # fmt: skip
-    placed = {cam for (cam, _), i in est.camera_index.items() if values.exists(camera_symbol(i))}
+    placed = {cam for cam, _ in segment_keys}
     flagged = est.estimate(last_update or 0, with_covariance=False).flagged_anchors
     return ResolveResult(
         segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
@@ -192,17 +193,18 @@ def resolve(
     )  # fmt: skip
 
 
-def _add_moving_frames(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, est: Estimator, frames: list[MovingFrame]) -> list[tuple[int, MovingFrame, int]]:
+def _add_moving_frames(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, est: Estimator, frames: list[MovingFrame],
+    segment_keys: dict[tuple[str, int], int], robust: gtsam.noiseModel.mEstimator.Base,
+) -> list[tuple[int, MovingFrame, int]]:
     """``add_keyframes`` against the static solution ``values``: its markers place the frames, its
-    segments are the views a frame must differ from."""
+    solved segments (``segment_keys``) are the views a frame must differ from."""
     markers = {m for (_, m) in est.pairs} | set(est.anchors)
     solved = {mk: values.atPose3(marker_symbol(mk)).matrix() for mk in markers if values.exists(marker_symbol(mk))}
     segment_poses: dict[str, list[np.ndarray]] = {}
-    for (cam, _), index in est.camera_index.items():
-        if values.exists(camera_symbol(index)):
-            segment_poses.setdefault(cam, []).append(values.atPose3(camera_symbol(index)).matrix())
-    huber = gtsam.noiseModel.mEstimator.Huber.Create(est.config.huber_k)
-    return add_keyframes(graph, values, frames, solved, segment_poses, est.rotation_floor_rad, huber, est.config.keyframes)
+    for (cam, _), key in segment_keys.items():
+        segment_poses.setdefault(cam, []).append(values.atPose3(key).matrix())
+    return add_keyframes(graph, values, frames, solved, segment_poses, est.rotation_floor_rad, robust, est.config.keyframes)
 
 
 def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames, segment_now: int) -> None:

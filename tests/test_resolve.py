@@ -359,11 +359,11 @@ def test_object_marker_instants_alone_place_a_camera() -> None:
     at four non-collinear places. The position-only links fix b's position and rotation; exact
     sightings give b back exactly (to the solver's tolerance). A sighting 5 ms off the instant
     (more than sync_ms / 2) is not an instant."""
-    a_T = make_pose(np.eye(3), np.array([0.0, 0.0, 1.2])) @ _look(np.array([0.3, 2.0, 1.0]) - np.array([0.0, 0.0, 1.2]))
-    b_T = make_pose(np.eye(3), np.array([0.8, 0.1, 1.3])) @ _look(np.array([0.3, 2.0, 1.0]) - np.array([0.8, 0.1, 1.3]))
+    a_T = PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)).matrix()
+    b_T = PoseSpec(position=(0.8, 0.1, 1.3), look_at=(0.3, 2.0, 1.0)).matrix()
     links = ObjectLinks(LinkConfig(min_gap_s=0.5, sync_ms=2.0))
     for i, (x, z) in enumerate([(0.0, 0.9), (0.4, 0.9), (0.4, 1.2), (0.0, 1.3)]):
-        world_T_marker = make_pose(np.eye(3), np.array([x, 1.8, z])) @ _look(np.array([0.0, -1.0, 0.0]))
+        world_T_marker = PoseSpec(position=(x, 1.8, z), normal=(0.0, -1.0, 0.0)).matrix()
         stamp = i * 500_000_000
         links.add(7, _sighting("a", a_T, world_T_marker, stamp))
         links.add(7, _sighting("b", b_T, world_T_marker, stamp + (5_000_000 if i == 3 else 1_000_000)))
@@ -377,13 +377,6 @@ def test_object_marker_instants_alone_place_a_camera() -> None:
     assert added == 3
     solved = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
     assert_pose_close(solved.atPose3(kb).matrix(), b_T, 1e-5, 1e-3, "camera b from the links alone")
-
-
-def _look(direction: np.ndarray) -> np.ndarray:
-    """A pose whose z axis points along ``direction`` (rotation only)."""
-    from schemas.codec import rotation_between
-
-    return make_pose(rotation_between(np.array([0.0, 0.0, 1.0]), direction), np.zeros(3))
 
 
 def test_object_link_instants_stay_bounded_and_on_their_grid() -> None:
