@@ -13,7 +13,7 @@ from collections import deque
 
 import numpy as np
 
-from schemas.codec import invert_pose
+from schemas.geometry import invert_pose
 
 
 def chain_solve(anchors: dict[int, np.ndarray], pairs: dict[tuple[str, int], np.ndarray]) -> dict[str, np.ndarray]:

@@ -22,15 +22,10 @@ from benchmarks.common import main
 from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations
 from drivers.sim.scenario import CameraMotion, Scenario, load_scenario
 from estimator.graph import CameraState, Estimator, camera_symbol, marker_symbol
-from schemas.codec import cov_ros_to_gtsam
+from schemas.geometry import cov_ros_to_gtsam, pose_error
 
 RATE = 30.0
 NOISE = NoiseSettings(depth=True, flip_rate=0.05)
-
-
-def errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    dR = T_est[:3, :3].T @ T_true[:3, :3]
-    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000), float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
 
 
 def static_demo() -> Scenario:
@@ -102,9 +97,9 @@ def accuracy(seeds: list[int], seconds: float) -> dict[str, float]:
         ch = chain_solve(est.anchors, pairs)
         for cid in cams:
             truth = s.camera(cid).world_T_camera(seconds)
-            rows["online"].append(errors(e.cameras[cid].pose.T, truth))
-            rows["batch"].append(errors(b[cid], truth))
-            rows["chain"].append(errors(ch[cid], truth) if cid in ch else (np.inf, np.inf))
+            rows["online"].append(pose_error(e.cameras[cid].pose.T, truth))
+            rows["batch"].append(pose_error(b[cid], truth))
+            rows["chain"].append(pose_error(ch[cid], truth) if cid in ch else (np.inf, np.inf))
     med = {k: np.median(np.array(v), axis=0) for k, v in rows.items()}
     return {
         "camera_pos_mm_p50": float(med["online"][0]),
@@ -138,7 +133,7 @@ def bump_recovery(seed: int) -> float:
                 cam = est.estimate(stamp, with_covariance=False).cameras["cam2"]
                 good = cam.state is CameraState.LOCALIZED and cam.pose is not None
                 if good:
-                    dp, dr = errors(cam.pose.T, s.camera("cam2").world_T_camera(t))
+                    dp, dr = pose_error(cam.pose.T, s.camera("cam2").world_T_camera(t))
                     good = dp < 5.0 and dr < 0.25
                 ok_since = (ok_since or t) if good else None
     return float("inf") if ok_since is None else ok_since - bump_t

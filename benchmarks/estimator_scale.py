@@ -32,8 +32,11 @@ from benchmarks.scenes import perturb
 from drivers.markers import PlaneFit, covariance_model
 from estimator.config import AnchorConfig, EstimatorConfig
 from estimator.graph import Estimator
-from schemas.codec import CameraInfo, MarkerArrays, invert_pose, quat_from_matrix
-from schemas.spec import PoseSpec, look_at_matrix, normal_matrix
+from estimator.observation import ObservationRows
+from schemas.codec import CameraInfo
+from schemas.geometry import invert_pose, quat_from_matrix
+from schemas.spec import PoseSpec
+from schemas.geometry import look_at_matrix, normal_matrix
 
 RATE = 30
 UPDATE_EVERY = 3  # frames per camera per tick: the daemon's 10 Hz
@@ -70,10 +73,10 @@ def ring_cell(n_cams: int = 8, n_markers: int = 16, per_cam: int = 8):
     return markers, cams, anchors
 
 
-def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[MarkerArrays]]:
+def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[ObservationRows]]:
     """POOL ticks per camera, each UPDATE_EVERY frames of noisy observations as one block."""
     info = CameraInfo.kinect_v1()
-    pools: dict[str, list[MarkerArrays]] = {}
+    pools: dict[str, list[ObservationRows]] = {}
     for cid, (T, seen) in cams.items():
         truth = [(m, invert_pose(T) @ markers[m]) for m in seen]
         covs = [covariance_model(Tm, 0.25, info, 0.5, PlaneFit(Tm[:3, 2], 0.0, 900, 0.0, 0.2)) for _, Tm in truth]
@@ -82,7 +85,7 @@ def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[Marker
             poses = np.array([perturb(Tm, cov, rng) for _ in range(UPDATE_EVERY) for (_, Tm), cov in zip(truth, covs)])
             ids = np.array([m for _ in range(UPDATE_EVERY) for m, _ in truth])
             frame = np.repeat(np.arange(UPDATE_EVERY), len(truth))
-            blocks.append(MarkerArrays(ids, poses, poses.copy(), np.array(covs * UPDATE_EVERY), np.zeros(len(ids), bool), frame))
+            blocks.append(ObservationRows(ids, poses, poses.copy(), np.array(covs * UPDATE_EVERY), np.zeros(len(ids), bool), frame))
         pools[cid] = blocks
     return pools
 
@@ -93,7 +96,7 @@ class Runner:
     go into arrays allocated up front, so the benchmark's own bookkeeping is no memory growth."""
 
     est: Estimator
-    pools: dict[str, list[MarkerArrays]]
+    pools: dict[str, list[ObservationRows]]
     ticks: int
     tick: int = 0
     ingest_ms: np.ndarray = field(init=False)

@@ -24,7 +24,7 @@ from drivers.config import MarkerConfig
 from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import BoxSpec, CameraSpec, MarkerSpec, Scenario, load_scenario
-from schemas.codec import invert_pose
+from schemas.geometry import invert_pose
 from schemas.spec import PoseSpec
 
 

@@ -24,8 +24,8 @@ import numpy as np
 
 from benchmarks.common import main
 from cellsight.config import CellConfig
-from cellsight.report import pose_error
-from cellsight.resolve_cmd import ResolveRun, peek_config, run_resolve
+from schemas.geometry import pose_error
+from cellsight.resolve_report import ResolveRun, peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
 from drivers.config import MarkerConfig
 from drivers.frames import observations_to_msg
@@ -33,7 +33,7 @@ from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import load_scenario
 from estimator.graph import CameraState, Estimator
-from estimator.observation import observations_of
+from estimator.observation import observation_rows, observations_of
 from schemas import codec, keys
 from schemas.log import LogWriter
 
@@ -59,10 +59,10 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> None:
             f = cell.render(cam.id, t, k)
             msg = observations_to_msg(cam.id, stamp, f.info, detector.detect(f.rgb, f.info, f.depth_mm), scenario.dictionary)
             w.write(keys.markers(CELL, cam.id), msg, stamp)
-            online.add_frame(cam.id, stamp, observations_of(cam.id, stamp, codec.marker_arrays(msg)))
+            online.add_frame(cam.id, stamp, observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg))))
             w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]), stamp)
         if k == 0:
-            truth = [codec.StampedPose("world", f"marker_{mk.id}", stamp, scenario.world_T_marker(mk, 0.0)) for mk in scenario.markers if mk.object is None]
+            truth = [codec.StampedPose("world", keys.marker_frame(mk.id), stamp, scenario.world_T_marker(mk, 0.0)) for mk in scenario.markers if mk.object is None]
             w.write(keys.truth(CELL, "markers"), codec.poses_to_msg(stamp, truth), stamp)
         if stamp >= next_update:
             online.update(stamp)
@@ -139,7 +139,7 @@ def segment_errors(resolved: ResolveRun) -> dict[str, tuple[float, float]]:
     """Per solved segment ("cam1_s0"): the offline pose's position error (mm) and the median of the
     online estimate's over that segment's stamps, both against the truth at those stamps."""
     out = {}
-    side = resolved.side
+    side = resolved.evidence
     for seg in resolved.result.segments:
         rows = []
         for p in side.online.poses.get(seg.camera_id, []):

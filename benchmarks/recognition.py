@@ -44,7 +44,8 @@ from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_c
 from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
 from recognition.models import ModelDatabase, model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
-from schemas.codec import invert_pose, make_pose  # noqa: E402
+from schemas.codec import make_pose  # noqa: E402
+from schemas.geometry import invert_pose
 from schemas.spec import PoseSpec  # noqa: E402
 
 

@@ -18,7 +18,8 @@ from drivers.markers import covariance_model, PlaneFit
 from drivers.sim.scenario import Scenario, load_scenario
 from estimator.config import EstimatorConfig
 from estimator.observation import Observation
-from schemas.codec import CameraInfo, cov_ros_to_gtsam, invert_pose
+from schemas.codec import CameraInfo
+from schemas.geometry import cov_ros_to_gtsam, invert_pose
 
 
 @dataclass(frozen=True)

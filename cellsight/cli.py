@@ -709,7 +709,7 @@ def resolve_cmd(
     """Re-solve a log in batch: resolved.mcap, TUM trajectories, report.html with figures."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TimeRemainingColumn
 
-    from cellsight.resolve_cmd import peek_config, run_resolve
+    from cellsight.resolve_report import peek_config, run_resolve
 
     _setup_logging(verbose)
     if not log_file.is_file():

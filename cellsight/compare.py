@@ -13,11 +13,9 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import gtsam
-import numpy as np
-
 from schemas import codec, keys
-from schemas.codec import StampedPose, cov_ros_to_gtsam
+from schemas.codec import StampedPose
+from schemas.geometry import mahalanobis_sq, pose_difference, pose_error
 from schemas.log import ReadReport, read_log
 
 CHI2_6DOF_999 = 22.46
@@ -45,14 +43,14 @@ def newest_poses(path: Path) -> tuple[dict[str, StampedPose], ReadReport]:
                 if child not in newest or p.stamp_ns >= newest[child].stamp_ns:
                     newest[child] = p
     for mk in object_markers_of(report):
-        newest.pop(f"marker_{mk}", None)
+        newest.pop(keys.marker_frame(mk), None)
     return newest, report
 
 
 def object_markers_of(report: ReadReport) -> list[int]:
     """Object-marker ids a log's metadata names: resolve's list, or the recorder's embedded config."""
     from cellsight.errors import ConfigError
-    from cellsight.resolve_cmd import config_of_log
+    from cellsight.resolve_report import config_of_log
 
     meta = report.metadata.get("cellsight", {})
     if "object_markers" in meta:
@@ -71,12 +69,10 @@ def compare(a: dict[str, StampedPose], b: dict[str, StampedPose], min_mm: float 
             out.append(Change(frame, math.nan, math.nan, None, "only in A" if frame in a else "only in B"))
             continue
         pa, pb = a[frame], b[frame]
-        xi = gtsam.Pose3.Logmap(gtsam.Pose3(pa.T).between(gtsam.Pose3(pb.T)))  # rot, trans (body frame of A)
-        dp, dr = float(np.linalg.norm(pb.T[:3, 3] - pa.T[:3, 3]) * 1000), float(np.degrees(np.linalg.norm(xi[:3])))
+        dp, dr = pose_error(pb.T, pa.T)
         sig = None
-        if pa.covariance is not None and pb.covariance is not None:
-            cov = cov_ros_to_gtsam(pa.covariance) + cov_ros_to_gtsam(pb.covariance)
-            sig = float(math.sqrt(max(xi @ np.linalg.solve(cov, xi), 0.0)))
+        if pa.covariance is not None and pb.covariance is not None:  # both ROS order, as the difference
+            sig = math.sqrt(max(float(mahalanobis_sq(pose_difference(pa.T, pb.T), pa.covariance + pb.covariance)), 0.0))
         beyond_noise = sig is None or sig**2 > CHI2_6DOF_999
         verdict = "moved" if beyond_noise and (dp > min_mm or dr > min_deg) else "unchanged"
         out.append(Change(frame, dp, dr, sig, verdict))

@@ -12,7 +12,8 @@ import numpy as np
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
 from drivers.markers import MarkerDetection, MarkerDetector
-from schemas.codec import CameraInfo, quat_from_matrix
+from schemas.codec import CameraInfo
+from schemas.geometry import quat_from_matrix
 
 
 @dataclass(frozen=True)

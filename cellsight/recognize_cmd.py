@@ -14,7 +14,8 @@ from recognition.config import RecognitionConfig
 from recognition.errors import CloudError
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Recognizer
-from schemas.codec import CameraInfo, quat_from_matrix
+from schemas.codec import CameraInfo
+from schemas.geometry import quat_from_matrix
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from drivers.config import CameraConfig, IntrinsicsConfig, MarkerConfig
 from drivers.sim.scenario import Scenario, load_scenario
 from estimator.config import AnchorConfig, EstimatorConfig
 from recognition.config import ObjectMarkerConfig, RecognitionConfig
-from schemas.codec import quat_from_matrix
+from schemas.geometry import quat_from_matrix
 from schemas.spec import PoseSpec
 
 

@@ -26,7 +26,8 @@ import numpy as np
 
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
-from schemas.codec import CameraInfo, make_pose, rotation_between
+from schemas.codec import CameraInfo
+from schemas.geometry import make_pose, rotation_between
 
 # Kinect v1: depth noise sigma_z = K z^2 (Khoshelham & Elberink 2012) plus 1/8 px disparity
 # quantisation over a 7.5 cm baseline; and a bias floor per fitted plane.

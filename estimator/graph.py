@@ -22,16 +22,19 @@ import math
 import time
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Generic, TypeVar
 
 import gtsam
 import numpy as np
 
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
-from estimator.observation import Observation, observations_of
-from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, rotation_angle
+from estimator.observation import Observation, ObservationRows, observations_of
+from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, rotation_angle
 
 log = logging.getLogger(__name__)
+K = TypeVar("K")
+V = TypeVar("V")
 
 FLIP_GATE_RAD = math.radians(15.0)  # a candidate further than this from the pair mean is a flip
 POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, caught separately)
@@ -69,6 +72,27 @@ def project_rotation(M: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (chordal L2 mean of a sum of rotations)."""
     U, _, Vt = np.linalg.svd(M)
     return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+class BestView(Generic[K, V]):
+    """Of the sightings of one thing (an object marker at one instant) through several cameras,
+    the one with the smallest position covariance (trace of its 3x3 block, m^2): cameras see an
+    object at different distances and angles, and the best view is the one a robot should get."""
+
+    def __init__(self) -> None:
+        self._best: dict[K, tuple[float, V]] = {}
+
+    def offer(self, key: K, covariance: np.ndarray, value: V) -> None:
+        """Keep ``value`` for ``key`` if its covariance (6x6, ROS order) is the tightest so far."""
+        score = float(np.trace(covariance[:3, :3]))
+        if key not in self._best or score < self._best[key][0]:
+            self._best[key] = (score, value)
+
+    def keys(self) -> list[K]:
+        return list(self._best)
+
+    def pop(self, key: K) -> V:
+        return self._best.pop(key)[1]
 
 
 def through_camera(world_T_camera: np.ndarray, camera_cov: np.ndarray, camera_T_marker: np.ndarray, marker_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -168,11 +192,7 @@ class Pair:
         cov = self.factor_covariance(max_fused, rotation_floor_rad)
         if np.abs(np.diag(cov) / np.diag(self.factor_cov) - 1.0).max() > 0.1:
             return False
-        Rf, T = self.factor_mean[:3, :3], self.mean()
-        dR = Rf.T @ T[:3, :3]
-        xi = np.concatenate([Rf.T @ (T[:3, 3] - self.factor_mean[:3, 3]),  # ROS order: x y z rx ry rz, marker frame
-                             0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])])  # fmt: skip
-        return float(xi @ np.linalg.solve(self.factor_cov, xi)) < sigmas**2
+        return float(mahalanobis_sq(pose_difference(self.factor_mean, self.mean()), self.factor_cov)) < sigmas**2
 
     def mean_covariance(self) -> np.ndarray:
         """Mean single-observation covariance (ROS order, marker frame)."""
@@ -235,7 +255,7 @@ class FoldedRows:
     rejected: np.ndarray
 
 
-def fold_rows(expected: np.ndarray, row_pair: np.ndarray, n_pairs: int, a: MarkerArrays) -> FoldedRows:
+def fold_rows(expected: np.ndarray, row_pair: np.ndarray, n_pairs: int, a: ObservationRows) -> FoldedRows:
     """``Pair.add_pose`` for many rows of many pairs at once, each judged against its pair's mean
     ``expected[row]`` (N, 4, 4) from before the batch. For settled pairs the mean moves by a fraction
     of the noise over a batch, so the choices are those of one-by-one adding. One matrix product
@@ -398,7 +418,7 @@ class Estimator:
                 self.counters.rejected += 1
         return True
 
-    def add_frames(self, camera_id: str, stamps: np.ndarray, a: MarkerArrays) -> list[int | None]:
+    def add_frames(self, camera_id: str, stamps: np.ndarray, a: ObservationRows) -> list[int | None]:
         """Consecutive frames of one camera at once (offline): stamps (F,) ns, ``a.frame`` indexes them.
 
         The same as ``add_frame`` per frame, vectorised for the common case of a still camera whose
@@ -446,7 +466,7 @@ class Estimator:
         track.last_positions = {o.marker_id: o for o in latest if o.marker_id not in self.object_markers}
         return [track.segment] * len(stamps)
 
-    def _any_frame_moved(self, s: MarkerArrays, expected: np.ndarray, frames: int) -> bool:
+    def _any_frame_moved(self, s: ObservationRows, expected: np.ndarray, frames: int) -> bool:
         """``_camera_is_still``'s residual test for many frames at once (static rows ``s``, their
         pairs' means ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise?"""
         if len(s.ids) == 0:
@@ -462,7 +482,7 @@ class Estimator:
             return False
         R = expected[:, :3, :3]
         covs = R @ s.covariances[:, :3, :3] @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3)
-        d2 = np.einsum("ij,ij->i", D, np.linalg.solve(covs, D[:, :, None])[:, :, 0])
+        d2 = mahalanobis_sq(D, covs)
         high = (d2 > MOVE_CHI2) & far
         n_high = np.bincount(s.frame, weights=high, minlength=frames)
         for f in np.flatnonzero((n_rows > 0) & (2 * n_high >= n_rows)):
@@ -486,7 +506,7 @@ class Estimator:
                 d = a.camera_T_marker[:3, 3] - b.camera_T_marker[:3, 3]
                 R = a.camera_T_marker[:3, :3]
                 cov = R @ (a.covariance[:3, :3] + b.covariance[:3, :3]) @ R.T
-                if np.linalg.norm(d) > self.config.bump_position_m / 2 and d @ np.linalg.solve(cov, d) > MOVE_CHI2:
+                if np.linalg.norm(d) > self.config.bump_position_m / 2 and mahalanobis_sq(d, cov) > MOVE_CHI2:
                     still = False
             track.still = track.still + 1 if still else 0
             track.last_positions = positions
@@ -522,7 +542,7 @@ class Estimator:
         shifts: np.ndarray = np.zeros(0)
         if deltas:  # one batched solve per frame instead of one per marker
             D = np.array(deltas)
-            d2 = np.einsum("ij,ij->i", D, np.linalg.solve(np.array(covs) + 1e-8 * np.eye(3), D[:, :, None])[:, :, 0])
+            d2 = mahalanobis_sq(D, np.array(covs) + 1e-8 * np.eye(3))
             shifts = np.linalg.norm(D, axis=1)
         moved = len(d2) > 0 and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
         track.suspect = track.suspect + 1 if moved else 0
@@ -698,8 +718,8 @@ class Estimator:
         return T
 
     def _object_markers(self, cams: dict[str, CameraEstimate]) -> dict[int, PoseEstimate]:
-        """Newest pose of each object marker, through the camera that sees it best (smallest sigma)."""
-        best: dict[int, tuple[float, PoseEstimate]] = {}
+        """Newest pose of each object marker, through the camera that sees it best."""
+        best: BestView[int, PoseEstimate] = BestView()
         for cid, track in self.tracks.items():
             cam = cams.get(cid)
             if cam is None or cam.state is not CameraState.LOCALIZED or cam.pose is None:
@@ -709,10 +729,8 @@ class Estimator:
                     continue
                 cam_cov = cam.pose.covariance if cam.pose.covariance is not None else np.zeros((6, 6))
                 T, cov = through_camera(cam.pose.T, cam_cov, obs.camera_T_marker, obs.covariance)
-                score = float(np.trace(cov[:3, :3]))
-                if mk not in best or score < best[mk][0]:
-                    best[mk] = (score, PoseEstimate(T, cov))
-        return {mk: pe for mk, (_, pe) in best.items()}
+                best.offer(mk, cov, PoseEstimate(T, cov))
+        return {mk: best.pop(mk) for mk in best.keys()}
 
     def _flagged_anchors(self) -> list[int]:
         """Anchors whose observations disagree with their surveyed pose (moved since the survey).

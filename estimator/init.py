@@ -12,7 +12,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from schemas.codec import invert_pose, kabsch, make_pose
+from schemas.geometry import invert_pose, kabsch
 
 CameraKey = tuple[str, int]  # (camera id, segment)
 

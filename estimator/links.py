@@ -25,7 +25,7 @@ import numpy as np
 from estimator.config import LinkConfig
 from estimator.graph import object_symbol
 from estimator.keyframes import consensus
-from schemas.codec import cov_ros_to_gtsam
+from schemas.geometry import cov_ros_to_gtsam
 
 FREE_ROTATION_RAD = 0.5  # a link's rotation sigma: loose enough to carry no rotation, finite for the solver
 

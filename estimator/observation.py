@@ -1,12 +1,21 @@
-"""The estimator's input: one marker seen by one camera at one time."""
+"""The estimator's input: markers seen by one camera, as single observations or as arrays of rows.
+
+The wire (``schemas.codec.MarkerArrays``) carries both planar-PnP (IPPE) candidates as sent; which
+one is the "other" branch a flip would be is the estimator's decision, made here once per row.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
+from schemas import codec
+from schemas import messages as m
 from schemas.codec import MarkerArrays
+from schemas.errors import DecodeError
+from schemas.geometry import matrices_from_quats
 
 
 @dataclass(frozen=True)
@@ -26,8 +35,73 @@ class Observation:
     ambiguous: bool = False
 
 
-def observations_of(camera_id: str, stamp_ns: int, a: MarkerArrays) -> list[Observation]:
-    """Rows of marker arrays (one frame's) as estimator observations."""
+@dataclass(frozen=True)
+class ObservationRows:
+    """Observations as arrays, one row per marker: ids (N,), camera_T_marker (N, 4, 4), the other
+    IPPE branch (N, 4, 4), covariances (N, 6, 6, ROS order), ambiguous flags (N,) and the index (N,)
+    of the frame each row came from."""
+
+    ids: np.ndarray
+    poses: np.ndarray
+    alternatives: np.ndarray
+    covariances: np.ndarray
+    ambiguous: np.ndarray
+    frame: np.ndarray
+
+    def rows(self, keep: np.ndarray) -> "ObservationRows":
+        """The rows selected by a boolean mask or index array."""
+        return ObservationRows(self.ids[keep], self.poses[keep], self.alternatives[keep], self.covariances[keep],
+                               self.ambiguous[keep], self.frame[keep])  # fmt: skip
+
+
+def observation_rows(a: MarkerArrays) -> ObservationRows:
+    """The wire's arrays with the other IPPE branch of each row chosen.
+
+    The chosen pose is either candidate after depth refinement: a new rotation toward the plane's
+    normal and the plane's range. The other branch is the candidate further from it in rotation
+    (smaller |q . q'|) at the chosen position: the candidates' own positions are planar PnP's (tens
+    of mm off in range at 3 m), and a flip the estimator corrects must not bring that error back.
+    """
+    q = a.quaternions
+    further_a = np.abs(np.einsum("ij,ij->i", q[:, 0], q[:, 1])) < np.abs(np.einsum("ij,ij->i", q[:, 0], q[:, 2]))
+    alternatives = a.poses.copy()
+    alternatives[:, :3, :3] = matrices_from_quats(np.where(further_a[:, None], q[:, 1], q[:, 2]))
+    return ObservationRows(a.ids, a.poses, alternatives, a.covariances, a.ambiguous, a.frame)
+
+
+@dataclass(frozen=True)
+class ValidatedFrames:
+    """What ``validated_rows`` kept: indices of the good frames, their rows (``frame`` indexes the
+    kept frames; None when none was good) and, per dropped frame, (stamp ns, what was wrong)."""
+
+    kept: list[int]
+    rows: ObservationRows | None
+    dropped: list[tuple[int, str]]
+
+
+def validated_rows(camera_id: str, msgs: Sequence[m.MarkerObservations]) -> ValidatedFrames:
+    """Validate a camera's frames together (one batched check) and convert them once; if the batch
+    fails, frame by frame, dropping the bad ones. The one validation of marker observations on both
+    the live and the offline path."""
+    try:
+        codec.check_id(camera_id, "marker observations camera_id")
+        return ValidatedFrames(list(range(len(msgs))), observation_rows(codec.marker_batch(msgs)), [])
+    except DecodeError:
+        pass
+    kept, dropped = [], []
+    for i, msg in enumerate(msgs):
+        try:
+            codec.check_id(msg.camera_id, "marker observations camera_id")
+            codec.marker_arrays(msg)
+            kept.append(i)
+        except DecodeError as exc:
+            dropped.append((int(msg.stamp_ns), str(exc)))
+    rows = observation_rows(codec.marker_batch([msgs[i] for i in kept], check=False)) if kept else None
+    return ValidatedFrames(kept, rows, dropped)
+
+
+def observations_of(camera_id: str, stamp_ns: int, a: ObservationRows) -> list[Observation]:
+    """Rows of one frame as single observations."""
     return [
         Observation(camera_id, stamp_ns, int(a.ids[i]), a.poses[i], a.covariances[i], a.alternatives[i], bool(a.ambiguous[i]))
         for i in range(len(a.ids))

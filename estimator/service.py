@@ -18,10 +18,12 @@ import zenoh
 from estimator.config import EstimatorConfig
 from estimator.errors import StateFileError
 from estimator.graph import CameraState, Estimate, Estimator
+from estimator.observation import validated_rows
 from estimator.state import SavedMarker, load_state, save_state, set_aside
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, Received
+from schemas.errors import DecodeError
 
 log = logging.getLogger(__name__)
 SAVE_PERIOD_S = 5.0
@@ -31,10 +33,6 @@ _STATE = {
     CameraState.MOVING: m.CameraState.MOVING,
     CameraState.STALE: m.CameraState.STALE,
 }
-
-
-def marker_frame(marker_id: int) -> str:
-    return f"marker_{marker_id}"
 
 
 class Clock:
@@ -118,7 +116,9 @@ class EstimatorService:
         self.save_failures = 0  # consecutive, so a full disk is reported once, not every period
         self.restored = self._restore()
         cell = bus.cell
-        self._sub = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192)
+        # Content is validated once, a camera's frames together, in ``ingest``.
+        self._sub = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192, semantic=False)
+        self.bad_frames: Counter[str] = Counter()  # camera -> frames dropped as malformed
         self._pub = {
             "tf": bus.publisher(keys.tf(cell)),
             "cameras": bus.publisher(keys.estimate_cameras(cell)),
@@ -167,13 +167,23 @@ class EstimatorService:
         (``Estimator.add_frames``), the same as one by one. Cameras are independent between updates."""
         by_camera: dict[str, list[tuple[int, m.MarkerObservations]]] = {}
         for item in items:
+            try:  # before the id keys any per-camera state
+                codec.check_id(item.msg.camera_id, "marker observations camera_id")
+            except DecodeError:
+                self.bad_frames["(invalid camera id)"] += 1
+                continue
             stamp_ns = self.clock_jumps.correct(item.msg.camera_id, item.msg.stamp_ns, item.receive_ns)
             self.clock.observe(stamp_ns, item.receive_ns)
             by_camera.setdefault(item.msg.camera_id, []).append((stamp_ns, item.msg))
         for camera_id, frames in by_camera.items():
-            stamps = np.array([stamp for stamp, _ in frames], dtype=np.int64)
-            # validated on receipt by the subscription: converting is all that is left
-            self.estimator.add_frames(camera_id, stamps, codec.marker_batch([msg for _, msg in frames], check=False))
+            v = validated_rows(camera_id, [msg for _, msg in frames])
+            for stamp_ns, why in v.dropped:
+                self.bad_frames[camera_id] += 1
+                if self.bad_frames[camera_id] == 1:  # once per camera: garbage must not flood the log
+                    log.warning("dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
+                                camera_id[:40], stamp_ns, why)  # fmt: skip
+            if v.rows is not None:
+                self.estimator.add_frames(camera_id, np.array([frames[i][0] for i in v.kept], dtype=np.int64), v.rows)
 
     def step(self) -> Estimate:
         """Ingest what arrived, update, publish. One call per update period."""
@@ -194,8 +204,8 @@ class EstimatorService:
             for c in est.cameras.values()
             if c.pose is not None and c.state in (CameraState.LOCALIZED, CameraState.MOVING, CameraState.STALE)
         ]
-        marks = [codec.StampedPose("world", marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.markers.items()]
-        marks += [codec.StampedPose("world", marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.object_markers.items()]
+        marks = [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.markers.items()]
+        marks += [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.object_markers.items()]
         cams_msg, marks_msg = codec.poses_to_msg(stamp_ns, cams), codec.poses_to_msg(stamp_ns, marks)
         status = self.status_msg(est, stamp_ns)
         self._pub["tf"].put(codec.transforms_to_msg(stamp_ns, [(p.parent, p.child, p.T) for p in cams + marks]))
@@ -208,7 +218,7 @@ class EstimatorService:
     def status_msg(self, est: Estimate, stamp_ns: int) -> m.EstimatorStatus:
         c = self.estimator.counters
         msg = m.EstimatorStatus(
-            stamp_ns=stamp_ns, observations=c.observations, rejected=c.rejected + sum(self._sub.bad.values()),
+            stamp_ns=stamp_ns, observations=c.observations, rejected=c.rejected + sum(self._sub.bad.values()) + sum(self.bad_frames.values()),
             unknown_markers=c.unknown_markers, update_ms=c.last_update_ms, factors=len(self.estimator.pairs) + len(self.estimator.anchors),
             factors_rebuilt=c.factors_rebuilt, update_cpu_ms=c.last_update_cpu_ms,
         )  # fmt: skip

@@ -14,7 +14,7 @@ import numpy as np
 import open3d as o3d
 
 from recognition.vfh import ROLL_BINS
-from schemas.codec import rotation_between
+from schemas.geometry import rotation_between
 
 
 def align_to_z(direction: np.ndarray) -> np.ndarray:

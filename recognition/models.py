@@ -33,8 +33,9 @@ from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
 from recognition.vfh import ROLL_BINS, SIZE
-from schemas.codec import CameraInfo, invert_pose, make_pose
-from schemas.spec import look_at_matrix
+from schemas.codec import CameraInfo
+from schemas.geometry import invert_pose, make_pose
+from schemas.geometry import look_at_matrix
 
 log = logging.getLogger(__name__)
 FORMAT = 1

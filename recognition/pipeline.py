@@ -24,7 +24,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
-from schemas.codec import invert_pose, rotation_between
+from schemas.geometry import invert_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
 UPRIGHT_COS = float(np.cos(np.radians(45.0)))
@@ -45,7 +45,7 @@ REFINED_STARTS = 2
 REFINE_POINTS = 500
 #: Screened starts closer than this are one start: refining both would repeat the same work.
 SAME_POSE_M = 0.01
-SAME_POSE_COS = float(np.cos(np.radians(10.0)))
+SAME_POSE_RAD = float(np.radians(10.0))
 
 
 @dataclass(frozen=True)
@@ -304,9 +304,8 @@ def _upright(camera_T_object: np.ndarray, up: np.ndarray | None) -> bool:
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether two poses (4, 4) are within SAME_POSE_M and the angle of SAME_POSE_COS of each other."""
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
-    return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and cos >= SAME_POSE_COS)
+    """Whether two poses (4, 4) are within SAME_POSE_M and SAME_POSE_RAD of each other."""
+    return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and rotation_angle(a[:3, :3], b[:3, :3]) <= SAME_POSE_RAD)
 
 
 def _stand_up(camera_T_objects: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:

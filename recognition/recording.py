@@ -24,6 +24,7 @@ from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
 from recognition.models import MIN_VIEW_POINTS, ObjectModel, describe_views
 from schemas import codec, keys
+from schemas import geometry
 from schemas import messages as m
 from schemas.log import ReadReport, read_log
 
@@ -52,7 +53,7 @@ def board_pose(ids: np.ndarray, camera_T_markers: np.ndarray, board: BoardConfig
         return None
     on_board = np.array([where[int(ids[i])] for i in seen])
     in_camera = camera_T_markers[seen, :3, 3]
-    camera_T_board = codec.kabsch(on_board, in_camera)
+    camera_T_board = geometry.kabsch(on_board, in_camera)
     if camera_T_board is None:  # markers in a line
         return None
     moved = on_board @ camera_T_board[:3, :3].T + camera_T_board[:3, 3]
@@ -63,7 +64,7 @@ def board_pose(ids: np.ndarray, camera_T_markers: np.ndarray, board: BoardConfig
 def object_points(cloud: np.ndarray, camera_T_object: np.ndarray, board: BoardConfig) -> np.ndarray:
     """The points of a camera-frame cloud (organised or (N, 3)) inside the object box, camera frame."""
     pts = finite_points(cloud)
-    object_T_camera = codec.invert_pose(camera_T_object)
+    object_T_camera = geometry.invert_pose(camera_T_object)
     board_T_object = board.board_T_object.matrix()
     in_board = (pts @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]) @ board_T_object[:3, :3].T + board_T_object[:3, 3]
     inside = np.all((in_board >= board.object_min) & (in_board <= board.object_max), axis=1)
@@ -79,7 +80,7 @@ def select_views(views: Iterable[BoardView], min_angle_deg: float, max_views: in
     for v in views:
         if len(v.points) < MIN_VIEW_POINTS:
             continue
-        d = codec.invert_pose(v.camera_T_object)[:3, 3]
+        d = geometry.invert_pose(v.camera_T_object)[:3, 3]
         d = d / np.linalg.norm(d)
         if all(float(d @ e) < cos_min for e in dirs):
             kept.append(v)
@@ -97,7 +98,7 @@ def model_from_views(
         raise ModelError(f"object {object_id!r}: no frame of the recording saw three board markers and the object")
     merged = []
     for v in views:
-        object_T_camera = codec.invert_pose(v.camera_T_object)
+        object_T_camera = geometry.invert_pose(v.camera_T_object)
         merged.append(v.points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3])
     pts = voxel_downsample(np.concatenate(merged), params.voxel_m)
     centre = pts.mean(axis=0)

@@ -22,6 +22,7 @@ from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Prior, Recognizer
 from recognition.cloud import depth_to_cloud, finite_points, voxel_downsample
 from schemas import codec, keys
+from schemas import geometry
 from schemas import messages as m
 from schemas.bus import Bus
 from schemas.errors import DecodeError, KeyError_
@@ -216,7 +217,7 @@ class RecognitionWorker:
         for marker_id, camera_T_marker in zip(a.ids, a.poses):
             if int(marker_id) in self._object_T_marker:
                 oid, object_T_marker = self._object_T_marker[int(marker_id)]
-                out.append(Prior(oid, camera_T_marker @ codec.invert_pose(object_T_marker)))
+                out.append(Prior(oid, camera_T_marker @ geometry.invert_pose(object_T_marker)))
         return out
 
     def process(self, camera_id: str) -> list[WorldDetection]:
@@ -278,8 +279,8 @@ class RecognitionWorker:
             if not self.placed(d.camera_id):
                 continue
             T = self.world_T_camera[d.camera_id]
-            step = codec.invert_pose(d.world_T_camera) @ T
-            if np.linalg.norm(step[:3, 3]) <= MOVED_M and np.degrees(codec.rotation_angle(np.eye(3), step[:3, :3])) <= MOVED_DEG:
+            step = geometry.invert_pose(d.world_T_camera) @ T
+            if np.linalg.norm(step[:3, 3]) <= MOVED_M and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= MOVED_DEG:
                 out.append(replace(d, world_T_object=T @ d.detection.camera_T_object, world_T_camera=T))
         return out
 

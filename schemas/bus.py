@@ -214,8 +214,10 @@ class Subscription(Generic[Msg]):
         capacity: int = 1024,
         ring: bool = False,
         callback: Callable[[Received[Msg]], None] | None = None,
+        semantic: bool = True,
     ) -> None:
         self.key_expr = key_expr
+        self._semantic = semantic
         self._msg_type = msg_type
         self.inbox: Inbox[Msg] = Inbox(capacity, ring)
         self._callback = callback
@@ -231,7 +233,7 @@ class Subscription(Generic[Msg]):
             if self._msg_type is not None and contract is not self._msg_type:
                 # "cellsight/c/*/status" also matches "cellsight/c/estimate/status": not ours, not bad.
                 return
-            item = Received(key, decode(sample.payload.to_bytes(), contract), time.time_ns())
+            item = Received(key, decode(sample.payload.to_bytes(), contract, self._semantic), time.time_ns())
         except SchemaError as exc:
             self._count_bad(key, str(exc))
             return
@@ -337,9 +339,13 @@ class Bus:
         capacity: int = 1024,
         ring: bool = False,
         callback: Callable[[Received[Msg]], None] | None = None,
+        semantic: bool = True,
     ) -> Subscription[Msg]:
-        """Decode messages on ``key_expr``; the type comes from the key when ``msg_type`` is None."""
-        return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback)
+        """Decode messages on ``key_expr``; the type comes from the key when ``msg_type`` is None.
+
+        ``semantic=False`` checks wire format and schema only, for a consumer that validates the
+        content itself, many messages at once (the estimator's marker observations)."""
+        return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback, semantic=semantic)
 
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes, int], None]) -> zenoh.Subscriber:
         """Undecoded payloads: ``callback(key, payload, receive_ns)`` in zenoh's thread (recorder)."""

@@ -1,4 +1,5 @@
-"""Conversions between messages and numpy: poses, covariances, images, camera info, transforms.
+"""Conversions between messages and numpy (poses, covariances, images, camera info, transforms) and
+the validation of untrusted payloads. The maths itself is ``schemas.geometry``.
 
 Conventions (DESIGN.md section 3): poses are 4x4 float64 ``parent_T_child`` arrays; quaternions on
 the wire are (x, y, z, w); 6x6 covariances on the wire are ROS order (x, y, z, rx, ry, rz) while
@@ -8,7 +9,6 @@ input as untrusted and raises ``DecodeError`` naming what was wrong.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence, TypeVar
 
@@ -18,144 +18,12 @@ from google.protobuf.message import Message
 
 from schemas import messages as m
 from schemas.errors import DecodeError
+from schemas.geometry import make_pose, matrices_from_quats, matrix_from_quat, quat_from_matrix
 
 Msg = TypeVar("Msg", bound=Message)
 
-# Index map between ROS order (x y z rx ry rz) and gtsam order (rx ry rz x y z).
-_ROS_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
 
-
-# ---------------------------------------------------------------- rotations and poses
-
-
-def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = np.empty(4)
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def matrix_from_quat(q: Iterable[float]) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion (x, y, z, w); the quaternion is normalised first."""
-    x, y, z, w = np.asarray(list(q), dtype=np.float64) / np.linalg.norm(list(q))
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def matrices_from_quats(q: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of (N, 4) quaternions (x, y, z, w), normalised first."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-
-
-def make_pose(R: np.ndarray | None = None, t: Iterable[float] | None = None) -> np.ndarray:
-    """4x4 pose from a 3x3 rotation (default identity) and a translation in metres (default 0)."""
-    T = np.eye(4)
-    if R is not None:
-        T[:3, :3] = R
-    if t is not None:
-        T[:3, 3] = np.asarray(list(t), dtype=np.float64)
-    return T
-
-
-def invert_pose(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 pose without a general matrix inverse."""
-    Ti = np.eye(4)
-    Ti[:3, :3] = T[:3, :3].T
-    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return Ti
-
-
-def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle (rad) of R_a^T R_b: how far apart two rotations (3, 3) are."""
-    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, c)))
-
-
-def rotation_angles(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """``rotation_angle`` over stacks: angles (rad) between R_a (..., 3, 3) and R_b (..., 3, 3), broadcast."""
-    c = (np.einsum("...ij,...ij->...", R_a, R_b) - 1.0) / 2.0
-    return np.arccos(np.clip(c, -1.0, 1.0))
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray, half_turn_axis: np.ndarray | None = None) -> np.ndarray:
-    """Smallest rotation R (3, 3) with R @ a/|a| = b/|b|; batched over leading axes: a and b
-    (..., 3) broadcast, R (..., 3, 3).
-
-    With v = a x b and c = a . b (unit a, b): R = c I + [v]x + v v^T / (1 + c). When a and b are
-    opposite every axis normal to them will do: the half turn is about half_turn_axis (unit, normal
-    to a, (..., 3)); by default about the coordinate axis most normal to a, made normal to it (x for
-    a = -z).
-    """
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    a = a / np.sqrt(np.sum(a * a, axis=-1, keepdims=True))
-    b = b / np.sqrt(np.sum(b * b, axis=-1, keepdims=True))
-    a, b = np.broadcast_arrays(a, b)
-    v = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                  a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
-    c = np.sum(a * b, axis=-1)
-    # 1 + c as |a + b|^2 / 2: accurate to the last bits however close to opposite a and b are. Nearer
-    # than ~1e-8 rad to opposite, the half turn is closer than the formula's own rounding.
-    one_plus_c = 0.5 * np.sum((a + b) ** 2, axis=-1)
-    opposite = one_plus_c < 1e-16
-    R = v[..., :, None] * v[..., None, :] / np.where(opposite, 1.0, one_plus_c)[..., None, None]
-    R += c[..., None, None] * np.eye(3)
-    R[..., 0, 1] -= v[..., 2]
-    R[..., 0, 2] += v[..., 1]
-    R[..., 1, 2] -= v[..., 0]
-    R[..., 1, 0] += v[..., 2]
-    R[..., 2, 0] -= v[..., 1]
-    R[..., 2, 1] += v[..., 0]
-    if np.any(opposite):
-        if half_turn_axis is None:  # the coordinate axis most normal to a, made normal to it
-            e = np.eye(3)[np.argmin(np.abs(a[opposite]), axis=-1)]
-            h = e - np.sum(e * a[opposite], axis=-1, keepdims=True) * a[opposite]
-            h /= np.linalg.norm(h, axis=-1, keepdims=True)
-        else:
-            h = np.broadcast_to(np.asarray(half_turn_axis, dtype=np.float64), v.shape)[opposite]
-        R[opposite] = 2.0 * h[..., :, None] * h[..., None, :] - np.eye(3)
-    return R
-
-
-def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
-    """The rigid transform T (4, 4) minimising sum |T src_i - dst_i|^2 over (N, 3) point pairs;
-    None with fewer than three or (nearly) collinear points, where a rotation about the line is free."""
-    if len(src) < 3:
-        return None
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    U, S, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    if S[1] < 1e-4 * max(S[0], 1e-12):
-        return None
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return make_pose(R, cd - R @ cs)
+# ---------------------------------------------------------------- poses
 
 
 def check_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarray:
@@ -201,17 +69,6 @@ def pose_from_msg(msg: m.Pose, what: str = "pose") -> np.ndarray:
 
 
 # ---------------------------------------------------------------- covariances
-
-
-def cov_ros_to_gtsam(cov: np.ndarray) -> np.ndarray:
-    """Reorder a 6x6 covariance from ROS (x y z rx ry rz) to gtsam Pose3 tangent (rx ry rz x y z)."""
-    cov = np.asarray(cov, dtype=np.float64).reshape(6, 6)
-    return cov[np.ix_(_ROS_TO_GTSAM, _ROS_TO_GTSAM)]
-
-
-def cov_gtsam_to_ros(cov: np.ndarray) -> np.ndarray:
-    """Inverse of ``cov_ros_to_gtsam`` (the permutation is its own inverse)."""
-    return cov_ros_to_gtsam(cov)
 
 
 def check_covariance(cov: np.ndarray, what: str = "covariance") -> np.ndarray:
@@ -442,30 +299,17 @@ def poses_from_msg(msg: m.PosesWithCovariance) -> dict[str, StampedPose]:
 @dataclass(frozen=True)
 class MarkerArrays:
     """The observations of one or more ``MarkerObservations`` as arrays, one row per marker: ids (N,),
-    camera_T_marker (N, 4, 4), the other IPPE branch (N, 4, 4: the rotation of the candidate further
-    from the chosen one, at the chosen position; equal to the chosen pose when no candidates were
-    sent), covariances (N, 6, 6) in ROS order, ambiguous flags (N,) and the index (N,) of the
-    message each row came from."""
+    camera_T_marker (N, 4, 4), quaternions as sent (N, 3, 4; x y z w): the chosen pose's, then the
+    two planar-PnP (IPPE) candidates' (the chosen one's again where the driver sent none),
+    covariances (N, 6, 6) in ROS order, ambiguous flags (N,) and the index (N,) of the message each
+    row came from."""
 
     ids: np.ndarray
     poses: np.ndarray
-    alternatives: np.ndarray
+    quaternions: np.ndarray
     covariances: np.ndarray
     ambiguous: np.ndarray
     frame: np.ndarray
-
-    def rows(self, keep: np.ndarray) -> "MarkerArrays":
-        """The rows selected by a boolean mask or index array."""
-        return MarkerArrays(self.ids[keep], self.poses[keep], self.alternatives[keep], self.covariances[keep],
-                            self.ambiguous[keep], self.frame[keep])  # fmt: skip
-
-
-def _poses_from_rows(rows: np.ndarray) -> np.ndarray:
-    T = np.zeros((len(rows), 4, 4))
-    T[:, :3, :3] = matrices_from_quats(rows[:, 3:])
-    T[:, :3, 3] = rows[:, :3]
-    T[:, 3, 3] = 1.0
-    return T
 
 
 def marker_arrays(msg: m.MarkerObservations, check: bool = True) -> MarkerArrays:
@@ -478,7 +322,7 @@ def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> Ma
 
     One pass of Python over the markers collects the fields; everything else is numpy over all rows,
     so a batch of many messages costs little more per marker than the field reads. ``check=False``
-    only converts: for messages that already came through ``decode``, which validated them.
+    only converts: for messages already validated (``decode`` with ``semantic=True``).
 
     Raises ``DecodeError`` naming the first bad marker: wrong corner count, non-positive side,
     non-finite or non-unit quaternion, covariance not 36 values / not symmetric / not positive
@@ -500,17 +344,11 @@ def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> Ma
     cov_a = np.fromiter(cov, np.float64, len(cov)).reshape(-1, 6, 6)
     if check:
         _check_marker_rows(ids, r[:, 6:], cov_a)
-    n = len(ids)
-    # The chosen pose is either candidate after depth refinement: a new rotation toward the plane's
-    # normal and the plane's range. The other branch is the candidate further from it in rotation
-    # (smaller |q . q'|); it keeps the chosen position, since the candidates' own positions are
-    # planar PnP's (tens of mm off in range at 3 m) and a flip the estimator corrects must not
-    # bring that error back.
-    q = r[:, 9:13]
-    further_a = np.abs(np.einsum("ij,ij->i", q, r[:, 13:17])) < np.abs(np.einsum("ij,ij->i", q, r[:, 17:21]))
-    other = np.column_stack([r[:, 6:9], np.where(further_a[:, None], r[:, 13:17], r[:, 17:21])])  # at the chosen position
-    poses = _poses_from_rows(np.concatenate([r[:, 6:13], other]))
-    return MarkerArrays(ids, poses[:n], poses[n:], cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
+    poses = np.zeros((len(ids), 4, 4))
+    poses[:, :3, :3] = matrices_from_quats(r[:, 9:13])
+    poses[:, :3, 3] = r[:, 6:9]
+    poses[:, 3, 3] = 1.0
+    return MarkerArrays(ids, poses, r[:, 9:21].reshape(-1, 3, 4), cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
 
 
 def _check_marker_scalars(ids: np.ndarray, side: np.ndarray, corners: np.ndarray, cov_len: np.ndarray) -> None:

@@ -51,6 +51,11 @@ def check_name(name: str, what: str = "name") -> str:
     return name
 
 
+def marker_frame(marker_id: int) -> str:
+    """Child frame id of a marker's pose in transforms and pose lists."""
+    return f"marker_{marker_id}"
+
+
 def _camera(cell: str, camera: str, topic: str) -> str:
     check_name(camera, "camera id")
     if camera in _RESERVED:

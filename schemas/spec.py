@@ -12,39 +12,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, model_validator
 
-from schemas.codec import make_pose, matrix_from_quat
+from schemas.geometry import look_at_matrix, make_pose, matrix_from_quat, normal_matrix, rpy_matrix
 
 Vec3 = tuple[float, float, float]
-
-
-def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation Rz(yaw) Ry(pitch) Rx(roll), angles in radians."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
-
-
-def look_at_matrix(position: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """Optical-frame rotation (x right, y down, z forward) of a camera at ``position`` facing ``target``."""
-    z = np.asarray(target, float) - np.asarray(position, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9:  # looking straight up or down: any right vector will do
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
-
-
-def normal_matrix(normal: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
-    """Marker-frame rotation with z along ``normal`` and y toward ``up`` (default world z, else y)."""
-    z = np.asarray(normal, float) / np.linalg.norm(normal)
-    if up is None:
-        up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    y = np.asarray(up, float) - np.dot(up, z) * z
-    y /= np.linalg.norm(y)
-    return np.column_stack([np.cross(y, z), y, z])
 
 
 class PoseSpec(BaseModel):

@@ -11,21 +11,14 @@ from google.protobuf.message import Message
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle of R_a^T R_b in degrees (atan2 form: accurate for tiny angles, unlike arccos)."""
-    Rd = R_a.T @ R_b
-    s = np.linalg.norm([Rd[2, 1] - Rd[1, 2], Rd[0, 2] - Rd[2, 0], Rd[1, 0] - Rd[0, 1]]) / 2.0
-    c = (np.trace(Rd) - 1.0) / 2.0
-    return float(np.degrees(np.arctan2(s, c)))
+from schemas.geometry import pose_error
 
 
 def assert_pose_close(T_a: np.ndarray, T_b: np.ndarray, pos_tol_m: float, rot_tol_deg: float, what: str = "pose") -> None:
     """Fail unless the two 4x4 poses agree within the translation and rotation tolerances."""
-    dp = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
-    dr = rotation_angle_deg(T_a[:3, :3], T_b[:3, :3])
-    assert dp <= pos_tol_m and dr <= rot_tol_deg, (
-        f"{what}: position off by {dp * 1000:.3f} mm (tol {pos_tol_m * 1000:.3f}), "
+    dp_mm, dr = pose_error(T_a, T_b)
+    assert dp_mm <= pos_tol_m * 1000 and dr <= rot_tol_deg, (
+        f"{what}: position off by {dp_mm:.3f} mm (tol {pos_tol_m * 1000:.3f}), "
         f"rotation off by {dr:.4f} deg (tol {rot_tol_deg:.4f})"
     )
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from schemas import codec, keys
+from schemas import geometry
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig, memory_lock_problem
 from schemas.errors import BusError, SchemaError
@@ -24,7 +25,7 @@ CELL = "t"
 
 def sample_messages() -> dict[str, object]:
     """One valid message for every key of the contract."""
-    pose = codec.make_pose(t=[1, 2, 3])
+    pose = geometry.make_pose(t=[1, 2, 3])
     cov = np.eye(6) * 1e-4
     obs = m.MarkerObservations(camera_id="cam1", stamp_ns=10)
     o = obs.markers.add(marker_id=1, dictionary="DICT_APRILTAG_36h11", side_m=0.1)

@@ -12,6 +12,7 @@ import numpy as np
 from google.protobuf.message import Message
 
 from schemas import codec, keys
+from schemas import geometry
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 
@@ -72,7 +73,7 @@ def test_bus_echo_prints_a_message_from_another_process(router_endpoint: str) ->
     msg = m.MarkerObservations(camera_id="cam7", stamp_ns=123456789)
     obs = msg.markers.add(marker_id=42, dictionary="DICT_APRILTAG_36h11", side_m=0.15)
     obs.corners_px.extend(range(8))
-    codec.pose_to_msg(codec.make_pose(t=[0.1, 0.2, 1.5]), obs.camera_T_marker)
+    codec.pose_to_msg(geometry.make_pose(t=[0.1, 0.2, 1.5]), obs.camera_T_marker)
     obs.covariance.extend(codec.covariance_to_list(np.eye(6) * 1e-4))
     proc = subprocess.Popen(
         CLI + ["bus", "echo", key, "--once", "--json", "--timeout", "20", "--connect", router_endpoint],
@@ -96,10 +97,10 @@ def test_status_shows_cameras_with_poses_and_objects(router_endpoint: str) -> No
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
     status = m.EstimatorStatus(stamp_ns=1, observations=7)
     status.cameras.add(camera_id="cam1", state=m.CameraState.LOCALIZED, position_sigma_m=0.004)
-    cameras = codec.poses_to_msg(1, [codec.StampedPose("world", "cam1", 1, codec.make_pose(t=[1.25, -0.5, 2.0]))])
+    cameras = codec.poses_to_msg(1, [codec.StampedPose("world", "cam1", 1, geometry.make_pose(t=[1.25, -0.5, 2.0]))])
     objects = m.ObjectDetections(stamp_ns=1)
     crate = objects.objects.add(object_id="crate", fitness=0.93, rmse_m=0.0052, camera_ids=["cam1"])
-    codec.pose_to_msg(codec.make_pose(t=[0.1, 0.2, 0.75]), crate.world_T_object)
+    codec.pose_to_msg(geometry.make_pose(t=[0.1, 0.2, 0.75]), crate.world_T_object)
     out, err = publish_until_exit(proc, router_endpoint, "lab", {
         keys.estimate_status("lab"): status, keys.estimate_cameras("lab"): cameras, keys.objects("lab"): objects})  # fmt: skip
     assert proc.returncode == 0, err

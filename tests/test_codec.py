@@ -8,7 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from estimator.observation import observation_rows
 from schemas import codec, keys
+from schemas import geometry
 from schemas import messages as m
 from schemas.errors import DecodeError, KeyError_
 from tests.helpers import assert_pose_close
@@ -18,7 +20,7 @@ quats = hnp.arrays(np.float64, 4, elements=st.floats(-1, 1)).filter(lambda q: np
 
 
 def random_pose(q: np.ndarray, t: list[float]) -> np.ndarray:
-    return codec.make_pose(codec.matrix_from_quat(q), t)
+    return geometry.make_pose(geometry.matrix_from_quat(q), t)
 
 
 def random_covariance(seed: int) -> np.ndarray:
@@ -35,7 +37,7 @@ def test_pose_round_trip(q: np.ndarray, t: list[float]) -> None:
 
 @given(quats)
 def test_quaternion_is_unit_with_nonnegative_w(q: np.ndarray) -> None:
-    out = codec.quat_from_matrix(codec.matrix_from_quat(q))
+    out = geometry.quat_from_matrix(geometry.matrix_from_quat(q))
     assert np.isclose(np.linalg.norm(out), 1.0) and out[3] >= 0
     # Same rotation up to sign.
     qn = q / np.linalg.norm(q)
@@ -45,12 +47,12 @@ def test_quaternion_is_unit_with_nonnegative_w(q: np.ndarray) -> None:
 @given(st.integers(0, 2**31))
 def test_covariance_reorder_is_a_permutation(seed: int) -> None:
     cov = random_covariance(seed)
-    g = codec.cov_ros_to_gtsam(cov)
+    g = geometry.cov_ros_to_gtsam(cov)
     # Translation block (ROS 0..2) becomes gtsam 3..5; rotation block (ROS 3..5) becomes gtsam 0..2.
     np.testing.assert_array_equal(g[3:, 3:], cov[:3, :3])
     np.testing.assert_array_equal(g[:3, :3], cov[3:, 3:])
     np.testing.assert_array_equal(g[:3, 3:], cov[3:, :3])
-    np.testing.assert_array_equal(codec.cov_gtsam_to_ros(g), cov)
+    np.testing.assert_array_equal(geometry.cov_gtsam_to_ros(g), cov)
 
 
 @settings(max_examples=30)
@@ -118,7 +120,7 @@ def good_marker_observations() -> m.MarkerObservations:
     msg = m.MarkerObservations(camera_id="cam1", stamp_ns=1, image_width=640, image_height=480)
     obs = msg.markers.add(marker_id=3, dictionary="DICT_APRILTAG_36h11", side_m=0.1)
     obs.corners_px.extend([0.0] * 8)
-    codec.pose_to_msg(codec.make_pose(t=[0, 0, 1]), obs.camera_T_marker)
+    codec.pose_to_msg(geometry.make_pose(t=[0, 0, 1]), obs.camera_T_marker)
     obs.covariance.extend(codec.covariance_to_list(np.eye(6) * 1e-4))
     return msg
 
@@ -146,16 +148,16 @@ def test_the_alternative_is_the_other_ippe_branch_at_the_chosen_position(refined
     """Depth refinement turns either IPPE candidate and replaces planar PnP's range. The estimator's
     alternative must be the other branch, at the refined position: a corrected flip must not bring
     back PnP's range error (tens of mm at 3 m; it once shifted a pair's mean by 70 mm)."""
-    Ra, Rb = codec.matrix_from_quat([0.0, 0.0, 0.0, 1.0]), codec.matrix_from_quat([0.17, 0.0, 0.0, 0.985])
-    tilt = codec.matrix_from_quat([0.0, 0.02, 0.0, 0.9998])  # the plane's correction of the chosen rotation
-    cand = {"a": codec.make_pose(Ra, [0.1, 0.0, 3.04]), "b": codec.make_pose(Rb, [0.1, 0.0, 3.06])}
-    chosen = codec.make_pose(tilt @ cand[refined_from][:3, :3], [0.1, 0.0, 3.0])
+    Ra, Rb = geometry.matrix_from_quat([0.0, 0.0, 0.0, 1.0]), geometry.matrix_from_quat([0.17, 0.0, 0.0, 0.985])
+    tilt = geometry.matrix_from_quat([0.0, 0.02, 0.0, 0.9998])  # the plane's correction of the chosen rotation
+    cand = {"a": geometry.make_pose(Ra, [0.1, 0.0, 3.04]), "b": geometry.make_pose(Rb, [0.1, 0.0, 3.06])}
+    chosen = geometry.make_pose(tilt @ cand[refined_from][:3, :3], [0.1, 0.0, 3.0])
     msg = good_marker_observations()
     o = msg.markers[0]
     codec.pose_to_msg(cand["a"], o.candidate_a)
     codec.pose_to_msg(cand["b"], o.candidate_b)
     codec.pose_to_msg(chosen, o.camera_T_marker)
-    a = codec.marker_arrays(codec.decode(msg.SerializeToString(), m.MarkerObservations))
+    a = observation_rows(codec.marker_arrays(codec.decode(msg.SerializeToString(), m.MarkerObservations)))
     other = cand["b" if refined_from == "a" else "a"]
     np.testing.assert_allclose(a.poses[0], chosen, atol=1e-9)
     np.testing.assert_allclose(a.alternatives[0][:3, :3], other[:3, :3], atol=1e-9)
@@ -187,7 +189,7 @@ vec3 = hnp.arrays(np.float64, 3, elements=st.floats(-1, 1)).filter(lambda v: np.
 @settings(max_examples=200, deadline=None)
 @given(vec3, vec3)
 def test_rotation_between_turns_a_onto_b_by_the_smallest_angle(a: np.ndarray, b: np.ndarray) -> None:
-    R = codec.rotation_between(a, b)
+    R = geometry.rotation_between(a, b)
     ua, ub = a / np.linalg.norm(a), b / np.linalg.norm(b)
     # Turning onto the exact opposite is ill-conditioned: ~1e-8 is the best double precision allows.
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-7)
@@ -203,17 +205,17 @@ def test_rotation_between_batches_and_turns_opposites_about_the_given_axis() -> 
     a = rng.normal(size=(20, 3))
     a[7] = (0.0, 0.0, -2.0)  # exactly opposite to b
     axes = np.tile([0.0, 1.0, 0.0], (20, 1))
-    R = codec.rotation_between(a, np.array([0.0, 0.0, 1.0]), half_turn_axis=axes)
+    R = geometry.rotation_between(a, np.array([0.0, 0.0, 1.0]), half_turn_axis=axes)
     assert R.shape == (20, 3, 3)
     for k in range(20):
-        np.testing.assert_allclose(R[k], codec.rotation_between(a[k], [0.0, 0.0, 1.0], half_turn_axis=axes[k]), atol=1e-12)
+        np.testing.assert_allclose(R[k], geometry.rotation_between(a[k], [0.0, 0.0, 1.0], half_turn_axis=axes[k]), atol=1e-12)
     np.testing.assert_allclose(R[7], np.diag([-1.0, 1.0, -1.0]), atol=1e-12)  # half turn about y
 
 
 def test_rotation_angles_match_the_single_rotation_angle_over_a_stack() -> None:
     rng = np.random.default_rng(4)
-    R = np.stack([codec.matrix_from_quat(q / np.linalg.norm(q)) for q in rng.normal(size=(20, 4))])
-    angles = codec.rotation_angles(R, R[0])
+    R = np.stack([geometry.matrix_from_quat(q / np.linalg.norm(q)) for q in rng.normal(size=(20, 4))])
+    angles = geometry.rotation_angles(R, R[0])
     for Ri, a in zip(R, angles):
-        assert abs(a - codec.rotation_angle(Ri, R[0])) < 1e-9
-    assert angles[0] < 1e-6 and codec.rotation_angles(R, R).max() < 1e-6
+        assert abs(a - geometry.rotation_angle(Ri, R[0])) < 1e-9
+    assert angles[0] < 1e-6 and geometry.rotation_angles(R, R).max() < 1e-6

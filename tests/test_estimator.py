@@ -6,6 +6,7 @@ front-end's covariance model. Tolerances are a few sigma of the expected accurac
 
 from __future__ import annotations
 
+import math
 import gtsam
 import numpy as np
 import pytest
@@ -15,7 +16,8 @@ from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
 from estimator.graph import CameraState, Estimator, through_camera
 from estimator.observation import Observation
 from schemas.spec import PoseSpec
-from tests.helpers import assert_pose_close, rotation_angle_deg
+from schemas.geometry import rotation_angle
+from tests.helpers import assert_pose_close
 
 RATE = 30.0
 
@@ -275,7 +277,7 @@ def test_biased_marker_rotations_do_not_turn_the_camera() -> None:
                 est.update(stamp)
         est.update(stamp + 1)
         pose = est.estimate(stamp).cameras["a"].pose
-        errors[floor] = rotation_angle_deg(pose.T[:3, :3], s.camera("a").world_T_camera(0.0)[:3, :3])
+        errors[floor] = math.degrees(rotation_angle(pose.T[:3, :3], s.camera("a").world_T_camera(0.0)[:3, :3]))
     assert errors[1.0] < 0.15, errors
     assert errors[0.0] > 3 * errors[1.0], errors
 

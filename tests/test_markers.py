@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import ast
 import json
 from pathlib import Path
@@ -15,8 +16,9 @@ from drivers.errors import DriverError
 from drivers.markers import MarkerDetector, covariance_model, fit_plane, marker_object_points
 from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import load_scenario
-from schemas.codec import CameraInfo, invert_pose, make_pose
-from tests.helpers import rotation_angle_deg
+from schemas.codec import CameraInfo
+from schemas.geometry import invert_pose, make_pose, rotation_angle
+
 
 TUTORIAL = "markers/aruco_opencv_tutorial"
 MARKER_TOL_PX = 1.0  # OpenCV's own test tolerance for marker corners
@@ -174,7 +176,7 @@ def test_plane_fit_range_is_unbiased_on_kinect_depth(z0: float, tilt_deg: float)
 def test_sim_depth_refinement_beats_pnp_and_removes_flips(sim_observations) -> None:
     def errors(rows):
         pos = np.array([np.linalg.norm(d.camera_T_marker[:3, 3] - T[:3, 3]) for d, T in rows])
-        rot = np.array([rotation_angle_deg(d.camera_T_marker[:3, :3], T[:3, :3]) for d, T in rows])
+        rot = np.array([math.degrees(rotation_angle(d.camera_T_marker[:3, :3], T[:3, :3])) for d, T in rows])
         return pos, rot
 
     pos_pnp, rot_pnp = errors(sim_observations[False])

@@ -26,6 +26,7 @@ from recognition.models import ModelDatabase
 from recognition.pipeline import Recognizer
 from recognition.recording import model_from_recording, read_board_views
 from schemas import codec, keys
+from schemas import geometry
 from schemas.log import LogWriter
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
@@ -50,7 +51,7 @@ def capture(tmp_path_factory) -> tuple[Path, BoardConfig, dict[int, np.ndarray]]
         w.write(keys.camera_info(s.name, cam.id), f.info.to_msg(f.stamp_ns, cam.id), f.stamp_ns)
         found = detector.detect(f.rgb, f.info, f.depth_mm)
         w.write(keys.markers(s.name, cam.id), observations_to_msg(cam.id, f.stamp_ns, f.info, found, s.dictionary), f.stamp_ns)
-        truth[f.stamp_ns] = codec.invert_pose(f.world_T_camera) @ world_T_object
+        truth[f.stamp_ns] = geometry.invert_pose(f.world_T_camera) @ world_T_object
     w.close()
     board = BoardConfig(min_view_angle_deg=8.0, markers=[  # frames are 10 deg apart: keep them all
         BoardMarker(marker_id=mk.id, board_T_marker=PoseSpec(position=tuple(np.subtract(mk.pose.position, TABLE_TOP))))

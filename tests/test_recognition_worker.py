@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -17,8 +18,8 @@ from recognition.worker import RecognitionWorker, WorldDetection, fuse
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
-from schemas.codec import make_pose
-from tests.helpers import assert_pose_close, rotation_angle_deg, wait_until
+from schemas.geometry import make_pose, rotation_angle
+from tests.helpers import assert_pose_close, wait_until
 
 CELL = "demo"
 
@@ -41,7 +42,7 @@ def test_fuse_averages_agreeing_cameras_and_outvotes_the_rest() -> None:
     assert crate.camera_ids == ["cam1", "cam2"]
     # Weights fitness x coverage / rmse^2: cam1 counts 4x cam2, so x = 0.02 / 5.
     np.testing.assert_allclose(crate.world_T_object[:3, 3], [0.004, 0.0, 0.75], atol=1e-9)
-    assert rotation_angle_deg(crate.world_T_object[:3, :3], np.eye(3)) < 1e-9, "rotation of the best, never averaged"
+    assert math.degrees(rotation_angle(crate.world_T_object[:3, :3], np.eye(3))) < 1e-9, "rotation of the best, never averaged"
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from benchmarks.offline_vs_online import upper_bound_95
 from benchmarks.scenes import NoiseSettings, demo, estimator_config, flip, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.record import Recorder
-from cellsight.resolve_cmd import peek_config, run_resolve
+from cellsight.resolve_report import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
 from drivers.replay import replay
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
@@ -24,11 +24,11 @@ from estimator.config import KeyframeConfig, LinkConfig
 from estimator.graph import Estimator, camera_symbol
 from estimator.keyframes import MovingFrame, place_frame
 from estimator.links import ObjectLinks, Sighting, add_links
-from estimator.observation import observations_of
+from estimator.observation import observation_rows, observations_of
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
-from schemas.codec import invert_pose, make_pose
+from schemas.geometry import invert_pose, make_pose
 from schemas.log import LogWriter, read_log
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close, wait_until
@@ -193,13 +193,13 @@ def test_batched_frames_fold_in_like_one_at_a_time() -> None:
         t, stamp = k / 30, 1_000_000_000 + k * 1_000_000_000 // 30
         for cam in s.cameras:
             msg = observations_msg(cam.id, stamp, frame_observations(s, cam.id, t, stamp, rng, NoiseSettings(flip_rate=0.05)))
-            one.add_frame(cam.id, stamp, observations_of(cam.id, stamp, codec.marker_arrays(msg)))
+            one.add_frame(cam.id, stamp, observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg))))
             pending[cam.id].append(msg)
             if len(pending[cam.id]) == 30:
                 msgs = pending.pop(cam.id)
                 pending[cam.id] = []
                 stamps = np.array([x.stamp_ns for x in msgs])
-                segments[cam.id] += batched.add_frames(cam.id, stamps, codec.marker_batch(msgs))
+                segments[cam.id] += batched.add_frames(cam.id, stamps, observation_rows(codec.marker_batch(msgs)))
     assert {c: t.segment for c, t in one.tracks.items()} == {c: t.segment for c, t in batched.tracks.items()}
     assert one.tracks["cam2"].segment >= 1 and segments["cam2"][-1] == one.tracks["cam2"].segment  # the bump
     assert set(one.pairs) == set(batched.pairs)

@@ -10,7 +10,8 @@ import pytest
 from drivers.errors import ScenarioError
 from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import NoiseSpec, Scenario, load_scenario
-from schemas.codec import CameraInfo, invert_pose
+from schemas.codec import CameraInfo
+from schemas.geometry import invert_pose
 
 MINIMAL = """
 name = "mini"

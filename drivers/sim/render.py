@@ -9,7 +9,6 @@ noise model alone.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import cv2
@@ -18,7 +17,8 @@ import open3d as o3d
 
 from drivers.errors import ScenarioError
 from drivers.sim.scenario import MarkerSpec, ObjectSpec, Scenario
-from schemas.codec import CameraInfo, invert_pose
+from schemas.codec import CameraInfo
+from schemas.geometry import invert_pose
 
 log = logging.getLogger(__name__)
 INVALID = o3d.t.geometry.RaycastingScene.INVALID_ID

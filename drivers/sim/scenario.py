@@ -15,9 +15,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from drivers.config import IntrinsicsConfig
 from drivers.errors import ScenarioError
-from schemas.codec import CameraInfo, make_pose
+from schemas.codec import CameraInfo
+from schemas.geometry import make_pose
 from schemas.keys import check_name
-from schemas.spec import PoseSpec, format_validation_error, read_toml, rpy_matrix
+from schemas.spec import PoseSpec, format_validation_error, read_toml
+from schemas.geometry import rpy_matrix
 
 DEMO_CELL = Path(__file__).with_name("demo_cell.toml")
 Vec3 = tuple[float, float, float]

@@ -8,6 +8,7 @@ import time
 from drivers.frames import Frame
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import Scenario
+from schemas import keys
 from schemas.codec import StampedPose
 
 
@@ -51,7 +52,7 @@ class SimSource:
         stamp = self.epoch_ns + int(round(t_s * 1e9))
         s = self.scenario
         cams = [StampedPose("world", self.camera.id, stamp, self.camera.world_T_camera(t_s))]
-        markers = [StampedPose("world", f"marker_{mk.id}", stamp, s.world_T_marker(mk, t_s)) for mk in s.markers]
+        markers = [StampedPose("world", keys.marker_frame(mk.id), stamp, s.world_T_marker(mk, t_s)) for mk in s.markers]
         objects = [StampedPose("world", f"object_{o.id}", stamp, o.world_T_object(t_s)) for o in s.objects]
         return cams, markers, objects
 

@@ -26,7 +26,8 @@ from estimator.config import EstimatorConfig
 from estimator.graph import Estimator, camera_symbol, marker_symbol, through_camera
 from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes
 from estimator.links import ObjectLinks, Sighting, add_links
-from schemas.codec import MarkerArrays, cov_gtsam_to_ros, cov_ros_to_gtsam
+from estimator.observation import ObservationRows
+from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam
 
 log = logging.getLogger(__name__)
 UPDATE_EVERY_NS = 200_000_000  # incremental updates while streaming (segments need a map to test against)
@@ -38,7 +39,7 @@ class FrameBlock:
 
     camera_id: str
     stamps: np.ndarray
-    arrays: MarkerArrays
+    arrays: ObservationRows
 
 
 @dataclass(frozen=True)
