@@ -1,7 +1,9 @@
-"""The ``cellsight`` command. Parses, calls library code, prints, maps errors to exit codes.
+"""The ``cellsight`` command. Commands parse, call library code and print; errors become exit
+codes in one place, ``EXIT_CODES``, applied to every command by the top-level group.
 
 Imports of heavy components happen inside the commands so that ``--help`` is instant.
-Exit codes: 0 ok, 1 nothing received / check failed, 2 bad configuration or input, 3 bus error.
+Exit codes: 0 ok, 1 nothing received / a run or check failed, 2 bad configuration or input,
+3 bus error.
 """
 
 from __future__ import annotations
@@ -13,11 +15,54 @@ import time
 from pathlib import Path
 from typing import Annotated, Optional
 
+import click
 import typer
+from typer.core import TyperGroup
 
-from cellsight.transport_flags import CellOpt, ConnectOpt, ListenOpt, ModeOpt, ZenohConfigOpt, transport_from_flags
+from cellsight.errors import CellsightError, ConfigError, RunError
+from cellsight.transport_flags import CellOpt, ListenOpt, TransportFlags, ZenohConfigOpt, transport_options
 
-app = typer.Typer(help="cellsight: self-aligning multi-camera work-cell monitoring.", no_args_is_help=True)
+from drivers.errors import DriverError  # noqa: E402  (the packages' exception roots: small modules)
+from estimator.errors import EstimatorError  # noqa: E402
+from recognition.errors import RecognitionError  # noqa: E402
+from schemas.errors import BusError, SchemaError  # noqa: E402
+
+#: Exception -> exit code, first match wins: the one place errors become exit codes.
+EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
+    (BusError, 3),  # the zenoh session could not be opened or used
+    (RunError, 1),  # a cell or a recording could not run to the end
+    (ConfigError, 2),
+    (SchemaError, 2),  # bad keys, undecodable payloads or logs
+    (DriverError, 2),  # no device, bad scenario or image
+    (RecognitionError, 2),  # bad cloud, mesh or model database
+    (EstimatorError, 2),
+    (CellsightError, 1),
+    (OSError, 2),  # a file that cannot be read or written
+    (ValueError, 2),  # a flag value pydantic refused (e.g. --mode)
+)
+
+
+def exit_code(exc: BaseException) -> int | None:
+    """The exit code ``EXIT_CODES`` gives an exception, None for one it does not know (a bug)."""
+    return next((code for kind, code in EXIT_CODES if isinstance(exc, kind)), None)
+
+
+class _Commands(TyperGroup):
+    """The top-level group: runs the command and turns a known error into its message and exit code."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except click.exceptions.ClickException:
+            raise
+        except Exception as exc:
+            code = exit_code(exc)
+            if code is None:
+                raise
+            raise _fail(str(exc), code) from None
+
+
+app = typer.Typer(cls=_Commands, help="cellsight: self-aligning multi-camera work-cell monitoring.", no_args_is_help=True)
 config_app = typer.Typer(help="Check and show cell configurations.", no_args_is_help=True)
 bus_app = typer.Typer(help="Look at the zenoh bus.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
@@ -52,29 +97,20 @@ def _fail(message: str, code: int) -> typer.Exit:
 
 
 def _load(config_file: Path | None):
-    """Cell config from a file (None: defaults), turning errors into exit code 2."""
+    """Cell config from a file (None: defaults)."""
     from cellsight.config import load_config
-    from cellsight.errors import ConfigError
 
-    try:
-        return load_config(config_file)
-    except ConfigError as exc:
-        raise _fail(str(exc), 2) from None
+    return load_config(config_file)
 
 
 def _load_cell(cell_config: Path | None, scenario: Path | None = None):
     """The cell config, completed from the scenario (built-in demo when neither is given)."""
-    from cellsight.errors import ConfigError
     from cellsight.scenario_config import complete
-    from drivers.errors import DriverError
 
     cfg = _load(cell_config)
     if scenario is not None:
         cfg = cfg.model_copy(update={"cell": cfg.cell.model_copy(update={"scenario": scenario}), "cameras": []})
-    try:
-        return complete(cfg)
-    except (ConfigError, DriverError) as exc:
-        raise _fail(str(exc), 2) from None
+    return complete(cfg)
 
 
 def _stop_event():
@@ -88,15 +124,11 @@ def _stop_event():
     return stop
 
 
-def _bus(cell_cfg, cell: str | None, mode, connect, listen, zenoh_config):
+def _bus(cell_cfg, cell: str | None, transport: TransportFlags):
+    """A bus session from the cell config's transport with the command's flags on top."""
     from schemas.bus import Bus
-    from schemas.errors import SchemaError
 
-    try:
-        transport = transport_from_flags(cell_cfg.transport, mode, connect, listen, zenoh_config)
-        return Bus(transport, cell or cell_cfg.cell.name)
-    except (SchemaError, ValueError) as exc:
-        raise _fail(str(exc), 3) from None
+    return Bus(transport.apply(cell_cfg.transport), cell or cell_cfg.cell.name)
 
 
 # ---------------------------------------------------------------- config
@@ -131,13 +163,9 @@ def security_init(
     Then: `cellsight router --config DIR/router.json5`, and each process with `--config DIR/ROLE.json5`
     (driver, estimator, recognition, recorder, viewer). Keep DIR/ca.key offline once done.
     """
-    from schemas.errors import SchemaError
     from schemas.security import PUBLISH, write_profile
 
-    try:
-        profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"))
-    except (SchemaError, OSError) as exc:
-        raise _fail(str(exc), 2) from None
+    profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"))
     typer.echo(f"router:      cellsight router --config {profile.router_config}")
     for role, path in profile.role_configs.items():
         may = ", ".join(PUBLISH[role]) or "nothing (subscribe and query only)"
@@ -148,16 +176,14 @@ def security_init(
 
 
 @bus_app.command("echo")
+@transport_options
 def bus_echo(
     key: Annotated[str, typer.Argument(help="key expression, e.g. cellsight/demo/cam1/markers or cellsight/demo/**")],
     once: Annotated[bool, typer.Option("--once", help="print one message and exit")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="one JSON object per line")] = False,
     timeout: Annotated[Optional[float], typer.Option(help="give up after this many seconds (exit 1)")] = None,
     cell_config: Annotated[Optional[Path], typer.Option("--cell-config", help="cell config TOML")] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Subscribe, decode and print messages, like ``ros2 topic echo``."""
@@ -165,7 +191,7 @@ def bus_echo(
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
-    with _bus(cfg, None, mode, connect, listen, config) as bus:
+    with _bus(cfg, None, transport) as bus:
         sub = bus.subscribe(key, capacity=64, ring=True)
         deadline = None if timeout is None else time.monotonic() + timeout
         printed = 0
@@ -189,14 +215,12 @@ def bus_echo(
 
 
 @bus_app.command("list")
+@transport_options
 def bus_list(
     duration: Annotated[float, typer.Option(help="seconds to listen")] = 2.0,
     cell: CellOpt = None,
     cell_config: Annotated[Optional[Path], typer.Option("--cell-config", help="cell config TOML")] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Live keys of a cell with their message rates, and the liveliness tokens held."""
@@ -207,7 +231,7 @@ def bus_list(
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
-    with _bus(cfg, cell, mode, connect, listen, config) as bus:
+    with _bus(cfg, cell, transport) as bus:
         rates, bad = sample_rates(bus, duration)
         alive = bus.alive()
     table = Table(title=f"cell {bus.cell}: keys seen in {duration:g} s")
@@ -229,17 +253,13 @@ def router(
 ) -> None:
     """Run a zenoh router (default: tcp/127.0.0.1:7447, loopback only) until Ctrl-C."""
     from schemas.bus import DEFAULT_ROUTER, TransportConfig, open_session
-    from schemas.errors import SchemaError
 
     _setup_logging(verbose)
     # A config file (the secure profile's router.json5) brings its own listen endpoints.
     transport = TransportConfig.router(list(listen) if listen else ([] if config else [DEFAULT_ROUTER]))
     if config is not None:
         transport = transport.model_copy(update={"zenoh_config": config})
-    try:
-        session = open_session(transport)
-    except SchemaError as exc:
-        raise _fail(str(exc), 3) from None
+    session = open_session(transport)
     logging.getLogger("cellsight.router").info("router listening on %s", ", ".join(transport.listen) or f"the endpoints of {config}")
     try:
         while True:
@@ -265,20 +285,17 @@ app.add_typer(model_app, name="model")
 
 
 @driver_app.command("sim")
+@transport_options
 def driver_sim(
     camera: Annotated[str, typer.Option("--camera", help="camera id in the scenario")],
     scenario: ScenarioOpt = None,
     cell_config: CellConfigOpt = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
     epoch_ns: Annotated[Optional[int], typer.Option(help="Unix time (ns) of scenario time 0; share it between cameras")] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Run one simulated camera: render, detect markers, publish every camera key (plus truth/)."""
-    from drivers.errors import DriverError
     from drivers.service import DriverService
     from drivers.sim.scenario import load_scenario
     from drivers.sim.source import SimSource
@@ -288,30 +305,24 @@ def driver_sim(
     cam = next((c for c in cfg.cameras if c.id == camera), None)
     if cam is None:
         raise _fail(f"camera {camera!r} is not in the cell; cameras: {[c.id for c in cfg.cameras]}", 2)
-    try:
-        source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns)
-    except DriverError as exc:
-        raise _fail(str(exc), 2) from None
+    source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns)
     stop = _stop_event()
-    with _bus(cfg, None, mode, connect, listen, config) as bus:
+    with _bus(cfg, None, transport) as bus:
         DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
 
 
 @driver_app.command("openni2")
+@transport_options
 def driver_openni2(
     camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id with --uri)")],
     uri: Annotated[Optional[str], typer.Option("--uri", help="device URI, 'Dummy', a .oni file; default: the camera's uri in the config")] = None,
     cell_config: CellConfigOpt = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Run one OpenNI2 sensor (Kinect v1, Xtion, .oni file): frames and marker observations on the bus."""
     from drivers.config import CameraConfig
-    from drivers.errors import DriverError
     from drivers.openni2 import OpenNI2Source
     from drivers.service import DriverService
     from schemas.codec import CameraInfo
@@ -327,12 +338,9 @@ def driver_openni2(
     if cam.intrinsics is not None:
         i = cam.intrinsics
         info = CameraInfo(cam.width, cam.height, [[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1]], list(i.distortion))
-    try:
-        source = OpenNI2Source(camera, uri if uri is not None else cam.uri, width=cam.width, height=cam.height, rate_hz=cam.rate_hz, info=info, lib_dir=cam.openni2_path)
-    except DriverError as exc:
-        raise _fail(str(exc), 2) from None
+    source = OpenNI2Source(camera, uri if uri is not None else cam.uri, width=cam.width, height=cam.height, rate_hz=cam.rate_hz, info=info, lib_dir=cam.openni2_path)
     stop = _stop_event()
-    with _bus(cfg, None, mode, connect, listen, config) as bus:
+    with _bus(cfg, None, transport) as bus:
         DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
     # libOpenNI2's native shutdown segfaults once a frame has been read (seen with the plain
     # bindings and Debian's Dummy device too), which would turn every clean stop into a crash
@@ -344,15 +352,13 @@ def driver_openni2(
 
 
 @app.command("estimator")
+@transport_options
 def estimator_cmd(
     cell_config: CellConfigOpt = None,
     scenario: ScenarioOpt = None,
     state_file: Annotated[Optional[Path], typer.Option(help="persist the map here and restore it on start")] = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Run the estimator daemon: marker observations in, camera and marker poses out."""
@@ -362,38 +368,32 @@ def estimator_cmd(
     cfg = _load_cell(cell_config, scenario)
     est_cfg = cfg.estimator if state_file is None else cfg.estimator.model_copy(update={"state_file": state_file})
     stop = _stop_event()
-    with _bus(cfg, None, mode, connect, listen, config) as bus:
+    with _bus(cfg, None, transport) as bus:
         EstimatorService(bus, est_cfg).run(stop, duration)
 
 
 @app.command("recognition")
+@transport_options
 def recognition_cmd(
     cell_config: CellConfigOpt = None,
     scenario: ScenarioOpt = None,
     models: Annotated[Optional[Path], typer.Option("--models", help="model database folder (default: [recognition] models, or built from the scenario)")] = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Run the recognition worker: depth frames and camera poses in, object poses in world frame out."""
     from cellsight.model_build import models_for
-    from recognition.errors import RecognitionError
     from recognition.worker import RecognitionWorker
 
     _setup_logging(verbose)
     cfg = _load_cell(cell_config, scenario)
     # Recognition is the heaviest and least urgent work of a cell: drivers and the estimator go first.
     os.nice(RECOGNITION_NICE)
-    try:
-        db = models_for(cfg, models)
-        stop = _stop_event()
-        with _bus(cfg, None, mode, connect, listen, config) as bus:
-            RecognitionWorker(bus, cfg.recognition, db).run(stop, duration)
-    except RecognitionError as exc:
-        raise _fail(str(exc), 2) from None
+    db = models_for(cfg, models)
+    stop = _stop_event()
+    with _bus(cfg, None, transport) as bus:
+        RecognitionWorker(bus, cfg.recognition, db).run(stop, duration)
 
 
 @model_app.command("build")
@@ -412,9 +412,7 @@ def model_build(
     from rich.progress import Progress
 
     from cellsight.model_build import VIEWS_PER_OBJECT, build_database, load_board
-    from drivers.errors import DriverError
     from drivers.sim.scenario import load_scenario
-    from recognition.errors import RecognitionError
 
     def pairs(items: list[str] | None, what: str) -> dict[str, Path]:
         out_ = {}
@@ -429,17 +427,14 @@ def model_build(
     if not (scenario or demo or meshes or clouds or recordings):
         raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE, --cloud ID=FILE or --recording ID=LOG", 2)
     cfg = _load(cell_config)
-    try:
-        sc = load_scenario(scenario) if (scenario or demo) else None
-        board_cfg = load_board(board) if board else None
-        total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds) + len(recordings))
-        with Progress(console=_stderr(), transient=True) as bar:
-            task = bar.add_task("rendering and describing views", total=total)
-            db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, recordings=recordings,
-                                board=board_cfg, distance_m=distance, progress=lambda: bar.advance(task))
-        db.save(out)
-    except (RecognitionError, DriverError) as exc:
-        raise _fail(str(exc), 2) from None
+    sc = load_scenario(scenario) if (scenario or demo) else None
+    board_cfg = load_board(board) if board else None
+    total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds) + len(recordings))
+    with Progress(console=_stderr(), transient=True) as bar:
+        task = bar.add_task("rendering and describing views", total=total)
+        db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, recordings=recordings,
+                            board=board_cfg, distance_m=distance, progress=lambda: bar.advance(task))
+    db.save(out)
     for oid, mdl in sorted(db.models.items()):
         typer.echo(f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source})")
     typer.echo(f"wrote {out}/")
@@ -459,17 +454,13 @@ def recognize_cmd(
 ) -> None:
     """Recognise the database's objects in one scene and print their poses in the camera frame."""
     from cellsight.recognize_cmd import recognize_file
-    from recognition.errors import RecognitionError
     from recognition.models import ModelDatabase
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
-    try:
-        db = ModelDatabase.load(models)
-        result = recognize_file(scene, db, cfg.recognition.model_copy(update={"descriptor": db.descriptor}),
-                                fx=fx, fy=fy, cx=cx, cy=cy)
-    except RecognitionError as exc:
-        raise _fail(str(exc), 2) from None
+    db = ModelDatabase.load(models)
+    result = recognize_file(scene, db, cfg.recognition.model_copy(update={"descriptor": db.descriptor}),
+                            fx=fx, fy=fy, cx=cx, cy=cy)
     typer.echo(result.to_json() if as_json else result.to_text())
     if not result.detections:
         raise typer.Exit(1)
@@ -483,13 +474,9 @@ def sim_snapshot(
 ) -> None:
     """Render every camera once and write RGB and false-colour depth PNGs to look at."""
     from cellsight.pictures import write_snapshot
-    from drivers.errors import DriverError
     from drivers.sim.scenario import load_scenario
 
-    try:
-        written = write_snapshot(load_scenario(scenario), out, time_s)
-    except DriverError as exc:
-        raise _fail(str(exc), 2) from None
+    written = write_snapshot(load_scenario(scenario), out, time_s)
     for p in written:
         typer.echo(str(p))
 
@@ -506,16 +493,13 @@ def markers_detect(
 ) -> None:
     """Detect markers in one image and print ids, corners and poses."""
     from cellsight.detect import detect_file
-    from drivers.errors import DriverError
 
-    try:
-        result = detect_file(image, dictionary, camera_info, size, depth, annotate)
-    except DriverError as exc:
-        raise _fail(str(exc), 2) from None
+    result = detect_file(image, dictionary, camera_info, size, depth, annotate)
     typer.echo(result.to_json() if as_json else result.to_text())
 
 
 @app.command("record")
+@transport_options
 def record(
     out: Annotated[Path, typer.Option("--out", help="MCAP file to write (never overwritten: if it exists, the recording goes to NAME.1.mcap, NAME.2.mcap, ...)")],
     keys_: Annotated[Optional[list[str]], typer.Option("--keys", help="key expressions to record (default: the whole cell)")] = None,
@@ -523,24 +507,17 @@ def record(
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
     cell: CellOpt = None,
     cell_config: CellConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Record bus traffic to MCAP (lz4 chunks, Foxglove schemas embedded) until Ctrl-C / SIGTERM."""
-    from cellsight.errors import CellsightError
     from cellsight.record import Recorder
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
     stop = _stop_event()
-    with _bus(cfg, cell, mode, connect, listen, config) as bus:
-        try:
-            rec = Recorder(bus, out, keys_, max_image_hz, {"config": cfg.to_toml()})
-        except CellsightError as exc:
-            raise _fail(str(exc), 1) from None
+    with _bus(cfg, cell, transport) as bus:
+        rec = Recorder(bus, out, keys_, max_image_hz, {"config": cfg.to_toml()})
         stop.wait(duration)
         rec.close()
     parts = ", ".join(str(p) for p in rec.parts)
@@ -553,7 +530,6 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
     """Start the cell under the launcher with an optional live status table."""
     from rich.live import Live
 
-    from cellsight.errors import CellsightError
     from cellsight.launch import run_cell
     from cellsight.status import StatusBoard
     from schemas.bus import Bus
@@ -584,8 +560,6 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
                 run_cell(cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick)
         else:
             run_cell(cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick)
-    except CellsightError as exc:
-        raise _fail(str(exc), 3) from None
     finally:
         if bridge is not None:
             bridge.close()
@@ -648,14 +622,12 @@ def demo(
 
 
 @app.command("status")
+@transport_options
 def status(
     duration: Annotated[float, typer.Option(help="seconds to listen before printing")] = 2.0,
     cell: CellOpt = None,
     cell_config: CellConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
 ) -> None:
     """Who is alive, driver rates and each camera's estimator state."""
     from rich.console import Console
@@ -663,7 +635,7 @@ def status(
     from cellsight.status import StatusBoard
 
     cfg = _load(cell_config)
-    with _bus(cfg, cell, mode, connect, listen, config) as bus:
+    with _bus(cfg, cell, transport) as bus:
         board = StatusBoard(bus)
         time.sleep(duration)
         Console(width=140).print(board.table(bus.alive()))
@@ -671,15 +643,13 @@ def status(
 
 
 @app.command("replay")
+@transport_options
 def replay_cmd(
     log_file: Annotated[Path, typer.Argument(help="MCAP log written by cellsight record / demo")],
     rate: Annotated[float, typer.Option(help="playback speed (2 = twice as fast)")] = 1.0,
     all_keys: Annotated[bool, typer.Option("--all", help="also republish recorded estimates, tf and objects")] = False,
     cell_config: CellConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    config: ZenohConfigOpt = None,
+    transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
     """Republish a log with its original timing, so the estimator can be driven by a recording."""
@@ -692,7 +662,7 @@ def replay_cmd(
         raise _fail(f"--rate must be positive, got {rate}", 2)
     cfg = _load(cell_config)
     stop = _stop_event()
-    with _bus(cfg, None, mode, connect, listen, config) as bus:
+    with _bus(cfg, None, transport) as bus:
         result = replay(bus, log_file, rate, all_keys, stop)
     _stderr().print(f"{log_file}: {result.published} messages republished, {result.skipped} recorded estimates skipped")
     if result.read.stopped_early:
@@ -760,7 +730,7 @@ def compare_cmd(
     for f in (a, b):
         if not f.is_file():
             raise _fail(f"{f}: no such log file", 2)
-    (pa, ra), (pb, rb) = newest_poses(a), newest_poses(b)
+    (pa, _), (pb, _) = newest_poses(a), newest_poses(b)
     if not pa or not pb:
         raise _fail(f"{a if not pa else b}: holds no estimate/cameras or estimate/markers (resolve it first)", 2)
     changes = compare(pa, pb, min_mm, min_deg)

@@ -7,3 +7,7 @@ class CellsightError(Exception):
 
 class ConfigError(CellsightError, ValueError):
     """A configuration file is invalid. The message names the file, the field and what was expected."""
+
+
+class RunError(CellsightError):
+    """A cell, its router or a recording could not run (the message says which and why)."""

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cellsight.config import CellConfig, save_used
-from cellsight.errors import CellsightError
+from schemas.errors import BusError
 from schemas.bus import DEFAULT_ROUTER
 
 log = logging.getLogger(__name__)
@@ -198,7 +198,7 @@ def wait_for_router(endpoint: str, timeout_s: float = 10.0) -> None:
                 return
         except OSError:
             time.sleep(0.1)
-    raise CellsightError(f"the zenoh router on {endpoint} did not come up within {timeout_s:.0f} s (see the router log)")
+    raise BusError(f"the zenoh router on {endpoint} did not come up within {timeout_s:.0f} s (see the router log)")
 
 
 def with_models(cfg: CellConfig, run_dir: Path) -> CellConfig:

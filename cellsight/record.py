@@ -15,7 +15,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from cellsight.errors import CellsightError
+from cellsight.errors import RunError
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
@@ -56,7 +56,7 @@ class Recorder:
         self._last_image: dict[str, int] = {}
         self._lock = threading.Lock()
         if not self._new_part():
-            raise CellsightError(f"cannot record to {path}: {self.failures[-1]}")
+            raise RunError(f"cannot record to {path}: {self.failures[-1]}")
         self._subs = [bus.subscribe_raw(k, self._on_sample) for k in (key_exprs or [keys.everything(bus.cell)])]
         bus.declare_alive("recorder", "main")
 

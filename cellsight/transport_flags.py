@@ -1,13 +1,17 @@
 """The ``--mode/--connect/--listen/--config`` flags every process takes (zenoh-python ``common.py``).
 
-Commands declare the four options with these annotated types and call ``transport_from_flags``;
-flags given on the command line override the ``[transport]`` section of the cell config.
+A command decorated with ``transport_options`` gets the four flags and receives them as one
+``transport: TransportFlags``; flags given on the command line override the ``[transport]``
+section of the cell config.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Callable, Optional
 
 import typer
 
@@ -21,23 +25,44 @@ ZenohConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="zenoh 
 CellOpt = Annotated[Optional[str], typer.Option("--cell", help="cell name (default: from the cell config, else 'demo')")]
 
 
-def transport_from_flags(
-    base: "TransportConfig | None",
-    mode: str | None,
-    connect: list[str] | None,
-    listen: list[str] | None,
-    zenoh_config: Path | None,
-) -> "TransportConfig":
-    """``base`` (from the cell config, or defaults) with the given flags applied on top."""
-    from schemas.bus import TransportConfig  # lazy: keeps --help instant
+@dataclass(frozen=True)
+class TransportFlags:
+    """The transport flags as given (None: not given)."""
 
-    data = (base or TransportConfig()).model_dump()
-    if mode is not None:
-        data["mode"] = mode
-    if connect:
-        data["connect"] = list(connect)
-    if listen:
-        data["listen"] = list(listen)
-    if zenoh_config is not None:
-        data["zenoh_config"] = zenoh_config
-    return TransportConfig.model_validate(data)
+    mode: str | None = None
+    connect: list[str] | None = None
+    listen: list[str] | None = None
+    zenoh_config: Path | None = None
+
+    def apply(self, base: "TransportConfig | None") -> "TransportConfig":
+        """``base`` (from the cell config, or defaults) with the given flags on top."""
+        from schemas.bus import TransportConfig  # lazy: keeps --help instant
+
+        data = (base or TransportConfig()).model_dump()
+        if self.mode is not None:
+            data["mode"] = self.mode
+        if self.connect:
+            data["connect"] = list(self.connect)
+        if self.listen:
+            data["listen"] = list(self.listen)
+        if self.zenoh_config is not None:
+            data["zenoh_config"] = self.zenoh_config
+        return TransportConfig.model_validate(data)
+
+
+_FLAGS = (("mode", ModeOpt), ("connect", ConnectOpt), ("listen", ListenOpt), ("zenoh_config", ZenohConfigOpt))
+
+
+def transport_options(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Add the four transport flags to a typer command whose last parameter is
+    ``transport: TransportFlags``; typer sees the flags, the command one object."""
+    sig = inspect.signature(command, eval_str=True)
+    kept = [p for name, p in sig.parameters.items() if name != "transport"]
+    flags = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=ann) for name, ann in _FLAGS]
+
+    @functools.wraps(command)
+    def with_flags(*args: Any, mode=None, connect=None, listen=None, zenoh_config=None, **kwargs: Any) -> Any:
+        return command(*args, transport=TransportFlags(mode, connect, listen, zenoh_config), **kwargs)
+
+    with_flags.__signature__ = sig.replace(parameters=kept + flags)  # type: ignore[attr-defined]
+    return with_flags
