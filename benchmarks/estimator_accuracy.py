@@ -1,6 +1,6 @@
 """Estimator accuracy on the demo cell: online iSAM2 vs the batch optimum vs the paper's chain method.
 
-Observations: ``benchmarks.scenes`` (true poses, noise drawn from the front-end's depth-refined
+Observations: ``cellsight.synthetic`` (true poses, noise drawn from the front-end's depth-refined
 covariance model, 5 % planar-PnP flips), every camera at 30 Hz. The same observations feed:
 - online: ``estimator.graph.Estimator`` updated at 10 Hz (the daemon's rate);
 - batch: Levenberg-Marquardt over one robust factor per raw observation, same noise model;
@@ -19,7 +19,7 @@ import numpy as np
 
 from benchmarks.chain import chain_solve
 from benchmarks.common import main
-from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations
+from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations
 from drivers.sim.scenario import CameraMotion, Scenario, load_scenario
 from estimator.graph import CameraState, Estimator, camera_symbol, marker_symbol
 from schemas.geometry import cov_ros_to_gtsam, pose_error

@@ -17,7 +17,7 @@ import numpy as np
 
 from benchmarks.common import main
 from benchmarks.estimator_scale import rss_mb
-from benchmarks.scenes import NoiseSettings, frame_observations, observations_msg
+from cellsight.synthetic import NoiseSettings, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_report import run_resolve
 from cellsight.scenario_config import cell_config_of

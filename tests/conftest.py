@@ -58,3 +58,11 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
         yield where
     finally:
         subprocess.run(["umount", "--lazy", str(where)], check=True)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests are laid out by layer: ``core`` (pure cores), ``bus`` (services on a real zenoh bus),
+    ``e2e`` (several processes, whole pipelines). Every end-to-end test is slow."""
+    for item in items:
+        if "e2e" in item.path.parts:
+            item.add_marker(pytest.mark.slow)

@@ -117,6 +117,7 @@ def sim_observations():
     return out
 
 
+@pytest.mark.slow
 def test_sim_corners_sit_on_the_true_corners() -> None:
     """Every static marker of the demo cell, all four cameras, three frames each: detected corners
     against the true corners projected. A static view repeats its corner error every frame, so it
@@ -173,6 +174,7 @@ def test_plane_fit_range_is_unbiased_on_kinect_depth(z0: float, tilt_deg: float)
     assert abs(np.mean(errors)) < 5e-4, f"range bias {np.mean(errors) * 1e3:+.2f} mm at {z0} m, {tilt_deg} deg"
 
 
+@pytest.mark.slow
 def test_sim_depth_refinement_beats_pnp_and_removes_flips(sim_observations) -> None:
     def errors(rows):
         pos = np.array([np.linalg.norm(d.camera_T_marker[:3, 3] - T[:3, 3]) for d, T in rows])

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cellsight.record import Recorder
 from drivers.replay import replay
@@ -63,6 +64,7 @@ def test_replay_republishes_in_order_and_skips_estimates(client_transport: Trans
     assert {g.key for g in got} == {keys.status(CELL, "cam1")}
 
 
+@pytest.mark.slow
 def test_recorder_killed_with_sigkill_leaves_a_readable_file(router_endpoint: str, tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
     proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "record", "--out", str(path), "--cell", CELL, "-e", router_endpoint],

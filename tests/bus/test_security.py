@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-import zenoh
 
 from cellsight.config import CellConfig
 from cellsight.launch import router_endpoint

@@ -1,4 +1,4 @@
-"""Synthetic marker observations with known answers, for estimator tests and benchmarks.
+"""Synthetic marker observations with known answers, for estimator tests and benchmarks (no renderer).
 
 Poses come from a scenario's ground truth; noise is drawn from the marker front-end's own
 covariance model (depth-refined or PnP-only), so accuracy claims are about the estimator, not the

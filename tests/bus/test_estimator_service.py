@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 import pytest
 
-from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations, observations_msg
+from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
 from estimator.service import ClockJumps, EstimatorService
 from schemas import codec, keys
@@ -68,6 +68,7 @@ def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: f
     return svc, statuses, replies
 
 
+@pytest.mark.slow
 def test_daemon_publishes_answers_the_map_and_survives_garbage(client_transport: TransportConfig, tmp_path: Path) -> None:
     s = scene()
     svc, statuses, replies = run_service(client_transport, s, tmp_path / "state.json", 2.0, 10**18, garbage=True)
@@ -82,6 +83,7 @@ def test_daemon_publishes_answers_the_map_and_survives_garbage(client_transport:
     assert {"marker_1", "marker_2", "marker_3"} <= set(codec.poses_from_msg(replies[0].msg.markers))
 
 
+@pytest.mark.slow
 def test_restart_restores_the_map(client_transport: TransportConfig, tmp_path: Path) -> None:
     s = scene()
     state = tmp_path / "state.json"
@@ -105,6 +107,7 @@ def test_corrupt_state_is_set_aside_not_trusted(client_transport: TransportConfi
     assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED  # started from the anchors
 
 
+@pytest.mark.slow
 def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(client_transport: TransportConfig, tmp_path: Path) -> None:
     """Camera a's clock steps an hour ahead after 1 s, then two hours back after 2 s (an NTP step
     each way); camera b's clock stays put. Both must stay localized throughout: without the
@@ -123,6 +126,7 @@ def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(client_
     assert abs(late[-1].stamp_ns - (10**18 + 3 * 10**9)) < 2 * 10**9  # published on the timeline it started with
 
 
+@pytest.mark.slow
 def test_a_full_disk_keeps_the_saved_state_and_saving_resumes(client_transport: TransportConfig, small_disk: Path, caplog) -> None:
     s = scene()
     state = small_disk / "state.json"

@@ -222,6 +222,7 @@ def last_received(out: str) -> tuple[int, int]:
     return int(line[1]), int(line[3])
 
 
+@pytest.mark.slow
 def test_a_reader_that_cannot_lock_memory_still_gets_frames(client_transport: TransportConfig) -> None:
     """zenoh drops a shared-memory sample whose pool the reader cannot lock (zenoh issue 2788), so a
     plain user's recorder saw a silent camera. A process that cannot lock memory now turns shared
@@ -242,6 +243,7 @@ def test_a_reader_that_cannot_lock_memory_still_gets_frames(client_transport: Tr
     assert "shared memory off for this process" in err and "RLIMIT_MEMLOCK" in err
 
 
+@pytest.mark.slow
 def test_a_publisher_that_cannot_lock_memory_sends_plain_bytes(client_transport: TransportConfig) -> None:
     """It used to die creating its pool (``ZError``: out of memory); a driver must start as a plain user."""
     got: list[int] = []
@@ -253,6 +255,7 @@ def test_a_publisher_that_cannot_lock_memory_sends_plain_bytes(client_transport:
     assert "published 30 shm 0" in out, out + err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("plain", [False, True], ids=["shared-memory", "plain"])
 def test_each_publisher_restart_costs_a_reader_at_most_one_pool(client_transport: TransportConfig, plain: bool) -> None:
     """zenoh 1.10 keeps every pool a reader has received from mapped for the reader's life (zenoh

@@ -10,6 +10,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
@@ -65,6 +67,7 @@ def test_driver_process_publishes_dummy_frames_over_zenoh(client_transport: Tran
     assert [o.msg.stamp_ns for o in obs] == sorted(o.msg.stamp_ns for o in obs)
 
 
+@pytest.mark.slow
 def test_no_device_is_a_clear_error_with_exit_code_2(router_endpoint: str) -> None:
     out = subprocess.run(CLI + ["driver", "openni2", "--camera", "k", "--uri", "no-such-device", "-e", router_endpoint],
                          capture_output=True, text=True, timeout=60)  # fmt: skip

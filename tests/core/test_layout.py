@@ -7,7 +7,7 @@ from pathlib import Path
 
 from schemas.regen import stale_files
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 OURS = {"schemas", "drivers", "estimator", "recognition", "cellsight"}
 ALLOWED = {
     "schemas": {"schemas"},

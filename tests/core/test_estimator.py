@@ -1,6 +1,6 @@
 """The estimator core on small synthetic scenes with known answers (gtsam test style).
 
-Observations come from ``benchmarks.scenes``: true poses plus noise drawn from the marker
+Observations come from ``cellsight.synthetic``: true poses plus noise drawn from the marker
 front-end's covariance model. Tolerances are a few sigma of the expected accuracy.
 """
 
@@ -11,7 +11,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from benchmarks.scenes import NoiseSettings, estimator_config, frame_observations
+from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
 from estimator.graph import CameraState, Estimator, through_camera
 from estimator.observation import Observation
@@ -206,6 +206,7 @@ def test_graph_stops_growing_for_static_cameras(seconds: float) -> None:
     assert live == 1 + len(est.pairs)
 
 
+@pytest.mark.slow
 def test_settled_pairs_stop_costing_updates_without_moving_the_answer() -> None:
     """A settled pair's factor is rebuilt only when its mean moved ``refresh_sigma`` of the factor's
     sigma. Against rebuilding every ``refresh_s`` on the same observations: from 20 s to 40 s at most

@@ -31,7 +31,7 @@ from schemas.log import LogWriter
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
 
-CAPTURE = Path(__file__).resolve().parents[1] / "drivers" / "sim" / "capture_board.toml"
+CAPTURE = Path(__file__).resolve().parents[2] / "drivers" / "sim" / "capture_board.toml"
 TABLE_TOP = np.array([0.0, 0.0, 0.75])  # the board frame's origin in the capture scenario's world
 
 
@@ -98,7 +98,7 @@ def test_recorded_model_has_the_crates_shape_and_finds_it_in_the_demo_cell(captu
 
 def test_model_build_command_reads_a_recording_and_names_a_bad_board(capture, tmp_path: Path) -> None:
     path, _, _ = capture
-    example = Path(__file__).resolve().parents[1] / "examples" / "capture_board.toml"
+    example = Path(__file__).resolve().parents[2] / "examples" / "capture_board.toml"
     cli = [sys.executable, "-m", "cellsight.cli", "model", "build", "--recording", f"crate={path}", "--out", str(tmp_path / "db")]
     out = subprocess.run(cli + ["--board", str(example)], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from google.protobuf.message import Message
 
 from schemas import codec, keys
@@ -87,11 +88,13 @@ def test_bus_echo_prints_a_message_from_another_process(router_endpoint: str) ->
     assert line["message"]["stamp_ns"] == "123456789"
 
 
+@pytest.mark.slow
 def test_bus_echo_times_out_with_exit_1(router_endpoint: str) -> None:
     out = run(["bus", "echo", "cellsight/demo/**", "--timeout", "1", "--connect", router_endpoint])
     assert out.returncode == 1 and "no message" in out.stderr
 
 
+@pytest.mark.slow
 def test_status_shows_cameras_with_poses_and_objects(router_endpoint: str) -> None:
     proc = subprocess.Popen(CLI + ["status", "--duration", "3", "--cell", "lab", "--connect", router_endpoint],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip

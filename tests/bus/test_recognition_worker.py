@@ -51,6 +51,7 @@ def demo_database():
     return cfg, database_from_scenario(load_scenario(), cfg.recognition.descriptor)
 
 
+@pytest.mark.slow
 def test_worker_publishes_world_poses_from_frames_and_tf(client_transport: TransportConfig, demo_database) -> None:
     cfg, db = demo_database
     scenario = load_scenario()

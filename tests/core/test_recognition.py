@@ -20,7 +20,7 @@ from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
 from tests.helpers import assert_pose_close
 
-PCL = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
+PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
 GRABBER_K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])  # pclzf/*.xml
 
 
@@ -64,6 +64,7 @@ def test_normals_are_nan_where_too_few_neighbours() -> None:
     assert (normals[3:, 2] < 0).all(), "normals must face the viewpoint at the origin"
 
 
+@pytest.mark.slow
 def test_normals_from_a_wider_search_equal_their_own_search(milk: np.ndarray) -> None:
     """The recogniser searches once at the clustering tolerance and cuts down to the normal radius."""
     own, _ = estimate_normals(milk, radius_m=0.02)
@@ -168,6 +169,7 @@ def test_roll_histogram_recovers_a_known_roll(milk: np.ndarray, milk_pcl_normals
         assert abs(err) < 4.0, f"roll {roll_deg} deg recovered as {found:.1f} deg"
 
 
+@pytest.mark.slow
 def test_recognizes_the_milk_carton_in_pcls_real_scene(milk: np.ndarray) -> None:
     """PCL's acceptance on its own data: model-to-scene RMSE under 1 cm, true pose the identity."""
     cfg = RecognitionConfig()
@@ -182,6 +184,7 @@ def test_recognizes_the_milk_carton_in_pcls_real_scene(milk: np.ndarray) -> None
     assert_pose_close(pose, np.eye(4), pos_tol_m=0.01, rot_tol_deg=2.0, what="milk carton")
 
 
+@pytest.mark.slow
 def test_model_database_round_trips_and_refuses_damage(tmp_path: Path, milk: np.ndarray) -> None:
     params = DescriptorConfig()
     db = ModelDatabase(params, {})
@@ -203,6 +206,7 @@ def test_model_database_round_trips_and_refuses_damage(tmp_path: Path, milk: np.
         ModelDatabase.load(tmp_path)
 
 
+@pytest.mark.slow
 def test_a_mesh_gives_the_same_model_every_time() -> None:
     """Surface sampling is random: unseeded, two builds of one database would recognise differently."""
     box = o3d.geometry.TriangleMesh.create_box(0.2, 0.1, 0.05)

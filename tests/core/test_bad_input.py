@@ -28,9 +28,9 @@ from estimator.state import SavedMarker, load_state, save_state
 from recognition.cloud import read_cloud
 from recognition.errors import CloudError, ModelError
 from recognition.models import read_mesh
-from tests.test_config import EXAMPLE
+from tests.core.test_config import EXAMPLE
 
-PCL = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
+PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
 HERE = Path(__file__).resolve().parent
 
 
@@ -149,12 +149,13 @@ for k in range(int(sys.argv[4])):
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cloud", ["bun0.pcd", "milk.pcd"])  # ascii with normals; binary_compressed
 def test_damaged_clouds_are_cloud_errors_never_a_crash(tmp_path: Path, cloud: str) -> None:
     """In a child process: before the header checks, Open3D's reader killed the process (SIGSEGV)."""
     out = tmp_path / f"damaged{Path(cloud).suffix}"
     run = subprocess.run([sys.executable, "-c", FUZZ_CLOUDS, str(PCL / cloud), str(out), "3", "300"],
-                         capture_output=True, text=True, timeout=300, cwd=HERE.parent)
+                         capture_output=True, text=True, timeout=300, cwd=HERE.parents[1])
     assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-2000:]}"
 
 
@@ -166,6 +167,7 @@ def _box_mesh_file(path: Path) -> bytes:
     return path.read_bytes()
 
 
+@pytest.mark.slow
 def test_a_mesh_that_kills_open3d_is_a_model_error(tmp_path: Path) -> None:
     """Four bytes inserted into the face list of a binary PLY: Open3D's reader dies of SIGSEGV on
     this file when called in the test process (found by fuzzing); read_mesh reads in a child."""
@@ -179,6 +181,7 @@ def test_a_mesh_that_kills_open3d_is_a_model_error(tmp_path: Path) -> None:
     assert len(mesh.triangles) == 12 and np.allclose(mesh.get_max_bound(), [0.1, 0.2, 0.3])
 
 
+@pytest.mark.slow
 @pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -223,6 +226,7 @@ def junk_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, ...]:
 NUMBERS = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(str), st.integers(-10**12, 10**12).map(str), st.text(max_size=6))
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None, phases=[Phase.explicit, Phase.reuse, Phase.generate])  # the message names the args: no shrinking
 @given(data=st.data())
 def test_cli_arguments_give_an_exit_code_never_a_traceback(junk_files: tuple[str, ...], data: st.DataObject) -> None:
@@ -248,10 +252,9 @@ def test_cli_arguments_give_an_exit_code_never_a_traceback(junk_files: tuple[str
 @functools.cache
 def _bus_payloads() -> dict[str, tuple[type, bytes]]:
     """One valid payload of each message the services subscribe to, by name."""
-    from benchmarks.scenes import observations_msg
+    from cellsight.synthetic import observations_msg
     from estimator.observation import Observation
     from schemas import codec
-    from schemas import messages as m
 
     T = np.eye(4)
     T[:3, 3] = (0.1, -0.2, 2.0)
