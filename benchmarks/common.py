@@ -21,6 +21,30 @@ from rich.table import Table
 PCL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
 
 
+def pin_one_core() -> int:
+    """Pin this process, and the thread pools it starts from now on, to one CPU; cap OpenCV's own
+    pool at one thread. Returns the CPU. Call it first: numpy's and Open3D's pools size themselves
+    when they start, and threads inherit the affinity mask."""
+    cpu = min(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {cpu})
+    import cv2
+
+    cv2.setNumThreads(1)
+    return cpu
+
+
+class CoresUsed:
+    """Measured cores over a stretch of work: this process's CPU time (all threads, getrusage)
+    over the wall time between ``start`` and ``stop``; ~1.0 when pinned and busy."""
+
+    def start(self) -> "CoresUsed":
+        self._cpu, self._wall = time.process_time(), time.perf_counter()
+        return self
+
+    def stop(self) -> float:
+        return (time.process_time() - self._cpu) / max(time.perf_counter() - self._wall, 1e-9)
+
+
 def machine() -> str:
     cpu = "unknown cpu"
     try:
