@@ -2,14 +2,17 @@
 
 The log (default one hour, about 2.5 million marker observations; ``--quick``: one minute) is
 written first from the demo cell's geometry with noise pre-drawn from the front-end's model and
-cycled; only ``run_resolve`` (read, decode, validate, fuse, batch solve, write outputs) is timed.
+cycled; only ``run_resolve`` (read, decode, validate, fuse, batch solve, write outputs) is timed:
+as ``cellsight resolve`` runs it (the log read in a child process while this one solves), and,
+as the reference in the same run, with the log read in this process.
 Peak resident memory shows whether the log is streamed (it must not grow with the log's length).
 """
 
 from __future__ import annotations
 
-import threading
+import resource
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -20,6 +23,7 @@ from benchmarks.estimator_scale import rss_mb
 from cellsight.synthetic import NoiseSettings, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_report import run_resolve
+from estimator.offline.solve import ResolveResult
 from cellsight.scenario_config import cell_config_of
 from drivers.sim.scenario import load_scenario
 from schemas import keys
@@ -52,6 +56,33 @@ def write_log(path: Path, seconds: float) -> tuple[CellConfig, int]:
     return cfg, n
 
 
+def timed_resolve(log: Path, out: Path, cfg: CellConfig, background: bool) -> tuple[ResolveResult, float, float, float]:
+    """(result, wall s, cores used: this process's and its children's CPU over the wall time,
+    peak resident MB of this process while resolving)."""
+    peak = [rss_mb()]
+    done = threading.Event()
+
+    def sample() -> None:  # resident memory while resolving (ru_maxrss would include writing the log)
+        while not done.wait(0.2):
+            peak[0] = max(peak[0], rss_mb())
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    cpu0 = _cpu_s()
+    t0 = time.perf_counter()
+    result = run_resolve(log, out, cfg, background=background).result
+    wall = time.perf_counter() - t0
+    cores = (_cpu_s() - cpu0) / wall
+    done.set()
+    sampler.join()
+    return result, wall, cores, peak[0]
+
+
+def _cpu_s() -> float:
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 def run(quick: bool) -> dict[str, float]:
     seconds = 60.0 if quick else 3600.0
     with tempfile.TemporaryDirectory() as tmp:
@@ -59,27 +90,18 @@ def run(quick: bool) -> dict[str, float]:
         cfg, n = write_log(log, seconds)
         size_mb = log.stat().st_size / 1e6
         rss_before = rss_mb()
-        peak = [rss_before]
-        done = threading.Event()
-
-        def sample() -> None:  # resident memory while resolving (ru_maxrss would include writing the log)
-            while not done.wait(0.2):
-                peak[0] = max(peak[0], rss_mb())
-
-        sampler = threading.Thread(target=sample, daemon=True)
-        sampler.start()
-        t0 = time.perf_counter()
-        result = run_resolve(log, Path(tmp) / "out", cfg).result
-        wall = time.perf_counter() - t0
-        done.set()
-        sampler.join()
+        result, wall, cores, peak = timed_resolve(log, Path(tmp) / "out", cfg, background=True)
+        # Reference in the same run: the same solve reading the log in this process.
+        ref, ref_wall, _, _ = timed_resolve(log, Path(tmp) / "out_inline", cfg, background=False)
     return {
         "log_seconds": seconds,
         "log_mb": size_mb,
         "observations": float(result.observations),
         "observations_per_s": result.observations / wall,
+        "observations_per_s_one_process": ref.observations / ref_wall,
         "resolve_s": wall,
-        "rss_peak_mb": peak[0],
+        "cores_measured": cores,
+        "rss_peak_mb": peak,
         "rss_before_resolve_mb": rss_before,
     }
 

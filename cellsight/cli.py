@@ -148,6 +148,14 @@ def config_show(file: Annotated[Optional[Path], typer.Argument(help="cell config
     typer.echo(_load(file).to_toml())
 
 
+@config_app.command("docs")
+def config_docs() -> None:
+    """Print every configuration section and field with its default, as Markdown (docs/configuration.md)."""
+    from cellsight.config_docs import markdown
+
+    typer.echo(markdown(), nl=False)
+
+
 # ---------------------------------------------------------------- security
 
 

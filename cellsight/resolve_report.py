@@ -67,14 +67,16 @@ class ResolveRun:
     figures: ResolveFigures
 
 
-def run_resolve(log_path: Path, out: Path, cfg: CellConfig, progress: Callable[[int, int], None] | None = None) -> ResolveRun:
-    """Solve the log (``estimator.offline.resolve_log``), then write the config used, the figures
-    and the report beside the solution in ``out``."""
+def run_resolve(
+    log_path: Path, out: Path, cfg: CellConfig, progress: Callable[[int, int], None] | None = None, background: bool = True,
+) -> ResolveRun:
+    """Solve the log (``estimator.offline.resolve_log``; ``background``: read it in a child process),
+    then write the config used, the figures and the report beside the solution in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     save_used(cfg, out)
     evidence = LogEvidence(object_frames=frozenset(keys.marker_frame(k) for k in cfg.estimator.object_markers))
     objects = ObjectErrors()
-    run = resolve_log(log_path, out, cfg.estimator, cfg.cell.name, progress, evidence.take, lambda p: objects.add(p, evidence))
+    run = resolve_log(log_path, out, cfg.estimator, cfg.cell.name, progress, evidence.take, lambda p: objects.add(p, evidence), background)
     result, report = run.result, run.read
     figures = ResolveFigures(
         cameras=evaluate_offline(result, evidence), marker_position_error_mm_p50=marker_error_p50(result, evidence),

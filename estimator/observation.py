@@ -13,7 +13,7 @@ import numpy as np
 
 from schemas import codec
 from schemas import messages as m
-from schemas.codec import MarkerArrays
+from schemas.codec import MarkerArrays, MarkerFields
 from schemas.errors import DecodeError
 from schemas.geometry import matrices_from_quats
 
@@ -72,7 +72,7 @@ def observation_rows(a: MarkerArrays) -> ObservationRows:
 @dataclass(frozen=True)
 class ValidatedFrames:
     """What ``validated_rows`` kept: indices of the good frames, their rows (``frame`` indexes the
-    kept frames; None when none was good) and, per dropped frame, (stamp ns, what was wrong)."""
+    kept frames; None when none was good) and, per dropped frame, (its index, what was wrong)."""
 
     kept: list[int]
     rows: ObservationRows | None
@@ -80,24 +80,33 @@ class ValidatedFrames:
 
 
 def validated_rows(camera_id: str, msgs: Sequence[m.MarkerObservations]) -> ValidatedFrames:
-    """Validate a camera's frames together (one batched check) and convert them once; if the batch
-    fails, frame by frame, dropping the bad ones. The one validation of marker observations on both
-    the live and the offline path."""
+    """``validated_fields`` of the messages' fields (one camera's frames)."""
+    return validated_fields(camera_id, len(msgs), codec.marker_fields(msgs))
+
+
+def validated_fields(camera_id: str, frames: int, fields: MarkerFields) -> ValidatedFrames:
+    """Check a camera's frames together, in numpy, and convert the good ones once: a frame with
+    any bad marker is dropped whole (the rest of it is not trusted either). The one validation of
+    marker observations on both the live and the offline path."""
     try:
         codec.check_id(camera_id, "marker observations camera_id")
-        return ValidatedFrames(list(range(len(msgs))), observation_rows(codec.marker_batch(msgs)), [])
-    except DecodeError:
-        pass
-    kept, dropped = [], []
-    for i, msg in enumerate(msgs):
-        try:
-            codec.check_id(msg.camera_id, "marker observations camera_id")
-            codec.marker_arrays(msg)
-            kept.append(i)
-        except DecodeError as exc:
-            dropped.append((int(msg.stamp_ns), str(exc)))
-    rows = observation_rows(codec.marker_batch([msgs[i] for i in kept], check=False)) if kept else None
-    return ValidatedFrames(kept, rows, dropped)
+    except DecodeError as exc:
+        return ValidatedFrames([], None, [(i, str(exc)) for i in range(frames)])
+    problems = codec.marker_problems(fields)
+    frame_of = fields.rows[:, 1].astype(np.int64)
+    why: dict[int, str] = {}
+    for row, what in problems:
+        why.setdefault(int(frame_of[row]), what)
+    if not why:
+        return ValidatedFrames(list(range(frames)), observation_rows(fields.arrays()), [])
+    kept = [i for i in range(frames) if i not in why]
+    keep_rows = ~np.isin(frame_of, list(why))
+    rows = None
+    if kept:
+        a = fields.arrays(keep_rows)
+        renumbered = np.searchsorted(np.array(kept), a.frame)  # frame indices among the kept frames
+        rows = observation_rows(MarkerArrays(a.ids, a.poses, a.quaternions, a.covariances, a.ambiguous, renumbered))
+    return ValidatedFrames(kept, rows, sorted(why.items()))
 
 
 def observations_of(camera_id: str, stamp_ns: int, a: ObservationRows) -> list[Observation]:

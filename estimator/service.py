@@ -177,11 +177,11 @@ class EstimatorService:
             by_camera.setdefault(item.msg.camera_id, []).append((stamp_ns, item.msg))
         for camera_id, frames in by_camera.items():
             v = validated_rows(camera_id, [msg for _, msg in frames])
-            for stamp_ns, why in v.dropped:
+            for i, why in v.dropped:
                 self.bad_frames[camera_id] += 1
                 if self.bad_frames[camera_id] == 1:  # once per camera: garbage must not flood the log
                     log.warning("dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
-                                camera_id[:40], stamp_ns, why)  # fmt: skip
+                                camera_id[:40], frames[i][1].stamp_ns, why)  # fmt: skip
             if v.rows is not None:
                 self.estimator.add_frames(camera_id, np.array([frames[i][0] for i in v.kept], dtype=np.int64), v.rows)
 

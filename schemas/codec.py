@@ -9,6 +9,7 @@ input as untrusted and raises ``DecodeError`` naming what was wrong.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence, TypeVar
 
@@ -21,6 +22,7 @@ from schemas.errors import DecodeError
 from schemas.geometry import make_pose, matrices_from_quats, matrix_from_quat, quat_from_matrix
 
 Msg = TypeVar("Msg", bound=Message)
+_EYE3, _LAST_ROW = np.eye(3), np.array([0.0, 0.0, 0.0, 1.0])
 
 
 # ---------------------------------------------------------------- poses
@@ -34,7 +36,8 @@ def check_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarr
     if not np.all(np.isfinite(T)):
         raise DecodeError(f"{what}: contains NaN or inf")
     R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=tol) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+    # Plain max-abs checks: np.allclose costs more than the rest of a pose's conversion.
+    if np.abs(R.T @ R - _EYE3).max() > tol or np.linalg.det(R) < 0 or np.abs(T[3] - _LAST_ROW).max() > tol:
         raise DecodeError(f"{what}: not a rigid transform (rotation not orthonormal or bad last row)")
     return T
 
@@ -320,69 +323,111 @@ def marker_arrays(msg: m.MarkerObservations, check: bool = True) -> MarkerArrays
 def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> MarkerArrays:
     """Validate every observation of the messages at once (batched numpy) and return them as arrays.
 
-    One pass of Python over the markers collects the fields; everything else is numpy over all rows,
-    so a batch of many messages costs little more per marker than the field reads. ``check=False``
-    only converts: for messages already validated (``decode`` with ``semantic=True``).
-
-    Raises ``DecodeError`` naming the first bad marker: wrong corner count, non-positive side,
-    non-finite or non-unit quaternion, covariance not 36 values / not symmetric / not positive
-    definite.
+    ``check=False`` only converts: for messages already validated (``decode`` with
+    ``semantic=True``). Raises ``DecodeError`` naming the first bad marker: wrong corner count,
+    non-positive side, non-finite or non-unit quaternion, covariance not 36 values / not symmetric
+    / not positive definite.
     """
-    rows, cov = [], []
-    for i, msg in enumerate(msgs):  # the one Python loop: every field read once, checks come after
+    fields = marker_fields(msgs)
+    if check and (problems := marker_problems(fields)):
+        raise DecodeError(problems[0][1])
+    return fields.arrays()
+
+
+@dataclass(frozen=True)
+class MarkerFields:
+    """Marker observations' fields as read, not yet checked, one row per marker: ``rows`` (N, 21:
+    id, message index, ambiguous, side, corner values, covariance values, the chosen pose x y z qx
+    qy qz qw, candidate_a's and candidate_b's quaternions, the chosen one's where none was sent)
+    and ``covariances`` (N, 36; NaN where a marker did not send 36 values). Plain arrays: cheap to
+    hand to another process, which checks and converts them (``marker_problems``, ``arrays``)."""
+
+    rows: np.ndarray
+    covariances: np.ndarray
+
+    def arrays(self, keep: np.ndarray | None = None) -> MarkerArrays:
+        """The rows (all, or those selected by ``keep``) as ``MarkerArrays``, unchecked."""
+        r, cov = (self.rows, self.covariances) if keep is None else (self.rows[keep], self.covariances[keep])
+        poses = np.zeros((len(r), 4, 4))
+        poses[:, :3, :3] = matrices_from_quats(r[:, 9:13])
+        poses[:, :3, 3] = r[:, 6:9]
+        poses[:, 3, 3] = 1.0
+        return MarkerArrays(r[:, 0].astype(np.int64), poses, r[:, 9:21].reshape(-1, 3, 4), cov.reshape(-1, 6, 6), r[:, 2] != 0,
+                            r[:, 1].astype(np.int64))  # fmt: skip
+
+
+def marker_fields(msgs: Sequence[m.MarkerObservations]) -> MarkerFields:
+    """Every observation's fields, read in the one Python loop over the markers (every field read
+    once; all checks and conversions come after, in numpy)."""
+    rows, covs = [], []
+    for i, msg in enumerate(msgs):
         for o in msg.markers:
             p = o.camera_T_marker
             a = o.candidate_a if o.HasField("candidate_a") else p
             b = o.candidate_b if o.HasField("candidate_b") else p
-            rows.append((o.marker_id, i, o.ambiguous, o.side_m, len(o.corners_px), len(o.covariance),
+            cov = o.covariance
+            rows.append((o.marker_id, i, o.ambiguous, o.side_m, len(o.corners_px), len(cov),
                          p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw, a.qx, a.qy, a.qz, a.qw, b.qx, b.qy, b.qz, b.qw))  # fmt: skip
-            cov.extend(o.covariance)
+            covs.append(cov)
     r = np.array(rows, dtype=np.float64).reshape(-1, 21)
-    ids = r[:, 0].astype(np.int64)
-    if check:
-        _check_marker_scalars(ids, r[:, 3], r[:, 4], r[:, 5])
-    cov_a = np.fromiter(cov, np.float64, len(cov)).reshape(-1, 6, 6)
-    if check:
-        _check_marker_rows(ids, r[:, 6:], cov_a)
-    poses = np.zeros((len(ids), 4, 4))
-    poses[:, :3, :3] = matrices_from_quats(r[:, 9:13])
-    poses[:, :3, 3] = r[:, 6:9]
-    poses[:, 3, 3] = 1.0
-    return MarkerArrays(ids, poses, r[:, 9:21].reshape(-1, 3, 4), cov_a, r[:, 2] != 0, r[:, 1].astype(np.int64))
+    if not np.all(r[:, 5] == 36):
+        cov_a = np.array([list(c) if len(c) == 36 else [np.nan] * 36 for c in covs], dtype=np.float64).reshape(-1, 36)
+    elif (cov_a := _packed_covariances(msgs, len(r))) is None:
+        cov_a = np.fromiter(itertools.chain.from_iterable(covs), np.float64, 36 * len(r)).reshape(-1, 36)
+    return MarkerFields(r, cov_a)
 
 
-def _check_marker_scalars(ids: np.ndarray, side: np.ndarray, corners: np.ndarray, cov_len: np.ndarray) -> None:
-    for i in np.flatnonzero((corners != 8) | ~(side > 0) | ~np.isfinite(side) | (cov_len != 36))[:1]:
-        if corners[i] != 8:
-            raise DecodeError(f"marker {ids[i]}: {int(corners[i])} corner values, expected 8")
-        if cov_len[i] != 36:
-            raise DecodeError(f"marker {ids[i]} covariance: expected 36 values, got {int(cov_len[i])}")
-        raise DecodeError(f"marker {ids[i]}: side length {side[i]} must be positive")
+#: A marker's covariance on the wire: field 10, length-delimited, 288 bytes (36 packed doubles).
+_COVARIANCE_HEADER = (0x52, 0xA0, 0x02)
 
 
-def _check_marker_rows(ids: np.ndarray, r: np.ndarray, cov: np.ndarray) -> None:
-    """Rows (N, 15: the chosen pose x y z qx qy qz qw, then candidate_a's and candidate_b's
-    quaternions; the candidates' positions are not used) and covariances (N, 6, 6)."""
-    for name, rows, quat in (("camera_T_marker", r[:, :7], r[:, 3:7]), ("candidate_a", r[:, 7:11], r[:, 7:11]), ("candidate_b", r[:, 11:15], r[:, 11:15])):
-        bad = ~np.all(np.isfinite(rows), axis=1)
+def _packed_covariances(msgs: Sequence[m.MarkerObservations], n: int) -> np.ndarray | None:
+    """The ``n`` markers' covariances (n, 36) straight from the messages' serialised bytes, where
+    they are packed little-endian doubles: twice as fast as reading them value by value. Only when
+    the header occurs exactly ``n`` times (once per marker, as protobuf writes it); None otherwise
+    (a header's bytes inside other data), and the caller reads the values one by one."""
+    buf = np.frombuffer(b"".join([msg.SerializeToString() for msg in msgs]), np.uint8)
+    h0, h1, h2 = _COVARIANCE_HEADER
+    hits = np.flatnonzero((buf[:-2] == h0) & (buf[1:-1] == h1) & (buf[2:] == h2)) if len(buf) > 2 else np.zeros(0, np.int64)
+    if len(hits) != n or (n and hits[-1] + 3 + 288 > len(buf)):
+        return None
+    return buf[(hits + 3)[:, None] + np.arange(288)].view("<f8").reshape(-1, 36)
+
+
+def marker_problems(f: MarkerFields) -> list[tuple[int, str]]:
+    """(row, what is wrong) for every bad row, the first problem of each, in row order: wrong
+    corner count, covariance not 36 values, non-positive side, non-finite or non-unit quaternion,
+    covariance non-finite / not symmetric / not positive definite. Empty when all are good."""
+    r, ids = f.rows, f.rows[:, 0].astype(np.int64)
+    found: dict[int, str] = {}
+
+    def flag(mask: np.ndarray, say) -> None:
+        for i in np.flatnonzero(mask).tolist():
+            found.setdefault(i, say(i))
+
+    flag(r[:, 4] != 8, lambda i: f"marker {ids[i]}: {int(r[i, 4])} corner values, expected 8")
+    flag(r[:, 5] != 36, lambda i: f"marker {ids[i]} covariance: expected 36 values, got {int(r[i, 5])}")
+    flag(~(r[:, 3] > 0) | ~np.isfinite(r[:, 3]), lambda i: f"marker {ids[i]}: side length {r[i, 3]} must be positive")
+    for name, values, quat in (("camera_T_marker", r[:, 6:13], r[:, 9:13]), ("candidate_a", r[:, 13:17], r[:, 13:17]),
+                               ("candidate_b", r[:, 17:21], r[:, 17:21])):  # fmt: skip
         norms = np.linalg.norm(quat, axis=1)
-        bad_norm = np.abs(norms - 1.0) > 1e-3
-        if bad.any():
-            raise DecodeError(f"marker {ids[bad.argmax()]} {name}: contains NaN or inf")
-        if bad_norm.any():
-            i = bad_norm.argmax()
-            raise DecodeError(f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")
-    if len(cov):
-        if not np.all(np.isfinite(cov)):
-            raise DecodeError(f"marker {ids[(~np.isfinite(cov)).any(axis=(1, 2)).argmax()]} covariance: contains NaN or inf")
-        asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-6 * np.abs(cov).max(axis=(1, 2)) + 1e-12
-        if asym.any():
-            raise DecodeError(f"marker {ids[asym.argmax()]} covariance: not symmetric")
-        try:
-            np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
-            i = int(np.argmin(np.linalg.eigvalsh(cov).min(axis=1)))
-            raise DecodeError(f"marker {ids[i]} covariance: not positive definite") from None
+        flag(~np.all(np.isfinite(values), axis=1), lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf")
+        flag(np.abs(norms - 1.0) > 1e-3, lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")
+    cov = f.covariances.reshape(-1, 6, 6)
+    finite = np.all(np.isfinite(f.covariances), axis=1)
+    flag(~finite & (r[:, 5] == 36), lambda i: f"marker {ids[i]} covariance: contains NaN or inf")
+    c = np.where(finite[:, None, None], cov, np.eye(6))  # rows already flagged are checked as identity
+    asym = np.abs(c - c.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-6 * np.abs(c).max(axis=(1, 2)) + 1e-12
+    flag(asym, lambda i: f"marker {ids[i]} covariance: not symmetric")
+    c = np.where(asym[:, None, None], np.eye(6), c)
+    try:
+        np.linalg.cholesky(c)  # one batched factorisation; only on failure a per-row look
+    except np.linalg.LinAlgError:
+        smallest = np.linalg.eigvalsh(c).min(axis=1)
+        not_pd = smallest <= 0
+        not_pd[int(np.argmin(smallest))] = True  # Cholesky failed: at least the least definite one
+        flag(not_pd, lambda i: f"marker {ids[i]} covariance: not positive definite")
+    return sorted(found.items())
 
 
 def _has_unknown_fields(msg: Message) -> bool:

@@ -232,11 +232,11 @@ def mahalanobis_sq(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
-    """Tangent vector (6,) in ROS order (x y z rx ry rz) taking ``T_a`` to ``T_b`` in a's own frame,
-    to first order: translation a^-1 (t_b - t_a), rotation the axis-angle of R_a^T R_b."""
-    D = invert_pose(T_a) @ T_b
-    angle = rotation_angle(np.eye(3), D[:3, :3])
-    w = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
-    n = np.linalg.norm(w)
-    axis_angle = w / n * angle if n > 1e-300 else np.zeros(3)
-    return np.concatenate([D[:3, 3], axis_angle])
+    """Tangent vector (6,) in ROS order (x y z rx ry rz) taking ``T_a`` to ``T_b`` in a's own frame:
+    translation R_a^T (t_b - t_a), rotation the axis-angle of R_a^T R_b."""
+    Ra = T_a[:3, :3]
+    D = Ra.T @ T_b[:3, :3]
+    w = 0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])  # sin(angle) x axis
+    s = math.sqrt(float(w @ w))
+    angle = math.atan2(s, 0.5 * (D[0, 0] + D[1, 1] + D[2, 2] - 1.0))
+    return np.concatenate([Ra.T @ (T_b[:3, 3] - T_a[:3, 3]), w * (angle / s if s > 1e-300 else 1.0)])

@@ -7,6 +7,8 @@ use.
 
 from __future__ import annotations
 
+import functools
+
 import re
 from dataclasses import dataclass
 
@@ -158,6 +160,7 @@ class ParsedKey:
     message_type: type[Message]
 
 
+@functools.lru_cache(maxsize=4096)  # a cell has a few dozen keys; every message of a log parses one
 def parse(key: str) -> ParsedKey:
     """Split a concrete key and find its message type; raise ``KeyError_`` if it is not ours."""
     parts = key.split("/")

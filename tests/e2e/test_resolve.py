@@ -80,6 +80,22 @@ def test_resolve_recovers_the_cameras_and_writes_the_report(tmp_path: Path) -> N
     assert figures["cameras"]["a"]["offline_vs_truth_mm_deg"][0] < 5.0
 
 
+def test_reading_the_log_in_a_child_process_gives_the_same_solution(tmp_path: Path) -> None:
+    """``cellsight resolve`` reads the log in a child process while it solves: the same blocks in
+    the same order, so the same answer to the last bit, the same messages handed on, the same report."""
+    s = scene()
+    log = tmp_path / "log.mcap"
+    cfg = write_log(log, s, 3.0)
+    runs = {bg: run_resolve(log, tmp_path / f"out_{bg}", cfg, background=bg) for bg in (True, False)}
+    a, b = runs[True], runs[False]
+    assert [s.camera_id for s in a.result.segments] == [s.camera_id for s in b.result.segments]
+    for sa, sb in zip(a.result.segments, b.result.segments):
+        np.testing.assert_array_equal(sa.world_T_camera, sb.world_T_camera)
+    assert a.result.observations == b.result.observations > 0
+    assert a.read.messages == b.read.messages and a.read.metadata == b.read.metadata
+    assert a.evidence.truth_cameras.stamps == b.evidence.truth_cameras.stamps  # truth reached the evaluation too
+
+
 def test_object_markers_are_placed_over_time_through_the_solved_cameras(tmp_path: Path) -> None:
     """A marker on a box sliding 0.3 m back and forth, seen by both cameras: resolved.mcap carries
     it on the daemon's key at <= 10 Hz, each pose through the solved camera with the smaller
