@@ -2,12 +2,12 @@
 # Set up cellsight on a fresh Debian 12 machine (Python 3.11): system libraries, a virtual
 # environment in .venv, the package and its extras. Idempotent: quick when already done.
 #   ./setup.sh            runtime + benchmarks
-#   ./setup.sh --test     runtime + test tools
+#   ./setup.sh --test     runtime + test tools (and pyrealsense2, which the RealSense tests drive)
 set -euo pipefail
 cd "$(dirname "$0")"
 
 extras="bench"
-[ "${1:-}" = "--test" ] && extras="test,bench"
+[ "${1:-}" = "--test" ] && extras="test,bench,realsense"
 
 # Open3D 0.20 fails to import without libusb; the OpenNI2 driver needs libOpenNI2 and its
 # Dummy device; a fresh Debian python3 needs python3-venv to make a virtual environment.

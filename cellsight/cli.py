@@ -72,6 +72,7 @@ app.add_typer(security_app, name="security")
 
 RECOGNITION_NICE = 5
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="debug logging")]
+DurationOpt = Annotated[Optional[float], typer.Option(help="stop after this many seconds")]
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -298,7 +299,7 @@ def driver_sim(
     camera: Annotated[str, typer.Option("--camera", help="camera id in the scenario")],
     scenario: ScenarioOpt = None,
     cell_config: CellConfigOpt = None,
-    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    duration: DurationOpt = None,
     epoch_ns: Annotated[Optional[int], typer.Option(help="Unix time (ns) of scenario time 0; share it between cameras")] = None,
     transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
@@ -325,7 +326,7 @@ def driver_openni2(
     camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id with --uri)")],
     uri: Annotated[Optional[str], typer.Option("--uri", help="device URI, 'Dummy', a .oni file; default: the camera's uri in the config")] = None,
     cell_config: CellConfigOpt = None,
-    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    duration: DurationOpt = None,
     transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
@@ -359,13 +360,41 @@ def driver_openni2(
     os._exit(0)
 
 
+@driver_app.command("realsense")
+@transport_options
+def driver_realsense(
+    camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")],
+    serial: Annotated[Optional[str], typer.Option("--serial", help="device serial number (default: the config's, else the first device)")] = None,
+    bag: Annotated[Optional[Path], typer.Option("--bag", help="play a RealSense recording (.bag or .db3) instead of a device")] = None,
+    record_to: Annotated[Optional[Path], typer.Option("--record-to", help="also record the device to this .db3 file")] = None,
+    cell_config: CellConfigOpt = None,
+    duration: DurationOpt = None,
+    transport: TransportFlags = TransportFlags(),
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run one Intel RealSense D4xx (or play its recording): frames and marker observations on the bus."""
+    from drivers.config import CameraConfig
+    from drivers.realsense import RealSenseSource
+    from drivers.service import DriverService
+
+    _setup_logging(verbose)
+    cfg = _load(cell_config)
+    cam = next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source="realsense")
+    recording = bag if bag is not None else cam.recording
+    source = RealSenseSource(camera, serial=serial or cam.serial or None, recording=recording, width=cam.width, height=cam.height,
+                             rate_hz=cam.rate_hz, record_to=record_to)  # fmt: skip
+    stop = _stop_event()
+    with _bus(cfg, None, transport) as bus:
+        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+
+
 @app.command("estimator")
 @transport_options
 def estimator_cmd(
     cell_config: CellConfigOpt = None,
     scenario: ScenarioOpt = None,
     state_file: Annotated[Optional[Path], typer.Option(help="persist the map here and restore it on start")] = None,
-    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    duration: DurationOpt = None,
     transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
@@ -386,7 +415,7 @@ def recognition_cmd(
     cell_config: CellConfigOpt = None,
     scenario: ScenarioOpt = None,
     models: Annotated[Optional[Path], typer.Option("--models", help="model database folder (default: [recognition] models, or built from the scenario)")] = None,
-    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    duration: DurationOpt = None,
     transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
@@ -512,7 +541,7 @@ def record(
     out: Annotated[Path, typer.Option("--out", help="MCAP file to write (never overwritten: if it exists, the recording goes to NAME.1.mcap, NAME.2.mcap, ...)")],
     keys_: Annotated[Optional[list[str]], typer.Option("--keys", help="key expressions to record (default: the whole cell)")] = None,
     max_image_hz: Annotated[Optional[float], typer.Option(help="record images at most this often per camera")] = None,
-    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
+    duration: DurationOpt = None,
     cell: CellOpt = None,
     cell_config: CellConfigOpt = None,
     transport: TransportFlags = TransportFlags(),

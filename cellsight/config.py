@@ -105,6 +105,9 @@ def load_config(path: Path | None, environ: Mapping[str, str] | None = None) -> 
     base = path.parent
     if cfg.cell.scenario is not None and not cfg.cell.scenario.is_absolute():
         cfg.cell.scenario = base / cfg.cell.scenario
+    for cam in cfg.cameras:
+        if cam.recording is not None and not cam.recording.is_absolute():
+            cam.recording = base / cam.recording
     return cfg
 
 

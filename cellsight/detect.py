@@ -16,8 +16,16 @@ from schemas.codec import CameraInfo
 from schemas.geometry import quat_from_matrix
 
 
+def pose_json(T: np.ndarray) -> dict[str, list[float]]:
+    """A 4x4 pose as the JSON the one-shot commands print: position (m) and quaternion (x y z w)."""
+    return {"position_m": np.round(T[:3, 3], 4).tolist(), "quaternion_xyzw": np.round(quat_from_matrix(T[:3, :3]), 5).tolist()}
+
+
 @dataclass(frozen=True)
 class DetectResult:
+    """What ``cellsight markers detect`` found in one image: each marker's corners (px) and pose in
+    the camera frame (m), with the intrinsics used."""
+
     image: Path
     info: CameraInfo
     detections: list[MarkerDetection]
@@ -25,12 +33,10 @@ class DetectResult:
     def rows(self) -> list[dict]:
         out = []
         for d in self.detections:
-            T = d.camera_T_marker
             out.append({
                 "id": d.marker_id,
                 "corners_px": np.round(d.corners_px, 2).tolist(),
-                "position_m": np.round(T[:3, 3], 4).tolist(),
-                "quaternion_xyzw": np.round(quat_from_matrix(T[:3, :3]), 5).tolist(),
+                **pose_json(d.camera_T_marker),
                 "reprojection_error_px": [round(d.error_a_px, 3), round(d.error_b_px, 3)],
                 "depth_refined": d.depth_refined,
                 "ambiguous": d.ambiguous,

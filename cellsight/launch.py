@@ -170,8 +170,8 @@ def plan(cfg: CellConfig, run_dir: Path, record: Path | None, max_image_hz: floa
     for cam in cfg.cameras:
         if cam.source == "sim":
             argv = CLI + ["driver", "sim", "--camera", cam.id, "--epoch-ns", str(epoch_ns)] + common
-        else:
-            argv = CLI + ["driver", "openni2", "--camera", cam.id] + common
+        else:  # openni2 | realsense: the driver reads the rest of its camera section from the config
+            argv = CLI + ["driver", cam.source, "--camera", cam.id] + common
         children.append(Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log", shm_starts=cfg.transport.shm_driver_starts))
     state = cfg.estimator.state_file or run_dir / "estimator_state.json"
     children.append(Child("estimator", CLI + ["estimator", "--state-file", str(state)] + common, logs / "estimator.log"))

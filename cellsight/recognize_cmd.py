@@ -9,17 +9,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cellsight.detect import pose_json
 from recognition.cloud import depth_to_cloud, read_cloud
 from recognition.config import RecognitionConfig
 from recognition.errors import CloudError
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Recognizer
 from schemas.codec import CameraInfo
-from schemas.geometry import quat_from_matrix
 
 
 @dataclass(frozen=True)
 class RecognizeResult:
+    """What ``cellsight recognize`` found in one scene, in the camera frame."""
+
     scene: Path
     points: int
     detections: list[Detection]
@@ -28,8 +30,7 @@ class RecognizeResult:
         return [
             {
                 "object_id": d.object_id,
-                "position_m": np.round(d.camera_T_object[:3, 3], 4).tolist(),
-                "quaternion_xyzw": np.round(quat_from_matrix(d.camera_T_object[:3, :3]), 5).tolist(),
+                **pose_json(d.camera_T_object),
                 "fitness": round(d.fitness, 3),
                 "coverage": round(d.coverage, 3),
                 "rmse_m": round(d.rmse_m, 5),

@@ -50,8 +50,10 @@ class CameraConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     id: str
-    source: Literal["sim", "openni2"] = "sim"
+    source: Literal["sim", "openni2", "realsense"] = "sim"
     uri: str = Field(default="", description="openni2: device URI, 'Dummy' or a .oni file; empty = first device")
+    serial: str = Field(default="", description="realsense: the device's serial number; empty = first device")
+    recording: Path | None = Field(default=None, description="realsense: play this .bag/.db3 recording instead of a device")
     width: int = Field(default=640, gt=0)
     height: int = Field(default=480, gt=0)
     rate_hz: float = Field(default=30.0, gt=0)

@@ -11,7 +11,7 @@ import threading
 import time
 
 from drivers.config import MarkerConfig
-from drivers.errors import DriverError
+from drivers.errors import DriverError, NoDeviceError
 from drivers.frames import Frame, FrameSource, observations_to_msg
 from drivers.markers import MarkerDetector
 from schemas import codec, keys
@@ -107,6 +107,7 @@ class DriverService:
         stop = stop or threading.Event()
         start = time.monotonic()
         self.publish_status(m.DriverStatus.STARTING)
+        final = m.DriverStatus.STOPPED, ""
         try:
             while not stop.is_set():
                 if duration_s is not None and time.monotonic() - start >= duration_s:
@@ -114,6 +115,9 @@ class DriverService:
                 if not self.step():
                     log.info("source %s ended after %d frames", self.source.name, self.frames)
                     break
+        except DriverError as exc:  # the device went away: say so on the bus, then let the supervisor restart us
+            final = (m.DriverStatus.NO_DEVICE if isinstance(exc, NoDeviceError) else m.DriverStatus.ERROR), str(exc)
+            raise
         finally:
-            self.publish_status(m.DriverStatus.STOPPED)
+            self.publish_status(*final)
             self.source.close()

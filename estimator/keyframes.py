@@ -6,13 +6,12 @@ of the solved map becomes a pose (key ``k``) with one factor per marker. Every o
 somewhere new, with a bias of its own, where a static view repeats one bias in every frame and
 its fused factor counts at most ``max_fused`` of them. A frame that is the same view as one of
 its camera's segments (a camera settling after a move) would count that view's bias again and is
-left out. On the demo cell at the sensors' 30 Hz (``benchmarks.offline_vs_online``, ten seeds,
-before ``estimator.links``) the 20 kept frames of cam1's tilt put cam3 and cam4 at 0.52 and
-0.47 mm RMS, against 0.73 and 0.78 online (and 0.79-0.85 and 0.62-0.68 offline without them).
+left out. At the sensors' 30 Hz a move leaves tens of such frames, which tighten the cameras
+that share markers with the moving one (``benchmarks.offline_vs_online``).
 
 A move that leaves fewer than ``min_frames`` such frames adds none: a handful of single frames
-brings its noise and biases more than it informs (in the real-time demo, ~5 frames/s per camera,
-cam1's tilt left 3-4, and with them offline was behind online for every camera on average).
+brings its noise and biases more than it informs (a camera caught at ~5 frames/s during a 2 s
+tilt leaves 3-4).
 
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.

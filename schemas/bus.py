@@ -206,16 +206,9 @@ class Subscription(Generic[Msg]):
     """A zenoh subscriber that decodes into an ``Inbox`` (or a callback) and counts bad input."""
 
     def __init__(
-        self,
-        session: zenoh.Session,
-        key_expr: str,
-        msg_type: type[Msg] | None = None,
-        *,
-        capacity: int = 1024,
-        ring: bool = False,
-        callback: Callable[[Received[Msg]], None] | None = None,
-        semantic: bool = True,
-    ) -> None:
+        self, session: zenoh.Session, key_expr: str, msg_type: type[Msg] | None = None, *, capacity: int = 1024, ring: bool = False,
+        callback: Callable[[Received[Msg]], None] | None = None, semantic: bool = True,
+    ) -> None:  # fmt: skip
         self.key_expr = key_expr
         self._semantic = semantic
         self._msg_type = msg_type
@@ -332,15 +325,9 @@ class Bus:
         return self._shm
 
     def subscribe(
-        self,
-        key_expr: str,
-        msg_type: type[Msg] | None = None,
-        *,
-        capacity: int = 1024,
-        ring: bool = False,
-        callback: Callable[[Received[Msg]], None] | None = None,
-        semantic: bool = True,
-    ) -> Subscription[Msg]:
+        self, key_expr: str, msg_type: type[Msg] | None = None, *, capacity: int = 1024, ring: bool = False,
+        callback: Callable[[Received[Msg]], None] | None = None, semantic: bool = True,
+    ) -> Subscription[Msg]:  # fmt: skip
         """Decode messages on ``key_expr``; the type comes from the key when ``msg_type`` is None.
 
         ``semantic=False`` checks wire format and schema only, for a consumer that validates the

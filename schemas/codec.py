@@ -430,15 +430,24 @@ def marker_problems(f: MarkerFields) -> list[tuple[int, str]]:
     return sorted(found.items())
 
 
-def _has_unknown_fields(msg: Message) -> bool:
-    """True if ``msg`` or any sub-message carries fields our schema does not define.
+def _has_unknown_fields(msg: Message, payload: bytes) -> bool:
+    """True if ``msg``, parsed from ``payload``, or any sub-message carries fields our schema does
+    not define; they are dropped from ``msg`` either way.
 
-    The serialised size counts unknown fields at any depth; dropping them (protobuf does it in C,
-    recursively) and comparing is ten times faster than walking the sub-messages in Python.
+    The serialised size counts unknown fields at any depth, and dropping them is done by protobuf
+    in C, recursively: ten times faster than walking the sub-messages in Python. When what is
+    left serialises to exactly the payload's length, nothing was dropped (the common case, one
+    size computation); otherwise the payload may just be encoded differently, and a fresh parse
+    compares the sizes before and after dropping.
     """
-    size = msg.ByteSize()
     msg.DiscardUnknownFields()
-    return msg.ByteSize() != size
+    if msg.ByteSize() == len(payload):
+        return False
+    fresh = type(msg)()
+    fresh.ParseFromString(payload)
+    size = fresh.ByteSize()
+    fresh.DiscardUnknownFields()
+    return fresh.ByteSize() != size
 
 
 def check_id(value: str, what: str) -> None:
@@ -446,10 +455,10 @@ def check_id(value: str, what: str) -> None:
         raise DecodeError(f"{what} {value[:40]!r} is not a valid id")
 
 
-def _validate(msg: Message, semantic: bool = True) -> None:
+def _validate(msg: Message, payload: bytes, semantic: bool = True) -> None:
     """Semantic checks beyond protobuf's wire format, per message type."""
     # Fields our schema does not know mean garbage or a producer on another schema version.
-    if _has_unknown_fields(msg):
+    if _has_unknown_fields(msg, payload):
         raise DecodeError(f"{msg.DESCRIPTOR.full_name} carries fields this schema does not define")
     if not semantic:
         return
@@ -483,10 +492,10 @@ def decode(payload: bytes, msg_type: type[Msg], semantic: bool = True) -> Msg:
     ``semantic=False`` checks the wire format and the schema only, for a caller that validates
     the content of many messages at once (``marker_batch``).
     """
-    msg = msg_type()
+    msg, data = msg_type(), bytes(payload)
     try:
-        msg.ParseFromString(bytes(payload))
+        msg.ParseFromString(data)
     except (_PbDecodeError, RuntimeError, ValueError) as exc:
         raise DecodeError(f"not a valid {msg_type.DESCRIPTOR.full_name}: {exc}") from exc
-    _validate(msg, semantic)
+    _validate(msg, data, semantic)
     return msg

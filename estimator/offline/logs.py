@@ -30,6 +30,9 @@ from schemas.log import LogMessage, ReadReport, read_log
 log = logging.getLogger(__name__)
 BLOCK_FRAMES = 30  # marker frames per camera validated and folded in together (1 s at 30 Hz)
 PROGRESS_EVERY_S = 0.2
+Progress = Callable[[int, int], None] | None  # (bytes read, total bytes)
+OnMessage = Callable[[LogMessage], None] | None  # every message that is not a marker observation
+Cells = set[str] | None  # the cell names of the keys read are added here
 PIPE_BYTES = 1 << 20  # Linux's ceiling for an unprivileged pipe: ~5 blocks of 30 frames
 
 
@@ -44,11 +47,7 @@ class FrameFields:
 
 
 def frame_blocks(
-    path: Path,
-    report: ReadReport,
-    progress: Callable[[int, int], None] | None = None,
-    on_message: Callable[[LogMessage], None] | None = None,
-    cells: set[str] | None = None,
+    path: Path, report: ReadReport, progress: Progress = None, on_message: OnMessage = None, cells: Cells = None,
 ) -> Iterator[FrameBlock]:
     """Each camera's marker frames in blocks of ``BLOCK_FRAMES``, validated a block at a time; every
     other message goes to ``on_message`` as it is read (one pass over the log). The cell names of
@@ -58,11 +57,7 @@ def frame_blocks(
 
 
 def frame_fields(
-    path: Path,
-    report: ReadReport,
-    progress: Callable[[int, int], None] | None = None,
-    on_message: Callable[[LogMessage], None] | None = None,
-    cells: set[str] | None = None,
+    path: Path, report: ReadReport, progress: Progress = None, on_message: OnMessage = None, cells: Cells = None,
 ) -> Iterator[FrameFields]:
     """``frame_blocks`` before the checks: the part of the work that reads the log."""
     pending: dict[str, list[m.MarkerObservations]] = {}
@@ -98,11 +93,7 @@ def checked(raw: FrameFields, report: ReadReport) -> Iterator[FrameBlock]:
 
 
 def background_frame_blocks(
-    path: Path,
-    report: ReadReport,
-    progress: Callable[[int, int], None] | None = None,
-    on_message: Callable[[LogMessage], None] | None = None,
-    cells: set[str] | None = None,
+    path: Path, report: ReadReport, progress: Progress = None, on_message: OnMessage = None, cells: Cells = None,
 ) -> Iterator[FrameBlock]:
     """``frame_blocks`` with the log read in a child process (``python -m estimator.offline.logs``):
     the same blocks, messages, report and cells, in the same order, while the caller's solve runs

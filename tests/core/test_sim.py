@@ -11,7 +11,7 @@ from drivers.errors import ScenarioError
 from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import NoiseSpec, Scenario, load_scenario
 from schemas.codec import CameraInfo
-from schemas.geometry import invert_pose
+from schemas.geometry import invert_pose, rotation_angle
 
 MINIMAL = """
 name = "mini"
@@ -107,7 +107,7 @@ def test_bumped_camera_moves_by_the_scripted_amount() -> None:
     before, after = cam.world_T_camera(13.9), cam.world_T_camera(14.1)
     assert np.linalg.norm(after[:3, 3] - before[:3, 3]) == pytest.approx(0.03, abs=1e-9)
     R = before[:3, :3].T @ after[:3, :3]
-    assert np.degrees(np.arccos((np.trace(R) - 1) / 2)) == pytest.approx(2.0, abs=1e-6)
+    assert np.degrees(rotation_angle(np.eye(3), R)) == pytest.approx(2.0, abs=1e-6)
 
 
 def test_unknown_camera_is_named() -> None:
