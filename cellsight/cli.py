@@ -114,6 +114,15 @@ def _load_cell(cell_config: Path | None, scenario: Path | None = None):
     return complete(cfg)
 
 
+def _drive(cfg, publish_images: bool, camera: str, source, transport: TransportFlags, duration: float | None) -> None:
+    """Serve one camera's frame source on the bus until it ends, ``duration`` or Ctrl-C / SIGTERM."""
+    from drivers.service import DriverService
+
+    stop = _stop_event()
+    with _bus(cfg, None, transport) as bus:
+        DriverService(bus, source, camera, cfg.markers, publish_images=publish_images).run(stop, duration)
+
+
 def _stop_event():
     """An event set by Ctrl-C or SIGTERM, so long-running commands shut down cleanly."""
     import signal
@@ -305,7 +314,6 @@ def driver_sim(
     verbose: VerboseOpt = False,
 ) -> None:
     """Run one simulated camera: render, detect markers, publish every camera key (plus truth/)."""
-    from drivers.service import DriverService
     from drivers.sim.scenario import load_scenario
     from drivers.sim.source import SimSource
 
@@ -315,9 +323,7 @@ def driver_sim(
     if cam is None:
         raise _fail(f"camera {camera!r} is not in the cell; cameras: {[c.id for c in cfg.cameras]}", 2)
     source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns)
-    stop = _stop_event()
-    with _bus(cfg, None, transport) as bus:
-        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+    _drive(cfg, cam.publish_images, camera, source, transport, duration)
 
 
 @driver_app.command("openni2")
@@ -333,7 +339,6 @@ def driver_openni2(
     """Run one OpenNI2 sensor (Kinect v1, Xtion, .oni file): frames and marker observations on the bus."""
     from drivers.config import CameraConfig
     from drivers.openni2 import OpenNI2Source
-    from drivers.service import DriverService
     from schemas.codec import CameraInfo
 
     _setup_logging(verbose)
@@ -348,9 +353,7 @@ def driver_openni2(
         i = cam.intrinsics
         info = CameraInfo(cam.width, cam.height, [[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1]], list(i.distortion))
     source = OpenNI2Source(camera, uri if uri is not None else cam.uri, width=cam.width, height=cam.height, rate_hz=cam.rate_hz, info=info, lib_dir=cam.openni2_path)
-    stop = _stop_event()
-    with _bus(cfg, None, transport) as bus:
-        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+    _drive(cfg, cam.publish_images, camera, source, transport, duration)
     # libOpenNI2's native shutdown segfaults once a frame has been read (seen with the plain
     # bindings and Debian's Dummy device too), which would turn every clean stop into a crash
     # for the supervisor: everything of ours is closed and flushed, so leave without it.
@@ -375,7 +378,6 @@ def driver_realsense(
     """Run one Intel RealSense D4xx (or play its recording): frames and marker observations on the bus."""
     from drivers.config import CameraConfig
     from drivers.realsense import RealSenseSource
-    from drivers.service import DriverService
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
@@ -383,9 +385,7 @@ def driver_realsense(
     recording = bag if bag is not None else cam.recording
     source = RealSenseSource(camera, serial=serial or cam.serial or None, recording=recording, width=cam.width, height=cam.height,
                              rate_hz=cam.rate_hz, record_to=record_to)  # fmt: skip
-    stop = _stop_event()
-    with _bus(cfg, None, transport) as bus:
-        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+    _drive(cfg, cam.publish_images, camera, source, transport, duration)
 
 
 @app.command("estimator")

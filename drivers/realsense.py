@@ -33,7 +33,8 @@ from drivers.frames import Frame
 from schemas.codec import CameraInfo
 
 log = logging.getLogger(__name__)
-WAIT_MS = 5000  # a live device that sends nothing for this long is taken as gone
+WAIT_MS = 5000  # a device that sends nothing for this long is taken as gone
+POLL_MS = 100  # how often a wait looks whether a recording has ended
 RECORDINGS = (".bag", ".db3")
 CHECKLIST = (
     "check: the camera is on a USB 3 port (`lsusb` lists 8086:0b07 or similar), this user may access it (librealsense's "
@@ -85,16 +86,19 @@ class RealSenseSource:
             config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, int(round(rate_hz)))
             if record_to is not None:
                 config.enable_record_to_file(str(record_to))
+        if recording is None:  # say at once what is there, rather than after the pipeline's own time-out
+            found = [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
+            if not found or (serial and serial not in found):
+                raise NoDeviceError(f"no RealSense {serial or 'device'} on this host; devices found: {found or 'none'}; {CHECKLIST}")
         self.pipeline = rs.pipeline()
         try:
             profile = self.pipeline.start(config)
         except RuntimeError as exc:
-            found = [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
-            raise NoDeviceError(f"cannot open RealSense {recording or serial or '(first device)'}: {exc}; devices found: "
-                                f"{found or 'none'}; {CHECKLIST}") from exc  # fmt: skip
+            raise NoDeviceError(f"cannot open RealSense {recording or serial or '(first device)'}: {exc}; {CHECKLIST}") from exc
         device = profile.get_device()
-        if recording is not None:  # real time: paced like the camera; else every frame, as fast as it is read
-            device.as_playback().set_real_time(real_time)
+        self._playback = device.as_playback() if recording is not None else None
+        if self._playback is not None:  # real time: paced like the camera; else every frame, as fast as it is read
+            self._playback.set_real_time(real_time)
         color = profile.get_stream(rs.stream.color).as_video_stream_profile()
         self.info = camera_info(color.get_intrinsics())
         self.depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
@@ -115,12 +119,17 @@ class RealSenseSource:
         return self._offset_ns + int(round(ms * 1e6))
 
     def read(self) -> Frame | None:
+        waited_ms = 0
         while True:
-            ok, frames = self.pipeline.try_wait_for_frames(WAIT_MS)
+            ok, frames = self.pipeline.try_wait_for_frames(POLL_MS)
             if not ok:
-                if self.recording is not None:
+                if self._playback is not None and self._playback.current_status() == self._rs.playback_status.stopped:
                     return None  # the recording has ended
-                raise NoDeviceError(f"{self.name}: no frames for {WAIT_MS / 1000:.0f} s (unplugged?); {CHECKLIST}")
+                waited_ms += POLL_MS
+                if waited_ms >= WAIT_MS:
+                    raise NoDeviceError(f"{self.name}: no frames for {WAIT_MS / 1000:.0f} s (unplugged?); {CHECKLIST}")
+                continue
+            waited_ms = 0
             aligned = self._align.process(frames)
             depth, color = aligned.get_depth_frame(), aligned.get_color_frame()
             if not depth or not color or abs(depth.get_timestamp() - color.get_timestamp()) > self.period_ms / 2:

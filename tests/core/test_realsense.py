@@ -84,5 +84,5 @@ def test_markers_from_the_recording_match_the_sim_drivers(recording: tuple[Path,
 def test_a_missing_recording_or_device_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(DriverError, match="not a RealSense recording"):
         RealSenseSource("x", recording=tmp_path / "nothing.db3")
-    with pytest.raises(DriverError, match="devices found: none"):
+    with pytest.raises(DriverError, match="no RealSense 000000000000 on this host; devices found: none"):
         RealSenseSource("x", serial="000000000000")
