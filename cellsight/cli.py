@@ -300,6 +300,8 @@ app.add_typer(sim_app, name="sim")
 app.add_typer(markers_app, name="markers")
 model_app = typer.Typer(help="Recognition model databases.", no_args_is_help=True)
 app.add_typer(model_app, name="model")
+export_app = typer.Typer(help="Logs in other tools' formats.", no_args_is_help=True)
+app.add_typer(export_app, name="export")
 
 
 @driver_app.command("sim")
@@ -746,6 +748,29 @@ def resolve_cmd(
         typer.echo(f"  {child}: {o.poses} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))
     if run.read.stopped_early:
         _stderr().print(f"[yellow]warning:[/] the log ended early ({run.read.stopped_early}); resolved from the {run.read.messages} messages before it")
+
+
+@export_app.command("ros2")
+def export_ros2(
+    log_file: Annotated[Path, typer.Argument(help="MCAP log (cellsight record / demo, or resolve's resolved.mcap)")],
+    out: Annotated[Path, typer.Option("--out", help="new folder for the ROS 2 bag")],
+    distro: Annotated[str, typer.Option(help="ROS 2 message definitions: jazzy or humble")] = "jazzy",
+) -> None:
+    """Write a log as a ROS 2 bag (MCAP storage, CDR): tf, camera poses, observations, images."""
+    from rich.progress import BarColumn, DownloadColumn, Progress
+
+    from cellsight.export_ros2 import export_bag
+
+    if not log_file.is_file():
+        raise _fail(f"{log_file}: no such log file", 2)
+    with Progress("[progress.description]{task.description}", BarColumn(), DownloadColumn(), console=_stderr()) as bar:
+        task = bar.add_task("exporting", total=log_file.stat().st_size)
+        result = export_bag(log_file, out, distro, lambda done, total: bar.update(task, completed=done))
+    for topic, n in sorted(result.messages.items()):
+        typer.echo(f"{n:8d}  {topic}")
+    typer.echo(f"wrote {result.bag}/ (ros2 bag play {result.bag})")
+    if result.read.stopped_early:
+        _stderr().print(f"[yellow]warning:[/] the log ended early ({result.read.stopped_early}); exported what was readable")
 
 
 @app.command("compare")

@@ -1,0 +1,120 @@
+"""ROS 2 messages for our poses, transforms and images, encoded as CDR with ``rosbags`` (message
+definitions, serialisation and RIHS01 type hashes in pure Python: no ROS installation).
+
+Frame ids follow REP-103/105: ``world`` is the cell's frame, a camera's frame is its colour
+optical frame ``<camera>_color_optical_frame``, markers and objects keep our names
+(``marker_<id>``, ``object_<id>``). Our protobuf keys stay the native wire; this is the view of
+the same data a ROS 2 tool reads (``cellsight export ros2``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Iterable
+
+import numpy as np
+
+from schemas.errors import SchemaError
+from schemas.geometry import quat_from_matrix
+
+WORLD = "world"
+DISTROS = ("jazzy", "humble")
+
+
+def optical_frame(camera_id: str) -> str:
+    """REP-105 frame id of a camera's colour optical frame."""
+    return f"{camera_id}_color_optical_frame"
+
+
+def ros_frame(child: str) -> str:
+    """Our child frame name as a ROS frame id: markers (``marker_<id>``) and objects (``object_<id>``)
+    keep theirs; every other child of ``world`` is a camera and becomes its optical frame."""
+    return child if child.startswith(("marker_", "object_")) else optical_frame(child)
+
+
+@dataclass(frozen=True)
+class Ros2Types:
+    """The message types of one ROS 2 distribution (``rosbags`` typestore)."""
+
+    distro: str
+    store: Any
+
+    def serialize(self, msg: object, typename: str) -> bytes:
+        """CDR bytes (little endian, with the encapsulation header) of a message."""
+        return bytes(self.store.serialize_cdr(msg, typename))
+
+    def deserialize(self, data: bytes, typename: str) -> Any:
+        return self.store.deserialize_cdr(data, typename)
+
+    def type_hash(self, typename: str) -> str:
+        """RIHS01 hash (Jazzy and later), or ``TypeHashNotSupported`` (Humble), as rmw_zenoh names it."""
+        return self.store.hash_rihs01(typename) if self.distro != "humble" else "TypeHashNotSupported"
+
+    def _t(self, name: str) -> Any:
+        return self.store.types[name]
+
+    def time(self, stamp_ns: int) -> Any:
+        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        return self._t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec)
+
+    def header(self, stamp_ns: int, frame_id: str) -> Any:
+        return self._t("std_msgs/msg/Header")(stamp=self.time(stamp_ns), frame_id=frame_id)
+
+    def pose(self, T: np.ndarray) -> Any:
+        q = quat_from_matrix(T[:3, :3])
+        point = self._t("geometry_msgs/msg/Point")(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
+        quat = self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+        return self._t("geometry_msgs/msg/Pose")(position=point, orientation=quat)
+
+    def tf_message(self, stamp_ns: int, transforms: Iterable[tuple[str, str, np.ndarray]]) -> Any:
+        """tf2_msgs/TFMessage of (parent frame id, child frame id, parent_T_child 4x4)."""
+        out = []
+        for parent, child, T in transforms:
+            q = quat_from_matrix(T[:3, :3])
+            tr = self._t("geometry_msgs/msg/Transform")(
+                translation=self._t("geometry_msgs/msg/Vector3")(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                rotation=self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+            )
+            out.append(self._t("geometry_msgs/msg/TransformStamped")(header=self.header(stamp_ns, parent), child_frame_id=child, transform=tr))
+        return self._t("tf2_msgs/msg/TFMessage")(transforms=out)
+
+    def pose_with_covariance(self, stamp_ns: int, frame_id: str, T: np.ndarray, covariance: np.ndarray | None) -> Any:
+        """geometry_msgs/PoseWithCovarianceStamped; the 6x6 covariance in ROS order (x y z rx ry rz),
+        as ours is; unknown covariance: zeros but -1 first (the ROS convention for "unknown")."""
+        cov = np.asarray(covariance, dtype=np.float64).reshape(36) if covariance is not None else np.r_[-1.0, np.zeros(35)]
+        inner = self._t("geometry_msgs/msg/PoseWithCovariance")(pose=self.pose(T), covariance=cov)
+        return self._t("geometry_msgs/msg/PoseWithCovarianceStamped")(header=self.header(stamp_ns, frame_id), pose=inner)
+
+    def pose_array(self, stamp_ns: int, frame_id: str, poses: Iterable[np.ndarray]) -> Any:
+        return self._t("geometry_msgs/msg/PoseArray")(header=self.header(stamp_ns, frame_id), poses=[self.pose(T) for T in poses])
+
+    def image(self, stamp_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> Any:
+        """sensor_msgs/Image of an (H, W, 3) rgb8 or (H, W) 16UC1 array."""
+        pixels = np.ascontiguousarray(pixels)
+        h, w = pixels.shape[:2]
+        step = w * (pixels.shape[2] if pixels.ndim == 3 else 1) * pixels.dtype.itemsize
+        return self._t("sensor_msgs/msg/Image")(header=self.header(stamp_ns, frame_id), height=h, width=w, encoding=encoding,
+                                                is_bigendian=0, step=step, data=pixels.view(np.uint8).reshape(-1))  # fmt: skip
+
+    def camera_info(self, stamp_ns: int, frame_id: str, width: int, height: int, K: np.ndarray, D: np.ndarray) -> Any:
+        P = np.hstack([np.asarray(K, np.float64), np.zeros((3, 1))])
+        roi = self._t("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return self._t("sensor_msgs/msg/CameraInfo")(
+            header=self.header(stamp_ns, frame_id), height=height, width=width, distortion_model="plumb_bob",
+            d=np.asarray(D, np.float64), k=np.asarray(K, np.float64).reshape(9), r=np.eye(3).reshape(9), p=P.reshape(12),
+            binning_x=0, binning_y=0, roi=roi,
+        )  # fmt: skip
+
+
+def ros2_types(distro: str = "jazzy") -> Ros2Types:
+    """The message types of ``distro`` (``jazzy``: RIHS01 type hashes; ``humble``: none)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    if distro not in DISTROS:
+        raise SchemaError(f"ROS 2 distribution {distro!r} is not supported; use one of {DISTROS}")
+    return Ros2Types(distro, get_typestore(Stores.ROS2_JAZZY if distro == "jazzy" else Stores.ROS2_HUMBLE))
+
+
+def stamp_ns(t: Any) -> int:
+    """Integer nanoseconds of a builtin_interfaces/Time."""
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
