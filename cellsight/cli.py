@@ -408,7 +408,7 @@ def estimator_cmd(
     est_cfg = cfg.estimator if state_file is None else cfg.estimator.model_copy(update={"state_file": state_file})
     stop = _stop_event()
     with _bus(cfg, None, transport) as bus:
-        EstimatorService(bus, est_cfg).run(stop, duration)
+        EstimatorService(bus, est_cfg, cfg.ros2).run(stop, duration)
 
 
 @app.command("recognition")

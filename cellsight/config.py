@@ -5,6 +5,7 @@
     [[cameras]]            one per sensor (drivers.config.CameraConfig)
     [markers]              marker front-end (drivers.config.MarkerConfig)
     [estimator]            solver and [[estimator.anchors]] (estimator.config)
+    [ros2]                 ROS 2 (rmw_zenoh) view of the estimates for robots (schemas.ros2)
 
 Environment overrides: ``CELLSIGHT__SECTION__FIELD=value`` (value parsed as JSON when it parses,
 else taken as a string), e.g. ``CELLSIGHT__TRANSPORT__MODE=peer``.
@@ -25,6 +26,7 @@ from estimator.config import EstimatorConfig
 from recognition.config import RecognitionConfig
 from schemas.bus import TransportConfig
 from schemas.keys import check_name
+from schemas.ros2 import Ros2Config
 from schemas.spec import format_validation_error, read_toml
 
 ENV_PREFIX = "CELLSIGHT__"
@@ -49,6 +51,7 @@ class CellConfig(BaseModel):
     markers: MarkerConfig = Field(default_factory=MarkerConfig)
     estimator: EstimatorConfig = Field(default_factory=EstimatorConfig)
     recognition: RecognitionConfig = Field(default_factory=RecognitionConfig)
+    ros2: Ros2Config = Field(default_factory=Ros2Config)
 
     @model_validator(mode="after")
     def _consistent(self) -> "CellConfig":

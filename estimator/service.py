@@ -24,6 +24,8 @@ from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus, Received
 from schemas.errors import DecodeError
+from schemas.rmw_zenoh import QOS_LATCHED, QOS_TF, NodeName, Ros2Node, Ros2Publisher
+from schemas.ros2 import WORLD, Ros2Config, optical_frame, ros2_types
 
 log = logging.getLogger(__name__)
 SAVE_PERIOD_S = 5.0
@@ -103,8 +105,39 @@ class ClockJumps:
         return stamp_ns - step
 
 
+class Ros2Out:
+    """The estimates on ROS 2's wire (rmw_zenoh) beside our own keys: /tf (world -> each camera's
+    optical frame and each mapped marker), /tf_static (the anchors, re-sent every
+    ``static_every_s`` for late joiners), ``/cellsight/<camera>/pose`` with covariance."""
+
+    def __init__(self, bus: Bus, config: Ros2Config, anchors: dict[int, np.ndarray]) -> None:
+        self.config = config
+        self.types = ros2_types(config.distro)
+        self.node = Ros2Node(bus.session, NodeName(config.domain_id, config.node), self.types)
+        self.tf = self.node.publisher("/tf", "tf2_msgs/msg/TFMessage", QOS_TF)
+        self.tf_static = self.node.publisher("/tf_static", "tf2_msgs/msg/TFMessage", QOS_LATCHED)
+        self.anchors = anchors
+        self.poses: dict[str, Ros2Publisher] = {}
+        self._last_static = 0.0
+
+    def publish(self, cams: list[codec.StampedPose], marks: list[codec.StampedPose], stamp_ns: int) -> None:
+        frames = [(p.parent, optical_frame(p.child), p.T) for p in cams] + [(p.parent, p.child, p.T) for p in marks]
+        self.tf.put(self.types.tf_message(stamp_ns, frames), stamp_ns)
+        for p in cams:
+            if p.child not in self.poses:
+                self.poses[p.child] = self.node.publisher(f"/cellsight/{p.child}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")
+            self.poses[p.child].put(self.types.pose_with_covariance(p.stamp_ns, WORLD, p.T, p.covariance), p.stamp_ns)
+        if self.anchors and time.monotonic() - self._last_static >= self.config.static_every_s:
+            anchors = [(WORLD, keys.marker_frame(k), T) for k, T in sorted(self.anchors.items())]
+            self.tf_static.put(self.types.tf_message(stamp_ns, anchors), stamp_ns)
+            self._last_static = time.monotonic()
+
+    def close(self) -> None:
+        self.node.close()
+
+
 class EstimatorService:
-    def __init__(self, bus: Bus, config: EstimatorConfig) -> None:
+    def __init__(self, bus: Bus, config: EstimatorConfig, ros2: Ros2Config | None = None) -> None:
         self.bus = bus
         self.config = config
         self.estimator = Estimator(config)
@@ -126,6 +159,7 @@ class EstimatorService:
             "status": bus.publisher(keys.estimate_status(cell)),
         }
         self._queryable = bus.session.declare_queryable(keys.estimate_map(cell), self._answer_map)
+        self.ros2 = Ros2Out(bus, ros2, self.estimator.anchors) if ros2 is not None and ros2.enabled else None
         bus.declare_alive("estimator", "main")
 
     # ------------------------------------------------------------ state
@@ -212,6 +246,8 @@ class EstimatorService:
         self._pub["cameras"].put(cams_msg)
         self._pub["markers"].put(marks_msg)
         self._pub["status"].put(status)
+        if self.ros2 is not None:
+            self.ros2.publish(cams, marks, stamp_ns)
         with self._lock:
             self._map = m.Map(cameras=cams_msg, markers=marks_msg, status=status)
 
@@ -253,3 +289,5 @@ class EstimatorService:
             if est is not None:
                 self.save(est)
             self._queryable.undeclare()
+            if self.ros2 is not None:
+                self.ros2.close()

@@ -10,15 +10,28 @@ the same data a ROS 2 tool reads (``cellsight export ros2``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any, Iterable, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.errors import SchemaError
 from schemas.geometry import quat_from_matrix
 
 WORLD = "world"
 DISTROS = ("jazzy", "humble")
+
+
+class Ros2Config(BaseModel):
+    """ROS 2 on the cell's zenoh routers (rmw_zenoh's wire): what the estimator publishes for robots."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    enabled: bool = Field(default=False, description="publish /tf, /tf_static and camera poses as rmw_zenoh does")
+    domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots that read them")
+    distro: Literal["jazzy", "humble"] = Field(default="jazzy", description="jazzy and later: RIHS01 type hashes; humble: none")
+    node: str = Field(default="cellsight_estimator", description="the ROS 2 node name the estimator appears as")
+    static_every_s: float = Field(default=1.0, gt=0, description="/tf_static (anchors) is re-sent this often for late joiners")
 
 
 def optical_frame(camera_id: str) -> str:
