@@ -390,6 +390,34 @@ def driver_realsense(
     _drive(cfg, cam.publish_images, camera, source, transport, duration)
 
 
+@driver_app.command("ros2")
+@transport_options
+def driver_ros2(
+    camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")],
+    color: Annotated[Optional[str], typer.Option("--color", help="colour image topic (default: the config's, else realsense2_camera's)")] = None,
+    depth: Annotated[Optional[str], typer.Option("--depth", help="depth image topic, aligned to colour")] = None,
+    info: Annotated[Optional[str], typer.Option("--info", help="the colour camera's CameraInfo topic")] = None,
+    cell_config: CellConfigOpt = None,
+    duration: DurationOpt = None,
+    transport: TransportFlags = TransportFlags(),
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run one ROS 2 camera (its topics on this zenoh router, rmw_zenoh): marker observations and frames on the bus."""
+    from drivers.config import CameraConfig
+    from drivers.ros2_topics import Ros2TopicsSource
+    from drivers.service import DriverService
+    from schemas.ros2 import ros2_types
+
+    _setup_logging(verbose)
+    cfg = _load(cell_config)
+    cam = next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source="ros2")
+    stop = _stop_event()
+    with _bus(cfg, None, transport) as bus:
+        source = Ros2TopicsSource(camera, bus.session, ros2_types(cfg.ros2.distro), color=color or cam.color_topic, depth=depth or cam.depth_topic,
+                                  info=info or cam.info_topic, domain_id=cfg.ros2.domain_id, rate_hz=cam.rate_hz)  # fmt: skip
+        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+
+
 @app.command("estimator")
 @transport_options
 def estimator_cmd(

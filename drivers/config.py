@@ -50,10 +50,14 @@ class CameraConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     id: str
-    source: Literal["sim", "openni2", "realsense"] = "sim"
+    source: Literal["sim", "openni2", "realsense", "ros2"] = "sim"
     uri: str = Field(default="", description="openni2: device URI, 'Dummy' or a .oni file; empty = first device")
     serial: str = Field(default="", description="realsense: the device's serial number; empty = first device")
     recording: Path | None = Field(default=None, description="realsense: play this .bag/.db3 recording instead of a device")
+    color_topic: str = Field(default="/camera/camera/color/image_raw", description="ros2: colour image topic (rgb8/bgr8)")
+    depth_topic: str = Field(default="/camera/camera/aligned_depth_to_color/image_raw",
+                             description="ros2: depth aligned to colour (16UC1 mm or 32FC1 m)")  # fmt: skip
+    info_topic: str = Field(default="/camera/camera/color/camera_info", description="ros2: the colour camera's CameraInfo")
     width: int = Field(default=640, gt=0)
     height: int = Field(default=480, gt=0)
     rate_hz: float = Field(default=30.0, gt=0)

@@ -66,3 +66,42 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if "e2e" in item.path.parts:
             item.add_marker(pytest.mark.slow)
+
+
+#: The ROS 2 message definitions the rmw_zenoh tests' third-party peer (zenoh-ros2-sdk) needs.
+ROS2_MESSAGES = ("tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform",
+                 "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion", "std_msgs/msg/Header", "builtin_interfaces/msg/Time",
+                 "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Pose",
+                 "geometry_msgs/msg/Point", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "sensor_msgs/msg/RegionOfInterest")  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def ros2_messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """zenoh-ros2-sdk's message registry (one per process) pointed at .msg files written from the
+    definitions rosbags ships, each type's own section of its generated definition: the SDK
+    would fetch them from git otherwise, and tests never touch the network."""
+    from rosbags.typesys import Stores, get_typestore
+    from zenoh_ros2_sdk.message_registry import get_registry
+
+    root = tmp_path_factory.mktemp("ros2_msgs")
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name in ROS2_MESSAGES:
+        package, kind, msg = name.split("/")
+        (root / package / kind).mkdir(parents=True, exist_ok=True)
+        (root / package / kind / f"{msg}.msg").write_text(store.generate_msgdef(name, ros_version=2)[0].split("=" * 80)[0].strip() + "\n")
+    registry = get_registry(str(root))
+    if registry.messages_dir != root:
+        pytest.fail(f"zenoh-ros2-sdk's registry was set up elsewhere first ({registry.messages_dir})")
+    return root
+
+
+@pytest.fixture(scope="session")
+def ros2_router() -> Iterator[str]:
+    """A loopback router for the tests that use zenoh-ros2-sdk: the SDK keeps one zenoh session per
+    process, connected to the first router it is given, so those tests share this one."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = open_session(TransportConfig.router([endpoint]))
+    try:
+        yield endpoint
+    finally:
+        session.close()

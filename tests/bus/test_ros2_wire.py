@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rosbags.typesys import Stores, get_typestore
 
 from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from estimator.service import EstimatorService
@@ -20,23 +19,6 @@ from schemas.rmw_zenoh import attachment, dds_type_name, mangle, topic_key
 from schemas.ros2 import Ros2Config, ros2_types
 from tests.bus.test_estimator_service import CELL, scene
 from tests.helpers import wait_until
-
-TF_DEPENDENCIES = ("tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform",
-                   "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion", "std_msgs/msg/Header",
-                   "builtin_interfaces/msg/Time", "geometry_msgs/msg/PoseWithCovarianceStamped",
-                   "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Pose", "geometry_msgs/msg/Point")  # fmt: skip
-
-
-def write_messages_dir(root: Path) -> Path:
-    """The .msg files the SDK needs (it would fetch them from git otherwise), written from the
-    definitions rosbags ships: each type's own section of its generated definition."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    for name in TF_DEPENDENCIES:
-        package, kind, msg = name.split("/")
-        (root / package / kind).mkdir(parents=True, exist_ok=True)
-        (root / package / kind / f"{msg}.msg").write_text(store.generate_msgdef(name, ros_version=2)[0].split("=" * 80)[0].strip() + "\n")
-    return root
-
 
 def test_keys_hashes_and_attachment_as_rmw_zenoh_states_them() -> None:
     """ros2/rmw_zenoh docs/design.md: topic keys are ``<domain>/<topic>/<DDS type>/<type hash>``,
@@ -55,18 +37,15 @@ def test_keys_hashes_and_attachment_as_rmw_zenoh_states_them() -> None:
 
 
 @pytest.mark.slow
-def test_a_ros2_node_reads_the_estimators_tf_and_poses(router_endpoint: str, tmp_path: Path) -> None:
+def test_a_ros2_node_reads_the_estimators_tf_and_poses(ros2_router: str, ros2_messages: Path) -> None:
     from zenoh_ros2_sdk import ROS2Subscriber
-    from zenoh_ros2_sdk.message_registry import get_registry
-
-    get_registry(str(write_messages_dir(tmp_path / "msgs")))  # no network: the SDK reads these
-    port = int(router_endpoint.rsplit(":", 1)[1])
+    port = int(ros2_router.rsplit(":", 1)[1])
     tf, poses = [], []
     subs = [ROS2Subscriber(topic="/tf", msg_type="tf2_msgs/msg/TFMessage", callback=tf.append, router_ip="127.0.0.1", router_port=port),
             ROS2Subscriber(topic="/cellsight/a/pose", msg_type="geometry_msgs/msg/PoseWithCovarianceStamped", callback=poses.append,
                            router_ip="127.0.0.1", router_port=port)]  # fmt: skip
     s = scene()
-    transport = TransportConfig(connect=[router_endpoint])
+    transport = TransportConfig(connect=[ros2_router])
     with Bus(transport, CELL) as svc_bus, Bus(transport, CELL) as client:
         svc = EstimatorService(svc_bus, estimator_config(s, update_hz=20.0), Ros2Config(enabled=True))
         stop = threading.Event()
