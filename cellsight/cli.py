@@ -73,6 +73,7 @@ app.add_typer(security_app, name="security")
 RECOGNITION_NICE = 5
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="debug logging")]
 DurationOpt = Annotated[Optional[float], typer.Option(help="stop after this many seconds")]
+CameraIdOpt = Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")]
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -121,6 +122,13 @@ def _drive(cfg, publish_images: bool, camera: str, source, transport: TransportF
     stop = _stop_event()
     with _bus(cfg, None, transport) as bus:
         DriverService(bus, source, camera, cfg.markers, publish_images=publish_images).run(stop, duration)
+
+
+def _camera_section(cfg, camera: str, source: str):
+    """The cell config's section of ``camera``, or a default one of the given source."""
+    from drivers.config import CameraConfig
+
+    return next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source=source)
 
 
 def _stop_event():
@@ -368,7 +376,7 @@ def driver_openni2(
 @driver_app.command("realsense")
 @transport_options
 def driver_realsense(
-    camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")],
+    camera: CameraIdOpt,
     serial: Annotated[Optional[str], typer.Option("--serial", help="device serial number (default: the config's, else the first device)")] = None,
     bag: Annotated[Optional[Path], typer.Option("--bag", help="play a RealSense recording (.bag or .db3) instead of a device")] = None,
     record_to: Annotated[Optional[Path], typer.Option("--record-to", help="also record the device to this .db3 file")] = None,
@@ -378,12 +386,11 @@ def driver_realsense(
     verbose: VerboseOpt = False,
 ) -> None:
     """Run one Intel RealSense D4xx (or play its recording): frames and marker observations on the bus."""
-    from drivers.config import CameraConfig
     from drivers.realsense import RealSenseSource
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
-    cam = next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source="realsense")
+    cam = _camera_section(cfg, camera, "realsense")
     recording = bag if bag is not None else cam.recording
     source = RealSenseSource(camera, serial=serial or cam.serial or None, recording=recording, width=cam.width, height=cam.height,
                              rate_hz=cam.rate_hz, record_to=record_to)  # fmt: skip
@@ -393,7 +400,7 @@ def driver_realsense(
 @driver_app.command("ros2")
 @transport_options
 def driver_ros2(
-    camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")],
+    camera: CameraIdOpt,
     color: Annotated[Optional[str], typer.Option("--color", help="colour image topic (default: the config's, else realsense2_camera's)")] = None,
     depth: Annotated[Optional[str], typer.Option("--depth", help="depth image topic, aligned to colour")] = None,
     info: Annotated[Optional[str], typer.Option("--info", help="the colour camera's CameraInfo topic")] = None,
@@ -403,14 +410,13 @@ def driver_ros2(
     verbose: VerboseOpt = False,
 ) -> None:
     """Run one ROS 2 camera (its topics on this zenoh router, rmw_zenoh): marker observations and frames on the bus."""
-    from drivers.config import CameraConfig
     from drivers.ros2_topics import Ros2TopicsSource
     from drivers.service import DriverService
     from schemas.ros2 import ros2_types
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
-    cam = next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source="ros2")
+    cam = _camera_section(cfg, camera, "ros2")
     stop = _stop_event()
     with _bus(cfg, None, transport) as bus:
         source = Ros2TopicsSource(camera, bus.session, ros2_types(cfg.ros2.distro), color=color or cam.color_topic, depth=depth or cam.depth_topic,
