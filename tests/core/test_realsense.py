@@ -86,3 +86,11 @@ def test_a_missing_recording_or_device_is_a_clear_error(tmp_path: Path) -> None:
         RealSenseSource("x", recording=tmp_path / "nothing.db3")
     with pytest.raises(DriverError, match="no RealSense 000000000000 on this host; devices found: none"):
         RealSenseSource("x", serial="000000000000")
+
+
+def test_without_pyrealsense2_the_error_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pyrealsense2", None)  # as if the extra were not installed
+    with pytest.raises(DriverError, match=r"pip install 'cellsight\[realsense\]'"):
+        RealSenseSource("x", serial="1")
