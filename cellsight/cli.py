@@ -115,13 +115,14 @@ def _load_cell(cell_config: Path | None, scenario: Path | None = None):
     return complete(cfg)
 
 
-def _drive(cfg, publish_images: bool, camera: str, source, transport: TransportFlags, duration: float | None) -> None:
-    """Serve one camera's frame source on the bus until it ends, ``duration`` or Ctrl-C / SIGTERM."""
+def _drive(cfg, publish_images: bool, camera: str, make_source, transport: TransportFlags, duration: float | None) -> None:
+    """Serve one camera on the bus until its source ends, ``duration`` or Ctrl-C / SIGTERM.
+    ``make_source(bus)`` gives the frame source (a ROS 2 camera's reads the same session)."""
     from drivers.service import DriverService
 
     stop = _stop_event()
     with _bus(cfg, None, transport) as bus:
-        DriverService(bus, source, camera, cfg.markers, publish_images=publish_images).run(stop, duration)
+        DriverService(bus, make_source(bus), camera, cfg.markers, publish_images=publish_images).run(stop, duration)
 
 
 def _camera_section(cfg, camera: str, source: str):
@@ -333,7 +334,7 @@ def driver_sim(
     if cam is None:
         raise _fail(f"camera {camera!r} is not in the cell; cameras: {[c.id for c in cfg.cameras]}", 2)
     source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns)
-    _drive(cfg, cam.publish_images, camera, source, transport, duration)
+    _drive(cfg, cam.publish_images, camera, lambda _bus: source, transport, duration)
 
 
 @driver_app.command("openni2")
@@ -363,7 +364,7 @@ def driver_openni2(
         i = cam.intrinsics
         info = CameraInfo(cam.width, cam.height, [[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1]], list(i.distortion))
     source = OpenNI2Source(camera, uri if uri is not None else cam.uri, width=cam.width, height=cam.height, rate_hz=cam.rate_hz, info=info, lib_dir=cam.openni2_path)
-    _drive(cfg, cam.publish_images, camera, source, transport, duration)
+    _drive(cfg, cam.publish_images, camera, lambda _bus: source, transport, duration)
     # libOpenNI2's native shutdown segfaults once a frame has been read (seen with the plain
     # bindings and Debian's Dummy device too), which would turn every clean stop into a crash
     # for the supervisor: everything of ours is closed and flushed, so leave without it.
@@ -394,7 +395,7 @@ def driver_realsense(
     recording = bag if bag is not None else cam.recording
     source = RealSenseSource(camera, serial=serial or cam.serial or None, recording=recording, width=cam.width, height=cam.height,
                              rate_hz=cam.rate_hz, record_to=record_to)  # fmt: skip
-    _drive(cfg, cam.publish_images, camera, source, transport, duration)
+    _drive(cfg, cam.publish_images, camera, lambda _bus: source, transport, duration)
 
 
 @driver_app.command("ros2")
@@ -411,17 +412,17 @@ def driver_ros2(
 ) -> None:
     """Run one ROS 2 camera (its topics on this zenoh router, rmw_zenoh): marker observations and frames on the bus."""
     from drivers.ros2_topics import Ros2TopicsSource
-    from drivers.service import DriverService
     from schemas.ros2 import ros2_types
 
     _setup_logging(verbose)
     cfg = _load(cell_config)
     cam = _camera_section(cfg, camera, "ros2")
-    stop = _stop_event()
-    with _bus(cfg, None, transport) as bus:
-        source = Ros2TopicsSource(camera, bus.session, ros2_types(cfg.ros2.distro), color=color or cam.color_topic, depth=depth or cam.depth_topic,
-                                  info=info or cam.info_topic, domain_id=cfg.ros2.domain_id, rate_hz=cam.rate_hz)  # fmt: skip
-        DriverService(bus, source, camera, cfg.markers, publish_images=cam.publish_images).run(stop, duration)
+
+    def topics(bus):  # subscribes on the driver's own session
+        return Ros2TopicsSource(camera, bus.session, ros2_types(cfg.ros2.distro), color=color or cam.color_topic, depth=depth or cam.depth_topic,
+                                info=info or cam.info_topic, domain_id=cfg.ros2.domain_id, rate_hz=cam.rate_hz)  # fmt: skip
+
+    _drive(cfg, cam.publish_images, camera, topics, transport, duration)
 
 
 @app.command("estimator")

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Callable
 
 from schemas import codec, keys
-from schemas import messages as m
 from schemas.errors import SchemaError
 from schemas.log import ReadReport, read_log
 from schemas.ros2 import WORLD, Ros2Types, optical_frame, ros2_types, ros_frame
@@ -64,8 +63,9 @@ def export_bag(log_path: Path, out: Path, distro: str = "jazzy", progress: Calla
 def _convert(types: Ros2Types, camera: str | None, topic: str, msg):
     """(ROS topic, type name, message) for one of our messages; nothing for what is not exported."""
     if topic == "tf":
-        for tr in msg.transforms:  # one TFMessage per stamp, as tf2 broadcasters send them
-            T = codec.transforms_from_msg(m.FrameTransforms(transforms=[tr]))[(tr.parent_frame_id, tr.child_frame_id)]
+        poses = codec.transforms_from_msg(msg)
+        for tr in msg.transforms:  # one TFMessage per transform, each with its own stamp
+            T = poses[(tr.parent_frame_id, tr.child_frame_id)]
             yield TF, "tf2_msgs/msg/TFMessage", types.tf_message(
                 codec.timestamp_to_stamp(tr.timestamp), [(tr.parent_frame_id, ros_frame(tr.child_frame_id), T)])
     elif topic == "estimate/cameras":

@@ -70,7 +70,6 @@ class Ros2TopicsSource:
         self._latest: dict[str, tuple[int, np.ndarray]] = {}
         self._info: CameraInfo | None = None
         self._pair: tuple[int, np.ndarray, np.ndarray] | None = None
-        self._last_stamp = -1
         self._bad = 0
         self._subs = [
             session.declare_subscriber(topic_pattern(domain_id, color, IMAGE), lambda s: self._image(s, "color")),

@@ -6,6 +6,7 @@ one is the "other" branch a flip would be is the estimator's decision, made here
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -105,7 +106,7 @@ def validated_fields(camera_id: str, frames: int, fields: MarkerFields) -> Valid
     if kept:
         a = fields.arrays(keep_rows)
         renumbered = np.searchsorted(np.array(kept), a.frame)  # frame indices among the kept frames
-        rows = observation_rows(MarkerArrays(a.ids, a.poses, a.quaternions, a.covariances, a.ambiguous, renumbered))
+        rows = observation_rows(dataclasses.replace(a, frame=renumbered))
     return ValidatedFrames(kept, rows, sorted(why.items()))
 
 

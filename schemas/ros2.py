@@ -73,21 +73,22 @@ class Ros2Types:
     def header(self, stamp_ns: int, frame_id: str) -> Any:
         return self._t("std_msgs/msg/Header")(stamp=self.time(stamp_ns), frame_id=frame_id)
 
-    def pose(self, T: np.ndarray) -> Any:
+    def _xyz_quat(self, T: np.ndarray, xyz_type: str) -> tuple[Any, Any]:
+        """The translation of a 4x4 pose as ``xyz_type`` (Point or Vector3) and its rotation as a Quaternion."""
         q = quat_from_matrix(T[:3, :3])
-        point = self._t("geometry_msgs/msg/Point")(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
-        quat = self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+        return (self._t(xyz_type)(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))  # fmt: skip
+
+    def pose(self, T: np.ndarray) -> Any:
+        point, quat = self._xyz_quat(T, "geometry_msgs/msg/Point")
         return self._t("geometry_msgs/msg/Pose")(position=point, orientation=quat)
 
     def tf_message(self, stamp_ns: int, transforms: Iterable[tuple[str, str, np.ndarray]]) -> Any:
         """tf2_msgs/TFMessage of (parent frame id, child frame id, parent_T_child 4x4)."""
         out = []
         for parent, child, T in transforms:
-            q = quat_from_matrix(T[:3, :3])
-            tr = self._t("geometry_msgs/msg/Transform")(
-                translation=self._t("geometry_msgs/msg/Vector3")(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                rotation=self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
-            )
+            vector, quat = self._xyz_quat(T, "geometry_msgs/msg/Vector3")
+            tr = self._t("geometry_msgs/msg/Transform")(translation=vector, rotation=quat)
             out.append(self._t("geometry_msgs/msg/TransformStamped")(header=self.header(stamp_ns, parent), child_frame_id=child, transform=tr))
         return self._t("tf2_msgs/msg/TFMessage")(transforms=out)
 

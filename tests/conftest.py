@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+from contextlib import contextmanager
 import subprocess
 from pathlib import Path
 from typing import Iterator
@@ -21,8 +22,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture()
-def router_endpoint() -> Iterator[str]:
+@contextmanager
+def loopback_router() -> Iterator[str]:
     """A zenoh router listening on a free loopback port, multicast off; yields its endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = open_session(TransportConfig.router([endpoint]))
@@ -30,6 +31,12 @@ def router_endpoint() -> Iterator[str]:
         yield endpoint
     finally:
         session.close()
+
+
+@pytest.fixture()
+def router_endpoint() -> Iterator[str]:
+    with loopback_router() as endpoint:
+        yield endpoint
 
 
 @pytest.fixture()
@@ -99,9 +106,5 @@ def ros2_messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def ros2_router() -> Iterator[str]:
     """A loopback router for the tests that use zenoh-ros2-sdk: the SDK keeps one zenoh session per
     process, connected to the first router it is given, so those tests share this one."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = open_session(TransportConfig.router([endpoint]))
-    try:
+    with loopback_router() as endpoint:
         yield endpoint
-    finally:
-        session.close()
