@@ -184,19 +184,21 @@ def security_init(
     cell: CellOpt = None,
     listen: Annotated[str, typer.Option("--listen", help="the router's TLS endpoint")] = "tls/127.0.0.1:7447",
     host: Annotated[Optional[list[str]], typer.Option("--host", help="name or address clients reach the router by (repeatable; default 127.0.0.1 and localhost)")] = None,
+    ros2_domain: Annotated[Optional[int], typer.Option("--ros2-domain", min=0, max=232, help="let this ROS 2 domain's rmw_zenoh traffic through ([ros2] enabled); default: none")] = None,
 ) -> None:
     """Make a certificate authority, certificates for the router and each role, and their zenoh configs.
 
     Then: `cellsight router --config DIR/router.json5`, and each process with `--config DIR/ROLE.json5`
-    (driver, estimator, recognition, recorder, viewer). Keep DIR/ca.key offline once done.
+    (driver, estimator, recognition, recorder, viewer; a ROS 2 robot's zenoh router or node uses
+    robot.pem / robot.key). Keep DIR/ca.key offline once done.
     """
-    from schemas.security import PUBLISH, write_profile
+    from schemas.security import PUBLISH, PUBLISH_ROS2, write_profile
 
-    profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"))
+    profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"), ros2_domain)
     typer.echo(f"router:      cellsight router --config {profile.router_config}")
     for role, path in profile.role_configs.items():
-        may = ", ".join(PUBLISH[role]) or "nothing (subscribe and query only)"
-        typer.echo(f"{role + ':':12} --config {path}   publishes: {may}")
+        topics = PUBLISH[role] + ([f"ROS 2 {ros2_domain}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else [])
+        typer.echo(f"{role + ':':12} --config {path}   publishes: {', '.join(topics) or 'nothing (subscribe and query only)'}")
 
 
 # ---------------------------------------------------------------- bus
@@ -467,7 +469,7 @@ def recognition_cmd(
     db = models_for(cfg, models)
     stop = _stop_event()
     with _bus(cfg, None, transport) as bus:
-        RecognitionWorker(bus, cfg.recognition, db).run(stop, duration)
+        RecognitionWorker(bus, cfg.recognition, db, cfg.ros2).run(stop, duration)
 
 
 @model_app.command("build")

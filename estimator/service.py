@@ -107,8 +107,9 @@ class ClockJumps:
 
 class Ros2Out:
     """The estimates on ROS 2's wire (rmw_zenoh) beside our own keys: /tf (world -> each camera's
-    optical frame and each mapped marker), /tf_static (the anchors, re-sent every
-    ``static_every_s`` for late joiners), ``/cellsight/<camera>/pose`` with covariance."""
+    optical frame, each mapped marker and each object the recognition worker reports), /tf_static
+    (the anchors, re-sent every ``static_every_s`` for late joiners), ``/cellsight/<camera>/pose``
+    with covariance. tf has one publisher, this node, so the secure profile can name who writes it."""
 
     def __init__(self, bus: Bus, config: Ros2Config, anchors: dict[int, np.ndarray]) -> None:
         self.config = config
@@ -118,6 +119,7 @@ class Ros2Out:
         self.tf_static = self.node.publisher("/tf_static", "tf2_msgs/msg/TFMessage", QOS_LATCHED)
         self.anchors = anchors
         self.poses: dict[str, Ros2Publisher] = {}
+        self._objects = bus.subscribe(keys.objects(bus.cell), m.ObjectDetections, capacity=1, ring=True)
         self._last_static = 0.0
 
     def publish(self, cams: list[codec.StampedPose], marks: list[codec.StampedPose], stamp_ns: int) -> None:
@@ -131,6 +133,10 @@ class Ros2Out:
             anchors = [(WORLD, keys.marker_frame(k), T) for k, T in sorted(self.anchors.items())]
             self.tf_static.put(self.types.tf_message(stamp_ns, anchors), stamp_ns)
             self._last_static = time.monotonic()
+        for item in self._objects.drain():  # each object stamped with the depth frame it was seen in
+            for o in item.msg.objects:
+                frame = (WORLD, f"object_{o.object_id}", codec.pose_from_msg(o.world_T_object))
+                self.tf.put(self.types.tf_message(o.stamp_ns, [frame]), o.stamp_ns)
 
     def close(self) -> None:
         self.node.close()

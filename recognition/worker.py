@@ -26,6 +26,8 @@ from schemas import geometry
 from schemas import messages as m
 from schemas.bus import Bus
 from schemas.errors import DecodeError, KeyError_
+from schemas.rmw_zenoh import NodeName, Ros2Node
+from schemas.ros2 import CLOUD, DETECTIONS, Ros2Config, ros2_types
 
 log = logging.getLogger(__name__)
 #: Marker observations this close in time to a depth frame (ns) count as seen with it.
@@ -118,22 +120,21 @@ def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDete
     return msg
 
 
-def scene_to_msg(stamp_ns: int, objects: list[FusedObject], db: ModelDatabase) -> m.SceneUpdate:
-    """Foxglove 3-D scene: each object's model bounding box, posed in world, with its name."""
+def scene_to_msg(stamp_ns: int, objects: list[FusedObject], boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> m.SceneUpdate:
+    """Foxglove 3-D scene: each object's model bounding box (``model_boxes``), posed in world, with its name."""
     msg = m.SceneUpdate()
     for o in objects:
-        model = db.models.get(o.object_id)
-        if model is None:
+        if o.object_id not in boxes:
             continue
-        lo, hi = model.points.min(axis=0), model.points.max(axis=0)
+        centre, size = boxes[o.object_id]
         ent = msg.entities.add(frame_id="world", id=f"object_{o.object_id}")
         codec.stamp_to_timestamp(stamp_ns, ent.timestamp)
         ent.lifetime.FromNanoseconds(2_000_000_000)
         cube = ent.cubes.add()
         box_T = o.world_T_object.copy()
-        box_T[:3, 3] = o.world_T_object[:3, :3] @ ((lo + hi) / 2) + o.world_T_object[:3, 3]
+        box_T[:3, 3] = o.world_T_object[:3, :3] @ centre + o.world_T_object[:3, 3]
         codec.foxglove_pose(box_T, cube.pose)
-        cube.size.x, cube.size.y, cube.size.z = (float(v) for v in hi - lo)
+        cube.size.x, cube.size.y, cube.size.z = (float(v) for v in size)
         cube.color.r, cube.color.g, cube.color.b, cube.color.a = 0.2, 0.8, 0.3, 0.5
         text = ent.texts.add(text=o.object_id, billboard=True, font_size=14)
         codec.foxglove_pose(o.world_T_object, text.pose)
@@ -141,14 +142,44 @@ def scene_to_msg(stamp_ns: int, objects: list[FusedObject], db: ModelDatabase) -
     return msg
 
 
+def model_boxes(db: ModelDatabase) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Object id -> (bounding box centre in the object frame (3,), size (3,)) of each model, metres."""
+    boxes = {}
+    for object_id, model in db.models.items():
+        lo, hi = model.points.min(axis=0), model.points.max(axis=0)
+        boxes[object_id] = ((lo + hi) / 2, hi - lo)
+    return boxes
+
+
+class Ros2Objects:
+    """The objects and the fused cloud on ROS 2's wire (rmw_zenoh), as the node ``recognition_node``:
+    ``/cellsight/objects`` (vision_msgs/Detection3DArray) and ``/cellsight/points`` (PointCloud2)."""
+
+    def __init__(self, bus: Bus, config: Ros2Config, boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        self.types = ros2_types(config.distro)
+        self.node = Ros2Node(bus.session, NodeName(config.domain_id, config.recognition_node), self.types)
+        self.objects = self.node.publisher("/cellsight/objects", DETECTIONS)
+        self.points = self.node.publisher("/cellsight/points", CLOUD)
+        self.boxes = boxes
+
+    def publish(self, objects: m.ObjectDetections, cloud: m.PointCloud | None) -> None:
+        self.objects.put(self.types.detections(objects, self.boxes), objects.stamp_ns)
+        if cloud is not None:
+            self.points.put(self.types.point_cloud(cloud), codec.timestamp_to_stamp(cloud.timestamp))
+
+    def close(self) -> None:
+        self.node.close()
+
+
 class RecognitionWorker:
     """Runs the recogniser on each localized camera in turn, at most ``rate_hz`` per camera."""
 
-    def __init__(self, bus: Bus, config: RecognitionConfig, database: ModelDatabase) -> None:
+    def __init__(self, bus: Bus, config: RecognitionConfig, database: ModelDatabase, ros2: Ros2Config | None = None) -> None:
         self.bus = bus
         self.config = config
         self.db = database
         self.recognizer = Recognizer(database, config)
+        self.boxes = model_boxes(database)
         cell = bus.cell
         self._depth = bus.subscribe(keys.all_cameras(cell, "depth/image_raw"), m.RawImage, capacity=16, ring=True)
         self._info = bus.subscribe(keys.all_cameras(cell, "camera_info"), m.CameraCalibration, capacity=64, ring=True)
@@ -159,6 +190,7 @@ class RecognitionWorker:
         self._pub_scene = bus.publisher(keys.objects_scene(cell))
         self._pub_points = bus.publisher(keys.points(cell))
         bus.declare_alive("recognition", "main")
+        self.ros2 = Ros2Objects(bus, ros2, self.boxes) if ros2 is not None and ros2.enabled else None
         self._object_T_marker = {mk.marker_id: (mk.object_id, mk.object_T_marker.matrix()) for mk in config.object_markers}
         self.intrinsics: dict[str, codec.CameraInfo] = {}
         self.world_T_camera: dict[str, np.ndarray] = {}
@@ -260,10 +292,14 @@ class RecognitionWorker:
             return None
         objects = fuse(self.current_detections())
         stamp = max((o.stamp_ns for o in objects), default=0)
-        self._pub.put(detections_to_msg(stamp, objects))
-        self._pub_scene.put(scene_to_msg(stamp, objects, self.db))
-        if self.config.cloud_voxel_m > 0:
-            self._pub_points.put(fused_cloud(stamp, self.clouds, self.world_T_camera))
+        detections = detections_to_msg(stamp, objects)
+        cloud = fused_cloud(stamp, self.clouds, self.world_T_camera) if self.config.cloud_voxel_m > 0 else None
+        self._pub.put(detections)
+        self._pub_scene.put(scene_to_msg(stamp, objects, self.boxes))
+        if cloud is not None:
+            self._pub_points.put(cloud)
+        if self.ros2 is not None:
+            self.ros2.publish(detections, cloud)
         return objects
 
     def current_detections(self) -> list[WorldDetection]:
@@ -287,6 +323,10 @@ class RecognitionWorker:
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
         stop = stop or threading.Event()
         start = time.monotonic()
-        while not stop.is_set() and (duration_s is None or time.monotonic() - start < duration_s):
-            if self.step() is None:
-                stop.wait(0.02)
+        try:
+            while not stop.is_set() and (duration_s is None or time.monotonic() - start < duration_s):
+                if self.step() is None:
+                    stop.wait(0.02)
+        finally:
+            if self.ros2 is not None:
+                self.ros2.close()

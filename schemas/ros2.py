@@ -10,16 +10,24 @@ the same data a ROS 2 tool reads (``cellsight export ros2``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Iterable, Literal
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Iterable, Literal, Mapping
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from schemas import codec
+from schemas import messages as m
 from schemas.errors import SchemaError
 from schemas.geometry import quat_from_matrix
 
 WORLD = "world"
 DISTROS = ("jazzy", "humble")
+#: .msg definitions of the packages rosbags' stores lack (vision_msgs), as ``<package>/msg/<Name>.msg``.
+SHIPPED_MSGS = Path(__file__).parent / "ros2_msgs"
+DETECTIONS = "vision_msgs/msg/Detection3DArray"
+CLOUD = "sensor_msgs/msg/PointCloud2"
 
 
 class Ros2Config(BaseModel):
@@ -31,6 +39,7 @@ class Ros2Config(BaseModel):
     domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots that read them")
     distro: Literal["jazzy", "humble"] = Field(default="jazzy", description="jazzy and later: RIHS01 type hashes; humble: none")
     node: str = Field(default="cellsight_estimator", description="the ROS 2 node name the estimator appears as")
+    recognition_node: str = Field(default="cellsight_recognition", description="the node name the recognition worker appears as")
     static_every_s: float = Field(default=1.0, gt=0, description="/tf_static (anchors) is re-sent this often for late joiners")
 
 
@@ -110,6 +119,39 @@ class Ros2Types:
         return self._t("sensor_msgs/msg/Image")(header=self.header(stamp_ns, frame_id), height=h, width=w, encoding=encoding,
                                                 is_bigendian=0, step=step, data=pixels.view(np.uint8).reshape(-1))  # fmt: skip
 
+    def detections(self, msg: m.ObjectDetections, boxes: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Any:
+        """vision_msgs/Detection3DArray (world frame) of our fused objects: class id and ``id`` are
+        the object id, score its fitness, pose covariance unknown. ``boxes``: object id -> (box
+        centre in the object frame (3,), size (3,)) in metres; without one the box is the pose, size 0."""
+        t, boxes = self._t, boxes or {}
+        out = []
+        for o in msg.objects:
+            T = codec.pose_from_msg(o.world_T_object)
+            centre, size = boxes.get(o.object_id, (np.zeros(3), np.zeros(3)))
+            box_T = T.copy()
+            box_T[:3, 3] = T[:3, :3] @ centre + T[:3, 3]
+            pose = t("geometry_msgs/msg/PoseWithCovariance")(pose=self.pose(T), covariance=np.r_[-1.0, np.zeros(35)])
+            hyp = t("vision_msgs/msg/ObjectHypothesisWithPose")(
+                hypothesis=t("vision_msgs/msg/ObjectHypothesis")(class_id=o.object_id, score=float(o.fitness)), pose=pose)
+            size_v = t("geometry_msgs/msg/Vector3")(x=float(size[0]), y=float(size[1]), z=float(size[2]))
+            out.append(t("vision_msgs/msg/Detection3D")(header=self.header(o.stamp_ns, WORLD), results=[hyp],
+                                                        bbox=t("vision_msgs/msg/BoundingBox3D")(center=self.pose(box_T), size=size_v), id=o.object_id))  # fmt: skip
+        return t(DETECTIONS)(header=self.header(msg.stamp_ns, WORLD), detections=out)
+
+    def point_cloud(self, msg: m.PointCloud) -> Any:
+        """sensor_msgs/PointCloud2 of our cloud: float32 x y z and the colour as PCL packs it
+        (``rgb``, 0x00RRGGBB in a float32's bytes), 16 bytes a point, unorganised."""
+        xyz, rgba = codec.points_from_msg(msg)
+        packed = np.zeros((len(xyz), 4), np.float32)
+        packed[:, :3] = xyz
+        rgb = (rgba[:, 0].astype(np.uint32) << 16) | (rgba[:, 1].astype(np.uint32) << 8) | rgba[:, 2].astype(np.uint32)
+        packed[:, 3] = rgb.view(np.float32)
+        field = self._t("sensor_msgs/msg/PointField")
+        fields = [field(name=n, offset=4 * i, datatype=field.FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))]
+        return self._t(CLOUD)(header=self.header(codec.timestamp_to_stamp(msg.timestamp), msg.frame_id), height=1, width=len(xyz),
+                              fields=fields, is_bigendian=False, point_step=16, row_step=16 * len(xyz),
+                              data=packed.view(np.uint8).reshape(-1), is_dense=True)  # fmt: skip
+
     def camera_info(self, stamp_ns: int, frame_id: str, width: int, height: int, K: np.ndarray, D: np.ndarray) -> Any:
         P = np.hstack([np.asarray(K, np.float64), np.zeros((3, 1))])
         roi = self._t("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
@@ -120,13 +162,18 @@ class Ros2Types:
         )  # fmt: skip
 
 
+@lru_cache(maxsize=None)
 def ros2_types(distro: str = "jazzy") -> Ros2Types:
-    """The message types of ``distro`` (``jazzy``: RIHS01 type hashes; ``humble``: none)."""
-    from rosbags.typesys import Stores, get_typestore
+    """The message types of ``distro`` (``jazzy``: RIHS01 type hashes; ``humble``: none), with the
+    packages we ship definitions of (``SHIPPED_MSGS``) registered."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     if distro not in DISTROS:
         raise SchemaError(f"ROS 2 distribution {distro!r} is not supported; use one of {DISTROS}")
-    return Ros2Types(distro, get_typestore(Stores.ROS2_JAZZY if distro == "jazzy" else Stores.ROS2_HUMBLE))
+    store = get_typestore(Stores.ROS2_JAZZY if distro == "jazzy" else Stores.ROS2_HUMBLE)
+    for f in sorted(SHIPPED_MSGS.glob("*/msg/*.msg")):
+        store.register(get_types_from_msg(f.read_text(), f"{f.parent.parent.name}/msg/{f.stem}"))
+    return Ros2Types(distro, store)
 
 
 def stamp_ns(t: Any) -> int:

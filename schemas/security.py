@@ -11,11 +11,15 @@ Who may do what is decided at the router, by the common name of the client certi
   simulator's; a real driver has none);
 - ``estimator`` publishes ``tf`` and ``estimate/``, and answers ``estimate/map`` queries;
 - ``recognition`` publishes ``objects`` and ``points``;
-- ``recorder`` and ``viewer`` (robots, Foxglove, ``cellsight status``) only subscribe and query.
+- ``recorder``, ``viewer`` (Foxglove, ``cellsight status``) and ``robot`` only subscribe and query.
 
-Every role may subscribe, query and hold a liveliness token under its own cell. Anything else is
-denied (the ACL's default), and a client without a certificate from this authority never gets
-past the TLS handshake.
+Every role may subscribe, query and hold a liveliness token under its own cell. With a ROS 2
+domain (``ros2_domain``), the same split holds on rmw_zenoh's keys (``<domain>/<topic>/...``):
+only ``estimator`` may put ``/tf``, ``/tf_static`` and ``/cellsight/<camera>/pose``, only
+``recognition`` ``/cellsight/objects`` and ``/cellsight/points``; every role, ``robot`` being the
+one a ROS 2 node uses, may subscribe there and hold graph tokens (``@ros2_lv/<domain>/**``, what
+``ros2 node list`` reads). Anything else is denied (the ACL's default), and a client without a
+certificate from this authority never gets past the TLS handshake.
 """
 
 from __future__ import annotations
@@ -41,6 +45,12 @@ PUBLISH: dict[str, list[str]] = {
     "recognition": ["objects", "objects/scene", "points"],
     "recorder": [],
     "viewer": [],
+    "robot": [],
+}
+#: What each role may publish on rmw_zenoh's keys, relative to ``<domain>/`` (topic, then type and hash).
+PUBLISH_ROS2: dict[str, list[str]] = {
+    "estimator": ["tf/**", "tf_static/**", "cellsight/*/pose/**"],
+    "recognition": ["cellsight/objects/**", "cellsight/points/**"],
 }
 ROLES = tuple(PUBLISH)
 VALID_DAYS = 825
@@ -112,26 +122,31 @@ def _issue(directory: Path, name: str, ca: x509.Certificate, ca_key: ec.Elliptic
     return cert_path, key_path
 
 
-def acl(cell: str) -> dict:
-    """The router's ``access_control`` section for one cell (zenoh 1.x schema)."""
+def acl(cell: str, ros2_domain: int | None = None) -> dict:
+    """The router's ``access_control`` section for one cell (zenoh 1.x schema); with ``ros2_domain``,
+    rmw_zenoh's keys of that ROS 2 domain too."""
     base = f"{keys.ROOT}/{keys.check_name(cell, 'cell name')}"
+    readable = [f"{base}/**"]
+    if ros2_domain is not None:
+        readable += [f"{int(ros2_domain)}/**", f"@ros2_lv/{int(ros2_domain)}/**"]
     rules = [
         {"id": "read", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query",
                       "liveliness_token"],
-         "key_exprs": [f"{base}/**"]},
+         "key_exprs": readable},
         # What the router hands out to subscribers and queriers.
         {"id": "deliver", "permission": "allow", "flows": ["egress"],
          "messages": ["put", "delete", "reply", "query", "liveliness_token", "declare_subscriber",
                       "declare_queryable", "declare_liveliness_subscriber", "liveliness_query"],
-         "key_exprs": [f"{base}/**"]},
+         "key_exprs": readable},
         {"id": "answer_map", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_queryable", "reply"], "key_exprs": [keys.estimate_map(cell)]},
     ]
     for role, topics in PUBLISH.items():
+        ros2 = [f"{int(ros2_domain)}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else []
         if topics:
             rules.append({"id": f"publish_{role}", "permission": "allow", "flows": ["ingress"],
-                          "messages": ["put", "delete"], "key_exprs": [f"{base}/{t}" for t in topics]})
+                          "messages": ["put", "delete"], "key_exprs": [f"{base}/{t}" for t in topics] + ros2})
     subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
     policies = [{"rules": ["read", "deliver"], "subjects": list(ROLES)}]
     policies += [{"rules": [f"publish_{role}"], "subjects": [role]} for role, topics in PUBLISH.items() if topics]
@@ -139,11 +154,13 @@ def acl(cell: str) -> dict:
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
-def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447", hosts: tuple[str, ...] = ("127.0.0.1", "localhost")) -> Profile:
+def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447", hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),
+                  ros2_domain: int | None = None) -> Profile:  # fmt: skip
     """Write a CA, the router's and every role's certificate and zenoh config into ``directory``.
 
     listen: the router's TLS endpoint; hosts: the names and addresses clients reach it by (they
-    go into its certificate). Refuses to overwrite an existing authority.
+    go into its certificate); ros2_domain: the ROS 2 domain whose rmw_zenoh keys the ACL covers
+    (None: no ROS 2 traffic passes). Refuses to overwrite an existing authority.
     """
     directory = Path(directory).resolve()  # the configs name their files by absolute path
     if (directory / "ca.pem").exists():
@@ -164,7 +181,7 @@ def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447"
         "transport": {"link": {"protocols": ["tls"], "tls": {
             "root_ca_certificate": str(ca_path), "listen_certificate": str(router_cert),
             "listen_private_key": str(router_key), "enable_mtls": True}}},
-        "access_control": acl(cell),
+        "access_control": acl(cell, ros2_domain),
     }
     router_config = directory / "router.json5"
     router_config.write_text(json.dumps(router, indent=2))

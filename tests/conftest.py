@@ -79,19 +79,23 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 ROS2_MESSAGES = ("tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform",
                  "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion", "std_msgs/msg/Header", "builtin_interfaces/msg/Time",
                  "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Pose",
-                 "geometry_msgs/msg/Point", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "sensor_msgs/msg/RegionOfInterest")  # fmt: skip
+                 "geometry_msgs/msg/Point", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "sensor_msgs/msg/RegionOfInterest",
+                 "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/PointField", "vision_msgs/msg/Detection3DArray",
+                 "vision_msgs/msg/Detection3D", "vision_msgs/msg/ObjectHypothesisWithPose", "vision_msgs/msg/ObjectHypothesis",
+                 "vision_msgs/msg/BoundingBox3D")  # fmt: skip
 
 
 @pytest.fixture(scope="session")
 def ros2_messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """zenoh-ros2-sdk's message registry (one per process) pointed at .msg files written from the
-    definitions rosbags ships, each type's own section of its generated definition: the SDK
-    would fetch them from git otherwise, and tests never touch the network."""
-    from rosbags.typesys import Stores, get_typestore
+    definitions rosbags ships and the vision_msgs ones we ship, each type's own section of its
+    generated definition: the SDK would fetch them from git otherwise, and tests never touch the network."""
     from zenoh_ros2_sdk.message_registry import get_registry
 
+    from schemas.ros2 import ros2_types
+
     root = tmp_path_factory.mktemp("ros2_msgs")
-    store = get_typestore(Stores.ROS2_JAZZY)
+    store = ros2_types("jazzy").store
     for name in ROS2_MESSAGES:
         package, kind, msg = name.split("/")
         (root / package / kind).mkdir(parents=True, exist_ok=True)

@@ -19,6 +19,9 @@ from schemas.log import LogWriter
 
 OBJECT_GAP_NS = 100_000_000  # object markers: sightings kept per camera and poses written per marker at <= 10 Hz
 
+#: ``source`` in the metadata of the logs resolve writes (``resolved.mcap``).
+RESOLVE_SOURCE = "cellsight resolve"
+
 
 class ObjectSpool:
     """Object-marker sightings from the log's static frames, kept on disk until the cameras are
@@ -108,7 +111,7 @@ def write_solution(
     end = max((s.last_stamp_ns for s in result.segments), default=0)
     # resolved.mcap: each segment's pose at its first and last frame, moving frames, object markers
     # over time, static markers and tf at the end.
-    w = LogWriter(out / "resolved.mcap", metadata={"source": "cellsight resolve", "object_markers": " ".join(map(str, object_markers or []))})
+    w = LogWriter(out / "resolved.mcap", metadata={"source": RESOLVE_SOURCE, "object_markers": " ".join(map(str, object_markers or []))})
     cameras = [(stamp, StampedPose("world", s.camera_id, stamp, s.world_T_camera, s.covariance))
                for s in result.segments for stamp in sorted({s.first_stamp_ns, s.last_stamp_ns})]  # fmt: skip
     cameras += [(k.stamp_ns, StampedPose("world", k.camera_id, k.stamp_ns, k.world_T_camera, k.covariance)) for k in result.keyframes]

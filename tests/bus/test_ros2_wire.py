@@ -29,6 +29,10 @@ def test_keys_hashes_and_attachment_as_rmw_zenoh_states_them() -> None:
         "0/chatter/std_msgs::msg::dds_::String_/TypeHashNotSupported"
     # REP-2011's hash of tf2_msgs/msg/TFMessage, as rmw_zenoh puts it in Jazzy keys
     assert jazzy.type_hash("tf2_msgs/msg/TFMessage") == "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+    # ... and of the cloud and (from the vision_msgs definitions we ship) the objects, as
+    # `ros2 topic info -v` on Jazzy prints them: our definitions hash like the real packages'.
+    assert jazzy.type_hash("sensor_msgs/msg/PointCloud2") == "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"
+    assert jazzy.type_hash("vision_msgs/msg/Detection3DArray") == "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018"
     assert topic_key(3, "/cellsight/cam1/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", "H") == \
         "3/cellsight/cam1/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/H"
     assert mangle("/cellsight/cam1/pose") == "%cellsight%cam1%pose" and mangle("/") == "%"

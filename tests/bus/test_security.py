@@ -4,9 +4,11 @@ certificates, access control at the router."""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
 import pytest
 
 from cellsight.config import CellConfig
@@ -15,6 +17,8 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig, open_session
 from schemas.errors import BusError
+from schemas.rmw_zenoh import NodeName, Ros2Node, topic_key
+from schemas.ros2 import DETECTIONS, ros2_types
 from schemas.security import Profile, write_profile
 from tests.conftest import free_port
 from tests.helpers import wait_until
@@ -80,6 +84,51 @@ def test_each_role_publishes_only_its_own_topics_and_everyone_reads(profile: Pro
     finally:
         for bus in (viewer, driver, estimator, recognition, other_viewer):
             bus.close()
+
+
+def test_on_ros2_keys_only_the_estimator_puts_tf_only_recognition_objects_and_a_robot_reads(tmp_path: Path) -> None:
+    """rmw_zenoh's wire under the secure profile: the real ROS 2 publishers (``Ros2Node``) of each
+    role, and a robot with its own certificate that reads them and sees the ROS 2 graph."""
+    p = write_profile(tmp_path / "secure", CELL, listen=f"tls/127.0.0.1:{free_port()}", ros2_domain=7)
+    router = open_session(TransportConfig(zenoh_config=p.router_config))
+    types = ros2_types("jazzy")
+    robot, other_robot, estimator, recognition, driver = (_as(p, r) for r in ("robot", "robot", "estimator", "recognition", "driver"))
+    got: list[str] = []
+    lock = threading.Lock()
+
+    def seen(key: str, payload: bytes, _ns: int) -> None:
+        with lock:
+            got.append(key.split("/")[1] + "/" + key.split("/")[2])
+
+    nodes = []
+    try:
+        robot.subscribe_raw("7/**", seen)
+        est, rec = (Ros2Node(b.session, NodeName(7, name), types) for b, name in ((estimator, "est"), (recognition, "rec")))
+        nodes += [est, rec]
+        wait_until(lambda: len([r for r in robot.session.liveliness().get("@ros2_lv/7/**", timeout=1.0) if r.ok]) >= 2, 5.0,
+                   "the robot to see both nodes in the ROS 2 graph")  # fmt: skip
+        tf = types.tf_message(1, [("world", "cam1_color_optical_frame", np.eye(4))])
+        objects = types.detections(m.ObjectDetections(stamp_ns=1))
+        # Denied first (one session's order is kept, so one that got through would arrive early).
+        rec.publisher("/tf", "tf2_msgs/msg/TFMessage").put(tf)
+        est.publisher("/cellsight/objects", DETECTIONS).put(objects)
+        other_robot.session.put(topic_key(7, "/tf", "tf2_msgs/msg/TFMessage", types.type_hash("tf2_msgs/msg/TFMessage")), b"spoof")
+        driver.session.put(topic_key(7, "/cellsight/cam1/pose", "x/msg/Y", "H"), b"spoof")
+        est.publisher("/tf", "tf2_msgs/msg/TFMessage").put(tf)
+        est.publisher("/cellsight/cam1/pose", "geometry_msgs/msg/PoseWithCovarianceStamped").put(
+            types.pose_with_covariance(1, "world", np.eye(4), None))
+        rec.publisher("/cellsight/objects", DETECTIONS).put(objects)
+        expected = ["cellsight/cam1", "cellsight/objects", "tf/tf2_msgs::msg::dds_::TFMessage_"]
+        wait_until(lambda: len(got) >= len(expected), 5.0, "every allowed ROS 2 message")
+        time.sleep(0.3)
+        with lock:
+            assert sorted(got) == expected, f"the robot received {sorted(got)}, expected only {expected}"
+    finally:
+        for node in nodes:
+            node.close()
+        for bus in (robot, other_robot, estimator, recognition, driver):
+            bus.close()
+        router.close()
 
 
 def test_a_client_without_a_certificate_is_refused(profile: Profile) -> None:
