@@ -13,6 +13,14 @@ reused), so a static cell's graph stops growing: cost per update and memory stay
 A camera whose marker positions jump (bumped, tilted) leaves the graph while it moves and comes
 back as a new segment once it is still again. Markers on objects are posed per frame through the
 cameras' current poses and never enter the map.
+
+Bounded history: a segment that ended is marginalised out (``_fold``). Its pair factors and the
+camera's previous history factor are linearised at the current estimate, the segment's pose is
+eliminated (Schur complement), and what remains, a Gaussian on the markers it saw, replaces them
+as one ``LinearContainerFactor`` per camera. The markers keep every bit of information the
+segment gave them (to first order: the history's Jacobian stays that of its linearisation point,
+as in any fixed-lag smoother); the graph holds live segments x markers, however often cameras
+move. ``keep_history=True`` (the offline solve, which reports every segment) keeps them instead.
 """
 
 from __future__ import annotations
@@ -289,6 +297,7 @@ class CameraTrack:
     last_positions: dict[int, Observation] = field(default_factory=dict)
     latest: dict[int, Observation] = field(default_factory=dict)  # newest frame's observations
     markers_seen: int = 0
+    segment_start_ns: int = 0  # stamp of the current segment's first frame
 
 
 @dataclass(frozen=True)
@@ -329,11 +338,21 @@ class Counters:
     last_update_rebuilt: int = 0  # pair factors that call rebuilt
 
 
+@dataclass
+class History:
+    """The marginalised past of one camera: a linear factor on the markers its ended segments saw."""
+
+    factor: gtsam.LinearContainerFactor
+    slot: int | None = None  # iSAM2 factor index once in the graph
+    segments: int = 0  # segments folded into it
+
+
 class Estimator:
     """Incremental joint estimate of camera and marker poses. Pure: no I/O, no clocks but stamps."""
 
-    def __init__(self, config: EstimatorConfig) -> None:
+    def __init__(self, config: EstimatorConfig, keep_history: bool = False) -> None:
         self.config = config
+        self.keep_history = keep_history
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(config.relinearize_threshold)
         params.relinearizeSkip = 1
@@ -346,6 +365,8 @@ class Estimator:
         self.tracks: dict[str, CameraTrack] = {}
         self.pairs: dict[tuple[CameraKey, int], Pair] = {}
         self.camera_index: dict[CameraKey, int] = {}
+        self._next_camera = 0  # camera_index values are never reused: folded segments leave it
+        self.history: dict[str, History] = {}  # camera id -> its folded segments (bounded history)
         self.in_graph: set[int] = set()  # gtsam keys with values in iSAM2
         self.values = gtsam.Values()
         self.counters = Counters()
@@ -514,6 +535,7 @@ class Estimator:
                 return False
             track.moving, track.suspect = False, 0
             track.segment += 1  # a new static segment: a fresh variable, placed from scratch
+            track.segment_start_ns = track.last_stamp_ns
             log.info("%s is still again: segment %d", track.camera_id, track.segment)
             return True
         track.last_positions = positions
@@ -556,8 +578,61 @@ class Estimator:
 
     def _camera_key(self, cam: CameraKey) -> int:
         if cam not in self.camera_index:
-            self.camera_index[cam] = len(self.camera_index)
+            self.camera_index[cam] = self._next_camera
+            self._next_camera += 1
         return camera_symbol(self.camera_index[cam])
+
+    def _pair_factor(self, ck: int, mk: int, pair: Pair) -> gtsam.BetweenFactorPose3:
+        """The robust factor of a pair's current mean; remembers what it holds (``factor_*``)."""
+        pair.factor_cov = pair.factor_covariance(self.config.max_fused, self.rotation_floor_rad)
+        pair.factor_n_eff = min(pair.n, self.config.max_fused)
+        pair.factor_mean = pair.mean(exact=True).copy()
+        noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(pair.factor_cov)))
+        return gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.factor_mean), noise)
+
+    def ended_segments(self, now_ns: int) -> list[CameraKey]:
+        """Segments a camera left (it moved and settled again) at least ``fold_after_s`` ago: by
+        then the graph has re-converged around the camera's new pose, the point their
+        marginal is linearised at for good."""
+        after = int(self.config.fold_after_s * 1e9)
+        return [cam for cam in self.camera_index
+                if cam[1] < self.tracks[cam[0]].segment and now_ns - self.tracks[cam[0]].segment_start_ns >= after]  # fmt: skip
+
+    def _fold(self, cam: CameraKey, graph: gtsam.NonlinearFactorGraph, remove: list[int]) -> History | None:
+        """Marginalise an ended segment into its camera's history factor (see the module docstring).
+
+        Adds the new history factor to ``graph`` and the slots it replaces to ``remove``; the
+        segment's pairs and index entry go. Returns the history to give a slot, or None if the
+        segment never reached the graph (it had no path to an anchor: nothing to keep)."""
+        ck = self._camera_key(cam)
+        pairs = [(mk, p) for (c, mk), p in self.pairs.items() if c == cam]
+        for mk, _ in pairs:
+            del self.pairs[(cam, mk)]
+        del self.camera_index[cam]
+        if ck not in self.in_graph:
+            return None
+        sub = gtsam.NonlinearFactorGraph()
+        for mk, pair in pairs:
+            if pair.slot is not None:
+                remove.append(pair.slot)
+            if pair.n > 0 and marker_symbol(mk) in self.in_graph:
+                sub.add(self._pair_factor(ck, marker_symbol(mk), pair))
+        old = self.history.get(cam[0])
+        if old is not None and old.slot is not None:
+            sub.add(old.factor)
+            remove.append(old.slot)
+        self.in_graph.discard(ck)  # iSAM2 drops a variable whose factors are all removed
+        if sub.size() == 0:
+            return None
+        _, rest = sub.linearize(self.values).eliminatePartialSequential(gtsam.Ordering([ck]))
+        marginal = gtsam.HessianFactor(rest)
+        point = gtsam.Values()
+        for key in marginal.keys():
+            point.insert(key, self.values.atPose3(key))
+        history = History(gtsam.LinearContainerFactor(marginal, point), segments=(old.segments if old else 0) + 1)
+        self.history[cam[0]] = history
+        graph.add(history.factor)
+        return history
 
     def update(self, now_ns: int, refresh_all: bool = False) -> None:
         """Place new variables and refresh due pair factors in one iSAM2 update.
@@ -567,25 +642,29 @@ class Estimator:
         t0, c0 = time.perf_counter(), time.thread_time()
         graph, values = self._pending_priors
         self._pending_priors = (gtsam.NonlinearFactorGraph(), gtsam.Values())
+        remove: list[int] = []
+        slotted: list[tuple[int, Pair | History]] = []  # position in ``graph`` -> what gets that slot
+        if not self.keep_history:
+            for cam in self.ended_segments(now_ns):
+                position = graph.size()
+                history = self._fold(cam, graph, remove)
+                if history is not None:
+                    slotted.append((position, history))
         new_values = gtsam.Values(values)
         self._place_new(new_values)
-        remove: list[int] = []
-        refreshed: list[Pair] = []
+        refreshed = 0
         due = [(k, p) for k, p in self.pairs.items() if p.dirty] if refresh_all else self._due_pairs(now_ns)
         for (cam, marker_id), pair in due:
             ck, mk = self._camera_key(cam), marker_symbol(marker_id)
             if not (self._has(ck, new_values) and self._has(mk, new_values)):
                 continue
-            pair.factor_cov = pair.factor_covariance(self.config.max_fused, self.rotation_floor_rad)
-            pair.factor_n_eff = min(pair.n, self.config.max_fused)
-            pair.factor_mean = pair.mean(exact=True).copy()
-            noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(pair.factor_cov)))
-            graph.add(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.factor_mean), noise))
+            slotted.append((graph.size(), pair))
+            graph.add(self._pair_factor(ck, mk, pair))
             if pair.slot is not None:
                 remove.append(pair.slot)
-            refreshed.append(pair)
+            refreshed += 1
             pair.refreshed_ns, pair.dirty = now_ns, False
-        self.counters.last_update_rebuilt = len(refreshed)
+        self.counters.last_update_rebuilt = refreshed
         if graph.size() == 0 and not remove:
             # A tick with nothing due still reports its own (tiny) cost: a stale figure here made
             # the status repeat the last real update's time at 10 Hz.
@@ -594,15 +673,14 @@ class Estimator:
         result = self.isam.update(graph, new_values, remove)
         if new_values.size() > 0:
             self.relax(2)  # new variables start from BFS guesses: let them settle like a batch solve
-        slots = list(result.getNewFactorsIndices())
-        # Anchor priors come first in the graph; pair factors follow in order.
-        for pair, slot in zip(refreshed, slots[len(slots) - len(refreshed):]):
-            pair.slot = slot
+        slots = list(result.getNewFactorsIndices())  # one per factor of ``graph``, in its order
+        for position, owner in slotted:
+            owner.slot = slots[position]
         for key in new_values.keys():
             self.in_graph.add(key)
         self.values = self.isam.calculateEstimate()
         self.counters.updates += 1
-        self.counters.factors_rebuilt += len(refreshed)
+        self.counters.factors_rebuilt += refreshed
         self._timed(t0, c0)
 
     def _timed(self, t0: float, c0: float) -> None:
@@ -698,10 +776,9 @@ class Estimator:
                 state = CameraState.STALE
             cams[cid] = CameraEstimate(cid, state, track.segment, track.last_stamp_ns, track.markers_seen, pose)
         markers = {}
-        for mk in {m for (_, m) in self.pairs} | set(self.anchors) | self.seeded:
-            key = marker_symbol(mk)
-            if key in self.in_graph:
-                markers[mk] = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)
+        for key in sorted(self.in_graph):
+            if gtsam.Symbol(key).chr() == ord("m"):
+                markers[gtsam.Symbol(key).index()] = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)
         return Estimate(cams, markers, self._object_markers(cams), self._flagged_anchors())
 
     def _track_pose(self, track: CameraTrack) -> np.ndarray | None:
@@ -767,6 +844,10 @@ class Estimator:
         return sorted(flagged)
 
     # ------------------------------------------------------------ for tests and the offline solver
+
+    def factor_count(self) -> int:
+        """Factors in the graph now (removed slots not counted)."""
+        return int(self.isam.getFactorsUnsafe().nrFactors())
 
     def factor_graph(self) -> gtsam.NonlinearFactorGraph:
         """The current factors (removed slots skipped), e.g. for a batch solve of the same graph."""

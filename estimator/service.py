@@ -261,7 +261,7 @@ class EstimatorService:
         c = self.estimator.counters
         msg = m.EstimatorStatus(
             stamp_ns=stamp_ns, observations=c.observations, rejected=c.rejected + sum(self._sub.bad.values()) + sum(self.bad_frames.values()),
-            unknown_markers=c.unknown_markers, update_ms=c.last_update_ms, factors=len(self.estimator.pairs) + len(self.estimator.anchors),
+            unknown_markers=c.unknown_markers, update_ms=c.last_update_ms, factors=self.estimator.factor_count(),
             factors_rebuilt=c.factors_rebuilt, update_cpu_ms=c.last_update_cpu_ms,
         )  # fmt: skip
         msg.flagged_anchors.extend(est.flagged_anchors)

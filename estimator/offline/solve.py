@@ -116,7 +116,7 @@ def resolve(
     each block's object-marker observations from static frames, to be placed through the solved
     cameras afterwards (``place_objects``); they are not part of the map.
     """
-    est = Estimator(config)
+    est = Estimator(config, keep_history=True)  # every segment is reported
     moving = MovingFrames(config.keyframes)
     links = ObjectLinks(config.links)
     last_update = None
