@@ -1,12 +1,16 @@
-"""Long-run cost of the estimator core: hours of 8 cameras x 30 Hz x 8 markers, as fast as possible.
+"""Long-run cost of the estimator core: hours of 8 cameras x 30 Hz x 8 markers, cameras moving.
 
-A ring of 16 markers (4 anchors) seen by 8 static cameras, each seeing 8 of them; noise from the
+A ring of 16 markers (4 anchors) seen by 8 cameras, each seeing 8 of them; noise from the
 front-end's depth-refined covariance model, pre-drawn (a pool of frames per camera, cycled with
 advancing stamps) so the benchmark measures the estimator, not the random number generator.
+Every ``--move-every`` simulated seconds (default 20; 0: a still cell) one camera, in turn, is
+bumped: 2-5 cm and 0.5-2 deg from where it was installed; its pool moves with it (each
+observation left-multiplied by the bump, so its noise stays what it was in the marker's frame).
 The daemon's own path: every 10 Hz tick, each camera's 3 new frames go in as one block
 (``Estimator.add_frames``), then one ``update``. Figures: update and tick (ingest + update)
-latency, resident memory growth after the first simulated minute, observations consumed per
-wall-clock second, how many updates did solver work.
+latency, factors in the graph (largest seen), resident memory growth after the first simulated
+minute, observations consumed per wall-clock second, how many updates did solver work, and each
+camera's position error against truth just before the last move.
 
 The last/first-hour latency ratio is measured twice. Sequentially (``_sequential``): the run's
 last hour against its first, minutes or hours of wall time apart, so it also measures how the
@@ -22,7 +26,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from rich.progress import Progress
@@ -91,6 +95,53 @@ def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[Observ
 
 
 @dataclass
+class Mover:
+    """Bumps one camera in turn every ``every_ticks`` ticks; moves its pool with it; knows the truth."""
+
+    cams: dict[str, tuple[np.ndarray, list[int]]]  # installed world_T_camera and markers seen
+    base: dict[str, list[ObservationRows]]  # the pools at the installed poses
+    pools: dict[str, list[ObservationRows]]  # what the runners read (changed in place)
+    every_ticks: int
+    rng: np.random.Generator
+    moves: int = 0
+    truth: dict[str, np.ndarray] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.truth = {cid: T for cid, (T, _) in self.cams.items()}
+
+    def due(self, tick: int) -> bool:
+        return self.every_ticks > 0 and tick > 0 and tick % self.every_ticks == 0
+
+    def move(self) -> str:
+        cid = sorted(self.cams)[self.moves % len(self.cams)]
+        axis = self.rng.normal(size=3)
+        angle = math.radians(self.rng.uniform(0.5, 2.0))
+        shift = self.rng.normal(size=3)
+        bump = np.eye(4)  # installed_T_bumped, in the camera's own frame
+        bump[:3, :3] = gtsam_rotation(axis / np.linalg.norm(axis) * angle)
+        bump[:3, 3] = shift / np.linalg.norm(shift) * self.rng.uniform(0.02, 0.05)
+        self.truth[cid] = self.cams[cid][0] @ bump
+        back = invert_pose(bump)  # camera_T_marker after = bump^-1 @ camera_T_marker before
+        self.pools[cid] = [replace(b, poses=back @ b.poses, alternatives=back @ b.alternatives) for b in self.base[cid]]
+        self.moves += 1
+        return cid
+
+
+def gtsam_rotation(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (rad)."""
+    import gtsam
+
+    return gtsam.Rot3.Expmap(rotvec).matrix()
+
+
+def camera_errors_mm(est: Estimator, truth: dict[str, np.ndarray], now_ns: int) -> dict[str, float]:
+    """Each camera's position error (mm); NaN for one without a pose."""
+    cams = est.estimate(now_ns, with_covariance=False).cameras
+    return {cid: float(np.linalg.norm(cams[cid].pose.T[:3, 3] - T[:3, 3]) * 1e3) if cid in cams and cams[cid].pose is not None
+            else float("nan") for cid, T in truth.items()}  # fmt: skip
+
+
+@dataclass
 class Runner:
     """One estimator fed the pools tick by tick, with its own simulated clock. Per-tick figures
     go into arrays allocated up front, so the benchmark's own bookkeeping is no memory growth."""
@@ -139,33 +190,45 @@ def median_tick_ms(r: Runner, lo: int, hi: int) -> float:
 
 
 def run(quick: bool, args=None) -> dict[str, float]:
-    hours = 0.2 if quick else (args.hours if args is not None else 24.0)
+    hours = 0.15 if quick else (args.hours if args is not None else 24.0)
+    move_every_s = args.move_every if args is not None else 20.0
     markers, cams, anchors = ring_cell()
     cfg = EstimatorConfig(
         anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors]
     )
-    pools = tick_pools(markers, cams, np.random.default_rng(0))
+    base = tick_pools(markers, cams, np.random.default_rng(0))
+    pools = dict(base)
+    mover = Mover(cams, base, pools, int(move_every_s * RATE / UPDATE_EVERY), np.random.default_rng(1))
     ticks_per_hour = 3600 * RATE // UPDATE_EVERY
     n_ticks = int(hours * ticks_per_hour)
     window = min(ticks_per_hour, n_ticks // 2)  # "an hour"
     warmup = min(60 * RATE // UPDATE_EVERY, n_ticks // 10)  # the first simulated minute
     aged = Runner(Estimator(cfg), pools, n_ticks + window)
-    n_obs, rss0 = 0, float("nan")
+    n_obs, rss0, factors_max, errors = 0, float("nan"), 0, {}
     t_start = time.perf_counter()
     with Progress(transient=True) as progress:
         task = progress.add_task(f"{hours:g} simulated hours", total=n_ticks + 2 * window)
         for k in range(n_ticks):
+            if mover.due(k):
+                errors = camera_errors_mm(aged.est, mover.truth, k * TICK_NS)  # the newest moved camera had a full period
+                mover.move()
             n_obs += aged.step()
             if k == warmup:
                 rss0 = rss_mb()
+            if k % 50 == 0:
+                factors_max = max(factors_max, aged.est.factor_count())
             if k % 2000 == 0:
                 progress.update(task, completed=k)
+        if not errors:
+            errors = camera_errors_mm(aged.est, mover.truth, n_ticks * TICK_NS)
         wall = time.perf_counter() - t_start
         rss_end = rss_mb()
         # Paired: the aged estimator's next hour against a fresh one's first, alternating ticks.
         young = Runner(Estimator(cfg), pools, window)
         paired_aged_from = n_ticks
         for k in range(window):
+            if mover.due(n_ticks + k):  # both see the same moves
+                mover.move()
             first, second = (aged, young) if k % 2 == 0 else (young, aged)
             first.step()
             second.step()
@@ -179,6 +242,8 @@ def run(quick: bool, args=None) -> dict[str, float]:
     paired_young = median_ms(young.update_ms, warmup, window)
     return {
         "simulated_hours": hours,
+        "move_every_s": move_every_s,
+        "moves": float(mover.moves),
         "observations": float(n_obs),
         "observations_per_s": n_obs / wall,
         "update_ms_p50": float(np.median(upd)),
@@ -193,12 +258,15 @@ def run(quick: bool, args=None) -> dict[str, float]:
         "solver_updates_first_hour": float(sum(aged.solved[warmup:window])),
         "solver_updates_last_hour": float(sum(aged.solved[n_ticks - window:n_ticks])),
         "rss_growth_mb": rss_end - rss0,
-        "factors_in_graph": float(aged.est.factor_graph().size()),
+        "factors_max": float(factors_max),
+        "factors_in_graph": float(aged.est.factor_count()),
+        "camera_pos_mm_max_final": max(errors.values()),
     }
 
 
 def add_args(parser) -> None:
     parser.add_argument("--hours", type=float, default=24.0, help="simulated span (default 24 h)")
+    parser.add_argument("--move-every", type=float, default=20.0, help="bump one camera, in turn, this often (simulated s; 0: a still cell)")
 
 
 if __name__ == "__main__":

@@ -188,19 +188,8 @@ class Pair:
         return cov
 
     def factor_is_current(self, max_fused: int, sigmas: float, rotation_floor_rad: float = 0.0) -> bool:
-        """Would rebuilding the factor change it by less than ``sigmas`` of its own sigma?
-
-        True when it already counts ``max_fused`` observations (more do not tighten it), its
-        covariance changed by under 10 % per axis, and the mean moved less than ``sigmas``
-        (Mahalanobis, 6 dof, under the factor's covariance) since it was built. A settled static
-        pair then stops costing solver updates: its mean's drift shrinks as 1/n.
-        """
-        if self.factor_mean is None or self.factor_cov is None or self.factor_n_eff < max_fused:
-            return False
-        cov = self.factor_covariance(max_fused, rotation_floor_rad)
-        if np.abs(np.diag(cov) / np.diag(self.factor_cov) - 1.0).max() > 0.1:
-            return False
-        return float(mahalanobis_sq(pose_difference(self.factor_mean, self.mean()), self.factor_cov)) < sigmas**2
+        """Would rebuilding the factor change it by less than ``sigmas`` of its own sigma? (``factors_current``)"""
+        return bool(factors_current([self], max_fused, sigmas, rotation_floor_rad)[0])
 
     def mean_covariance(self) -> np.ndarray:
         """Mean single-observation covariance (ROS order, marker frame)."""
@@ -249,6 +238,29 @@ class Pair:
         self.rejected += int(rows.rejected[j])
         self.dirty = self.dirty or k > 0
         self._swap_branches_if_flipped()
+
+
+def factors_current(pairs: list[Pair], max_fused: int, sigmas: float, rotation_floor_rad: float = 0.0) -> np.ndarray:
+    """For each pair (P,): would rebuilding its factor change it by less than ``sigmas`` of its own sigma?
+
+    True when the factor already counts ``max_fused`` observations (more do not tighten it), its
+    covariance changed by under 10 % per axis, and the mean moved less than ``sigmas``
+    (Mahalanobis, 6 dof, under the factor's covariance) since it was built. A settled static pair
+    then stops costing solver updates: its mean's drift shrinks as 1/n. One batched test for all.
+    """
+    out = np.zeros(len(pairs), bool)
+    full = [i for i, p in enumerate(pairs) if p.factor_mean is not None and p.factor_cov is not None and p.factor_n_eff >= max_fused]
+    if not full:
+        return out
+    sel = [pairs[i] for i in full]
+    n = np.array([p.n for p in sel], float)
+    cov_diag = np.stack([np.diagonal(p.cov_sum) for p in sel]) / (n * np.minimum(n, max_fused))[:, None]
+    cov_diag[:, 3:] += rotation_floor_rad**2
+    built = np.stack([p.factor_cov for p in sel])
+    same_cov = np.abs(cov_diag / np.diagonal(built, axis1=1, axis2=2) - 1.0).max(axis=1) <= 0.1
+    d = pose_difference(np.stack([p.factor_mean for p in sel]), np.stack([p.mean() for p in sel]))
+    out[full] = same_cov & (mahalanobis_sq(d, built) < sigmas**2)
+    return out
 
 
 @dataclass(frozen=True)
@@ -698,7 +710,7 @@ class Estimator:
         rebuilt factor would differ (``Pair.factor_is_current``).
         """
         refresh_ns = int(self.config.refresh_s * 1e9)
-        urgent, mature = [], []
+        urgent, overdue = [], []
         for key, pair in self.pairs.items():
             if not pair.dirty:
                 continue
@@ -706,13 +718,20 @@ class Estimator:
             if pair.slot is None or (pair.n < YOUNG_PAIR and age >= refresh_ns // 10):
                 urgent.append((key, pair))
             elif age >= refresh_ns:
-                if pair.factor_is_current(self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad):
-                    pair.refreshed_ns = now_ns  # looked at: next look in refresh_s
-                    continue
-                mature.append((age, key, pair))
+                overdue.append((age, key, pair))
         share = max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0)))
-        mature.sort(key=lambda x: -x[0])
-        return urgent + [(key, pair) for _, key, pair in mature[:share]]
+        # The most overdue first; at most 2 x share looked at per update (the look costs a
+        # Mahalanobis test each): the rest wait, so looks spread over the updates too.
+        overdue.sort(key=lambda x: -x[0])
+        looked = overdue[: 2 * share]
+        current = factors_current([p for _, _, p in looked], self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad)
+        mature: list[tuple[tuple[CameraKey, int], Pair]] = []
+        for (_, key, pair), ok in zip(looked, current):
+            if ok:
+                pair.refreshed_ns = now_ns  # looked at: next look in refresh_s
+            elif len(mature) < share:
+                mature.append((key, pair))
+        return urgent + mature
 
     def relax(self, iterations: int) -> None:
         """Extra iSAM2 iterations without new factors (relinearise and re-solve)."""
@@ -731,9 +750,11 @@ class Estimator:
         ]  # fmt: skip
         if not unplaced:
             return
-        placed_cams = {cam: self._pose(self._camera_key(cam)) for cam in self.camera_index if self._camera_key(cam) in self.in_graph}
-        placed_marks = {mk: self._pose(marker_symbol(mk)) for mk in {m for (_, m) in self.pairs} if marker_symbol(mk) in self.in_graph}
-        means = {k: p.mean() for k, p in self.pairs.items() if p.n > 0}
+        # Only what touches an unplaced camera or marker can place it: the rest is not looked up.
+        cams_needed = {cam for cam, _ in unplaced}
+        means = {k: p.mean() for k, p in self.pairs.items() if k[0] in cams_needed and p.n > 0}
+        placed_cams = {cam: self._pose(self._camera_key(cam)) for cam in cams_needed if self._camera_key(cam) in self.in_graph}
+        placed_marks = {mk: self._pose(marker_symbol(mk)) for _, mk in means if marker_symbol(mk) in self.in_graph}
         cams, marks = place(self.anchors, means, placed_cams, placed_marks | self._pending_seed_poses(new_values))
         for cam, T in cams.items():
             key = self._camera_key(cam)

@@ -232,11 +232,13 @@ def mahalanobis_sq(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
-    """Tangent vector (6,) in ROS order (x y z rx ry rz) taking ``T_a`` to ``T_b`` in a's own frame:
-    translation R_a^T (t_b - t_a), rotation the axis-angle of R_a^T R_b."""
-    Ra = T_a[:3, :3]
-    D = Ra.T @ T_b[:3, :3]
-    w = 0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])  # sin(angle) x axis
-    s = math.sqrt(float(w @ w))
-    angle = math.atan2(s, 0.5 * (D[0, 0] + D[1, 1] + D[2, 2] - 1.0))
-    return np.concatenate([Ra.T @ (T_b[:3, 3] - T_a[:3, 3]), w * (angle / s if s > 1e-300 else 1.0)])
+    """Tangent vector (..., 6) in ROS order (x y z rx ry rz) taking ``T_a`` to ``T_b`` (..., 4, 4) in
+    a's own frame: translation R_a^T (t_b - t_a), rotation the axis-angle of R_a^T R_b."""
+    RaT = np.swapaxes(T_a[..., :3, :3], -1, -2)
+    D = RaT @ T_b[..., :3, :3]
+    w = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], axis=-1)  # sin(angle) x axis
+    s = np.sqrt(np.einsum("...i,...i->...", w, w))
+    angle = np.arctan2(s, 0.5 * (np.trace(D, axis1=-2, axis2=-1) - 1.0))
+    scale = np.where(s > 1e-300, angle / np.maximum(s, 1e-300), 1.0)
+    t = (RaT @ (T_b[..., :3, 3] - T_a[..., :3, 3])[..., None])[..., 0]
+    return np.concatenate([t, w * scale[..., None]], axis=-1)
