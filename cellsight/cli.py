@@ -335,7 +335,7 @@ def driver_sim(
     cam = next((c for c in cfg.cameras if c.id == camera), None)
     if cam is None:
         raise _fail(f"camera {camera!r} is not in the cell; cameras: {[c.id for c in cfg.cameras]}", 2)
-    source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns)
+    source = SimSource(load_scenario(cfg.cell.scenario), camera, epoch_ns=epoch_ns, prerender=cam.prerender_frames)
     _drive(cfg, cam.publish_images, camera, lambda _bus: source, transport, duration)
 
 

@@ -63,6 +63,7 @@ class CameraConfig(BaseModel):
     rate_hz: float = Field(default=30.0, gt=0)
     intrinsics: IntrinsicsConfig | None = None
     publish_images: bool = Field(default=True, description="publish color/depth (markers are always published)")
+    prerender_frames: int = Field(default=0, ge=0, description="sim: render this many frames up front and loop them (benchmarks: no renderer cost)")
     openni2_path: Path | None = Field(default=None, description="folder holding libOpenNI2.so (default: system)")
 
     @model_validator(mode="after")

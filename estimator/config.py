@@ -88,7 +88,10 @@ class EstimatorConfig(BaseModel):
         "are off by 0.09 deg median, 0.36 p90); added to every pair factor's rotation covariance, so a camera is placed "
         "by where its markers are more than by how they look turned (0: trust the detector's rotations)",
     )
-    update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon")
+    update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon when no frames arrive")
+    max_update_hz: float = Field(
+        default=30.0, gt=0, description="arriving frames trigger an update at once, at most this often (what arrives meanwhile goes in together)"
+    )
     stale_after_s: float = Field(default=0.7, gt=0, description="a camera with no frames this long is stale")
     clock_jump_s: float = Field(
         default=5.0, gt=0,

@@ -1,6 +1,6 @@
 """The estimator daemon: marker observations from every camera in, poses and states out.
 
-Owns the zenoh session, the update loop (``update_hz``), publishing, the ``estimate/map``
+Owns the zenoh session, the update loop (on arriving frames; ``update_hz`` when none arrive), publishing, the ``estimate/map``
 queryable, the liveliness token and the persisted map. The estimation itself is
 ``estimator.graph.Estimator``; nothing here changes its answer.
 """
@@ -238,9 +238,9 @@ class EstimatorService:
         return est
 
     def publish(self, est: Estimate, stamp_ns: int) -> None:
-        # A moving camera's pose is tracked from one frame: it is stamped with that frame's time.
+        # Each camera's pose carries the stamp of its newest frame in the estimate: how old it is.
         cams = [
-            codec.StampedPose("world", c.camera_id, c.last_stamp_ns if c.state is CameraState.MOVING else stamp_ns, c.pose.T, c.pose.covariance)
+            codec.StampedPose("world", c.camera_id, c.last_stamp_ns, c.pose.T, c.pose.covariance)
             for c in est.cameras.values()
             if c.pose is not None and c.state in (CameraState.LOCALIZED, CameraState.MOVING, CameraState.STALE)
         ]
@@ -282,15 +282,18 @@ class EstimatorService:
             query.reply(keys.estimate_map(self.bus.cell), snapshot.SerializeToString())
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
+        """Update when frames arrive (at most ``max_update_hz``; frames that arrive meanwhile are
+        coalesced into the next update, never queued behind it), and ``update_hz`` when none do."""
         stop = stop or threading.Event()
-        period = 1.0 / self.config.update_hz
+        idle, gap = 1.0 / self.config.update_hz, 1.0 / max(self.config.max_update_hz, self.config.update_hz)
         start = time.monotonic()
         est = None
         try:
             while not stop.is_set() and (duration_s is None or time.monotonic() - start < duration_s):
                 t0 = time.monotonic()
                 est = self.step()
-                stop.wait(max(period - (time.monotonic() - t0), 0.0))
+                stop.wait(max(gap - (time.monotonic() - t0), 0.0))
+                self._sub.inbox.wait(max(idle - (time.monotonic() - t0), 0.0))
         finally:
             if est is not None:
                 self.save(est)

@@ -195,6 +195,11 @@ class Inbox(Generic[Msg]):
                 return None
             return self._items.popleft()
 
+    def wait(self, timeout_s: float) -> bool:
+        """Block until a message is waiting (True) or ``timeout_s`` seconds passed (False); takes nothing."""
+        with self._cond:
+            return bool(self._cond.wait_for(lambda: self._items, timeout=timeout_s))
+
     def drain(self) -> list[Received[Msg]]:
         with self._cond:
             items = list(self._items)

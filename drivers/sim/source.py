@@ -17,9 +17,13 @@ class SimSource:
 
     When rendering falls behind the wall clock, the source skips to the newest due frame and
     counts the skipped ones in ``dropped`` (a real sensor drops frames the same way).
+    ``prerender`` > 0 renders that many frames up front and then plays them in a loop with live
+    stamps: the rest of the pipeline at a real sensor's rate without the renderer's cost (for a
+    static scene: a looped frame shows what a new one would, up to its noise).
     """
 
-    def __init__(self, scenario: Scenario, camera_id: str, *, epoch_ns: int | None = None, realtime: bool = True, cell: SimCell | None = None) -> None:
+    def __init__(self, scenario: Scenario, camera_id: str, *, epoch_ns: int | None = None, realtime: bool = True, cell: SimCell | None = None,
+                 prerender: int = 0) -> None:  # fmt: skip
         self.scenario = scenario
         self.camera = scenario.camera(camera_id)
         self.name = f"sim:{scenario.name}/{camera_id}"
@@ -29,6 +33,7 @@ class SimSource:
         self.index = 0
         self.dropped = 0
         self.t_s = 0.0
+        self._loop = [self.cell.render(self.camera.id, i / self.camera.rate_hz, i) for i in range(prerender)]
 
     def read(self) -> Frame | None:
         period = 1.0 / self.camera.rate_hz
@@ -43,9 +48,9 @@ class SimSource:
         self.t_s = self.index * period
         if self.t_s > self.scenario.duration_s:
             return None
-        f = self.cell.render(self.camera.id, self.t_s, self.index)
+        f = self._loop[self.index % len(self._loop)] if self._loop else self.cell.render(self.camera.id, self.t_s, self.index)
         self.index += 1
-        return Frame(self.camera.id, self.epoch_ns + f.stamp_ns, f.rgb, f.depth_mm, f.info)
+        return Frame(self.camera.id, self.epoch_ns + int(round(self.t_s * 1e9)), f.rgb, f.depth_mm, f.info)
 
     def truth(self, t_s: float) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
         """(cameras, markers, objects) world poses at scenario time ``t_s``; stamps on the same clock."""

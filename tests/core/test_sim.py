@@ -10,6 +10,7 @@ import pytest
 from drivers.errors import ScenarioError
 from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import NoiseSpec, Scenario, load_scenario
+from drivers.sim.source import SimSource
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, rotation_angle
 
@@ -141,3 +142,13 @@ def test_missing_mesh_file_is_named(tmp_path: Path) -> None:
     scen.write_text('[[objects]]\nid = "x"\nshape = "mesh"\nmesh = "nope.ply"\n[[cameras]]\nid = "c"\npose = { position = [0.0, 0.0, 1.4], look_at = [0.0, 0.0, 0.0] }\n')
     with pytest.raises(ScenarioError, match="nope.ply"):
         load_scenario(scen)
+
+
+def test_prerendered_frames_loop_with_live_stamps() -> None:
+    """``prerender``: the first frames rendered once and played again, stamped as new frames."""
+    source = SimSource(load_scenario(), "cam1", epoch_ns=0, realtime=False, prerender=2)
+    frames = [source.read() for _ in range(5)]
+    assert [f.stamp_ns for f in frames] == [round(i * 1e9 / 30) for i in range(5)]
+    np.testing.assert_array_equal(frames[2].rgb, frames[0].rgb)
+    np.testing.assert_array_equal(frames[3].depth_mm, frames[1].depth_mm)
+    assert not np.array_equal(frames[0].depth_mm, frames[1].depth_mm)  # two renders: their own noise

@@ -1,0 +1,169 @@
+"""Stamp-to-pose latency of the real pipeline at a real sensor's rate: drivers, router, estimator.
+
+``cellsight run`` on the static demo cell (plus up to four more Kinects, as in ``benchmarks.load``)
+with every camera's frames pre-rendered (``prerender_frames``: rendered once, looped with live
+stamps at 30 Hz), so marker detection runs in the driver processes, messages cross the router and
+the estimator updates as frames arrive, with no renderer competing for the 2 cores. Recognition and
+the recorder are off. This process subscribes like a robot: latency = arrival of each published
+camera pose minus its stamp (the capture time of the newest frame in that estimate), localized
+cameras only, after a 10 s warm-up. Drops: frames the drivers skipped (detection fell behind the
+sensor's rate) over frames due. CPU per camera: the driver processes' CPU seconds per second,
+per camera. The camera count is scanned upward; ``max_cameras_at_30hz`` is the largest count
+whose p99 stays within 100 ms with under 1 % of frames dropped.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import main
+from benchmarks.load import EXTRA, scenario_toml
+from cellsight.config import load_config
+from cellsight.scenario_config import cell_config_of
+from drivers.sim.scenario import load_scenario
+from schemas import keys
+from schemas import messages as m
+from schemas.bus import Bus, TransportConfig
+
+CELL = "latency"
+WARMUP_S = 10.0
+PRERENDER = 30
+TARGET_P99_MS, MAX_DROP = 100.0, 0.01
+
+
+@dataclass(frozen=True)
+class Trial:
+    cameras: int
+    seconds: float
+    latency_ms: np.ndarray  # one per published localized camera pose after warm-up
+    frames: int  # published by the drivers in the window
+    dropped: int  # skipped by the drivers in the window
+    driver_cpu_s_per_s: float  # all driver processes together
+
+    @property
+    def drop_rate(self) -> float:
+        return self.dropped / max(self.frames + self.dropped, 1)
+
+    def p(self, q: float) -> float:
+        return float(np.percentile(self.latency_ms, q)) if len(self.latency_ms) else float("nan")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process (``/proc/<pid>/stat``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def driver_pids(parent: int) -> list[int]:
+    """The ``cellsight driver`` children of the launcher ``parent``."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            if int(stat[1]) == parent and b"driver" in (entry / "cmdline").read_bytes():
+                pids.append(int(entry.name))
+        except (OSError, IndexError):  # exited meanwhile
+            continue
+    return pids
+
+
+def trial(n_cams: int, seconds: float) -> Trial:
+    from tests.conftest import free_port
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        scenario_toml(tmp_path / "scenario.toml")
+        (tmp_path / "base.toml").write_text(f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\n[recognition]\nenabled = false\n')
+        cfg = cell_config_of(load_scenario(tmp_path / "scenario.toml"), tmp_path / "scenario.toml", load_config(tmp_path / "base.toml"))
+        cameras = [c.model_copy(update={"prerender_frames": PRERENDER}) for c in cfg.cameras[:n_cams]]
+        (tmp_path / "cell.toml").write_text(cfg.model_copy(update={"cameras": cameras}).to_toml())
+        proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(tmp_path / "run")],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        latency: list[float] = []
+        status: dict[str, m.DriverStatus] = {}
+        measuring = False
+        try:
+            bus = _connect(endpoint)
+
+            def on_poses(r) -> None:
+                if measuring:
+                    latency.extend((r.receive_ns - p.stamp_ns) / 1e6 for p in r.msg.poses)
+
+            def on_status(r) -> None:
+                status[r.msg.camera_id] = r.msg
+
+            bus.subscribe(keys.estimate_cameras(CELL), m.PosesWithCovariance, callback=on_poses)
+            bus.subscribe(keys.all_cameras(CELL, "status"), m.DriverStatus, callback=on_status)
+            deadline = time.monotonic() + 120
+            while len(status) < n_cams and time.monotonic() < deadline:  # every driver has pre-rendered and runs
+                time.sleep(0.5)
+            time.sleep(WARMUP_S)
+            before = {c: (s.frames, s.dropped) for c, s in status.items()}
+            pids = driver_pids(proc.pid)
+            cpu0, t0 = sum(cpu_seconds(p) for p in pids), time.monotonic()
+            measuring = True
+            time.sleep(seconds)
+            measuring = False
+            cpu1, t1 = sum(cpu_seconds(p) for p in pids), time.monotonic()
+            after = {c: (s.frames, s.dropped) for c, s in status.items()}
+            bus.close()
+        finally:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    frames = sum(after[c][0] - before.get(c, (0, 0))[0] for c in after)
+    dropped = sum(after[c][1] - before.get(c, (0, 0))[1] for c in after)
+    return Trial(n_cams, t1 - t0, np.array(latency), frames, dropped, (cpu1 - cpu0) / (t1 - t0))
+
+
+def _connect(endpoint: str) -> Bus:
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            return Bus(TransportConfig(connect=[endpoint]), CELL)
+        except Exception:  # the router is still starting
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+
+
+def run(quick: bool) -> dict[str, float]:
+    seconds = 15.0 if quick else 30.0
+    counts = [4] if quick else [2, 4, 6, 4 + len(EXTRA)]
+    trials = {n: trial(n, seconds) for n in counts}
+    four = trials[4]
+    held = [n for n, t in trials.items() if t.p(99) <= TARGET_P99_MS and t.drop_rate < MAX_DROP]
+    out = {
+        "cameras": 4.0,
+        "poses_measured": float(len(four.latency_ms)),
+        "frames_per_s_per_camera": four.frames / four.seconds / 4,
+        "stamp_to_pose_ms_p50": four.p(50),
+        "stamp_to_pose_ms_p99": four.p(99),
+        "drop_rate": four.drop_rate,
+        "driver_cpu_per_camera": four.driver_cpu_s_per_s / 4,
+    }
+    if not quick:
+        out["max_cameras_at_30hz"] = float(max(held, default=0))
+        for n, t in trials.items():
+            out[f"stamp_to_pose_ms_p99_{n}cams"] = t.p(99)
+            out[f"drop_rate_{n}cams"] = t.drop_rate
+    return out
+
+
+if __name__ == "__main__":
+    main("latency", __doc__.splitlines()[0], run)
