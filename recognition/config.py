@@ -96,6 +96,15 @@ class RecognitionConfig(BaseModel):
     )
     min_fitness: float = Field(default=0.5, ge=0, le=1, description="share of the visible model explained by the scene")
     min_coverage: float = Field(default=0.5, ge=0, le=1, description="share of the cluster explained by the model")
+    verify: bool = Field(default=True, description="check every hypothesis against the whole frame from the camera's viewpoint (recognition.verify)")
+    min_visible_fitness: float = Field(
+        default=0.7, ge=0, le=1,
+        description="verification: share of the judgeable visible model on the measured surface, not in front of it "
+        "(simulated true detections: min 0.73; PCL's milk scene's false 'can': 0.67)",
+    )
+    min_visible_support: float = Field(
+        default=0.6, ge=0, le=1, description="verification: share of the visible model found on the measured surface (simulated true detections: min 0.67)"
+    )
     min_fitness_shared: float = Field(
         default=0.8, ge=0, le=1, description="fitness that accepts a match covering only part of a cluster (touching objects)"
     )

@@ -2,7 +2,8 @@
 
 cloud -> range limit, voxel downsample, normals -> remove dominant planes -> Euclidean clusters ->
 VFH per cluster -> nearest model views -> camera-roll alignment -> ICP -> accept on fitness,
-coverage and RMSE. A marker on an object, when seen, names it and gives ICP its starting pose.
+coverage and RMSE -> verify against the whole frame from the camera's viewpoint
+(``recognition.verify``). A marker on an object, when seen, names it and gives ICP its starting pose.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
+from recognition.verify import DepthView, Verdict, exclusive, verdict
 from schemas.geometry import invert_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -183,14 +185,34 @@ class Recognizer:
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
         # Each object is in the scene once, and each part is one object: best matches first, so that
-        # a part two objects fit goes to the one not found better elsewhere.
+        # a part two objects fit goes to the one not found better elsewhere. A hypothesis the frame
+        # contradicts never takes a part, and a pixel explains one object.
+        candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
+        verdicts = self._verify(cloud, [det for _, det in candidates]) if c.verify else [None] * len(candidates)
         found: dict[str, Detection] = {}
         taken: set[int] = set()
-        for p, det in sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True):
-            if p not in taken and det.object_id not in found:
-                taken.add(p)
-                found[det.object_id] = det
+        kept: list[Verdict] = []
+        for (p, det), v in zip(candidates, verdicts):
+            if p in taken or det.object_id in found:
+                continue
+            if v is not None:
+                if v.fitness < c.min_visible_fitness or v.support < c.min_visible_support or not exclusive(kept + [v])[-1]:
+                    log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible pixels, "
+                              "%d seen through)", det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations)  # fmt: skip
+                    continue
+                kept.append(v)
+            taken.add(p)
+            found[det.object_id] = det
         return sorted(found.values(), key=lambda d: d.object_id)
+
+    def _verify(self, cloud: np.ndarray, detections: list[Detection]) -> list[Verdict | None]:
+        """Each hypothesis judged against the frame's depth (``recognition.verify``)."""
+        if not detections:
+            return []
+        view = DepthView.of(cloud)
+        c = self.config
+        return [verdict(view, self.db.models[d.object_id].points, self.db.models[d.object_id].normals, d.camera_T_object,
+                        c.icp_distance_m, c.plane_noise_per_m2) for d in detections]  # fmt: skip
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None

@@ -1,0 +1,170 @@
+"""Hypothesis verification: is a posed model what the sensor saw, from the sensor's own viewpoint?
+
+After Aldoma et al., "A global hypotheses verification method for 3D object recognition" (ECCV
+2012), the step PCL's recognition pipeline ends with. The scene is the whole frame (table and
+all) as a depth map; each hypothesis is its model posed in the camera frame. Of the model points
+the camera would see (facing it, not behind the model's own nearer surface), each lands on a
+pixel with a measured depth d and is
+
+- an inlier: within ``tolerance(z)`` of the measured surface around that pixel;
+- a violation: in front of it by more than that (the sensor saw through where the object would
+  be: strong evidence against, whatever the cluster looked like);
+- occluded: behind it (something stands in front; neutral);
+- unmeasured: no depth there (neutral).
+
+``fitness`` = inliers / (inliers + violations) is how much of what the sensor could judge agrees;
+``support`` = inliers / visible is how much of the visible model is actually seen. A hypothesis is
+kept when both reach their thresholds (``recognition.config``, measured in
+``benchmarks.recognition``); among kept ones a scene pixel explains at most one object
+(``exclusive``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: The virtual camera unorganised clouds are projected with: a 640x480 Kinect's intrinsics at half
+#: resolution (a pixel is ~4 mm at 1 m). Organised clouds keep their own grid.
+VIRTUAL_K = np.array([[262.5, 0.0, 159.75], [0.0, 262.5, 119.75], [0.0, 0.0, 1.0]])
+VIRTUAL_SIZE = (240, 320)
+#: Model points further than this behind the model's nearest point on their coarse cell are hidden
+#: by the model itself (m); the coarse cell is this many pixels wide.
+SELF_OCCLUSION_M, SELF_CELL_PX = 0.01, 4
+
+
+@dataclass(frozen=True)
+class DepthView:
+    """The scene as the sensor saw it: per pixel the nearest and farthest measured depth (m) in a
+    3x3 neighbourhood (NaN: no return there), the projection K (3, 3) and the image size (H, W)."""
+
+    near: np.ndarray
+    far: np.ndarray
+    K: np.ndarray
+
+    @classmethod
+    def of(cls, cloud: np.ndarray) -> "DepthView":
+        """From a camera-frame cloud: (H, W, 3) organised (every other row and column of its own
+        grid, with the K its points fit) or (N, 3), projected with ``VIRTUAL_K``."""
+        pts = np.asarray(cloud)
+        if pts.ndim == 3:  # every other row and column: the virtual camera's resolution
+            grid = pts[::2, ::2].astype(np.float64)
+            z = grid[..., 2].copy()
+            z[~np.isfinite(z) | (z <= 0)] = np.nan
+            K = _fit_intrinsics(grid)
+        else:
+            H, W = VIRTUAL_SIZE
+            K = VIRTUAL_K
+            pts = pts.astype(np.float64)
+            pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
+            u, v, ok = _project(pts, K, (H, W))
+            z = np.full(H * W, np.inf)
+            np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
+            z = z.reshape(H, W)
+            z[np.isinf(z)] = np.nan
+        return cls(_filter3(z, np.fmin), _filter3(z, np.fmax), K)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """How a posed model agrees with the depth view: pixel counts of its visible points."""
+
+    visible: int
+    inliers: int
+    violations: int
+    occluded: int
+    pixels: np.ndarray  # flat indices of the inlier pixels (for ``exclusive``)
+
+    @property
+    def fitness(self) -> float:
+        return self.inliers / max(self.inliers + self.violations, 1)
+
+    @property
+    def support(self) -> float:
+        return self.inliers / max(self.visible, 1)
+
+
+def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
+            tolerance_m: float, noise_per_m2: float) -> Verdict:  # fmt: skip
+    """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
+    camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m)."""
+    R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
+    p = points @ R.T + t
+    n = normals @ R.T
+    front = np.einsum("ij,ij->i", n, p) < 0  # facing the camera at the origin
+    H, W = view.near.shape
+    u, v, ok = _project(p, view.K, (H, W))
+    keep = front & ok
+    p, u, v = p[keep], u[keep], v[keep]
+    # The model hides itself: only points near its nearest one on a coarse cell are seen.
+    cell = (v // SELF_CELL_PX) * (W // SELF_CELL_PX + 1) + u // SELF_CELL_PX
+    nearest = np.full(cell.max() + 1 if len(cell) else 0, np.inf)
+    np.minimum.at(nearest, cell, p[:, 2])
+    seen = p[:, 2] <= nearest[cell] + SELF_OCCLUSION_M
+    pix, zs = (v * W + u)[seen], p[seen, 2]
+    order = np.lexsort((zs, pix))  # one vote per pixel: its nearest point
+    pix, zs = pix[order], zs[order]
+    first = np.r_[True, pix[1:] != pix[:-1]] if len(pix) else np.zeros(0, bool)
+    flat, z = pix[first], zs[first]
+    near, far = view.near.reshape(-1)[flat], view.far.reshape(-1)[flat]
+    tol = tolerance_m + noise_per_m2 * z**2
+    measured = np.isfinite(near)
+    inlier = measured & (z >= near - tol) & (z <= far + tol)
+    violation = measured & (z < near - tol)
+    occluded = measured & (z > far + tol)
+    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier])
+
+
+def exclusive(verdicts: list[Verdict], max_shared: float = 0.2) -> list[bool]:
+    """In order (best hypothesis first): may each be accepted, given those accepted before it? A
+    scene pixel explains one object: a hypothesis whose inlier pixels are more than ``max_shared``
+    already explained by an accepted one competes for the same surface and loses."""
+    taken: set[int] = set()
+    out = []
+    for v in verdicts:
+        shared = len(taken.intersection(v.pixels.tolist())) / max(len(v.pixels), 1)
+        ok = shared <= max_shared
+        if ok:
+            taken.update(v.pixels.tolist())
+        out.append(ok)
+    return out
+
+
+def _project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel columns, rows (int) of camera-frame points (N, 3), and which fall inside the image."""
+    H, W = size
+    z = np.where(p[:, 2] > 0, p[:, 2], np.nan)
+    with np.errstate(invalid="ignore"):
+        u = np.floor(K[0, 0] * p[:, 0] / z + K[0, 2] + 0.5)
+        v = np.floor(K[1, 1] * p[:, 1] / z + K[1, 2] + 0.5)
+        ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    return np.where(ok, u, 0).astype(np.int64), np.where(ok, v, 0).astype(np.int64), ok
+
+
+def _fit_intrinsics(grid: np.ndarray) -> np.ndarray:
+    """Pinhole K of an organised cloud (H, W, 3) from its own points: x/z and y/z are affine in the
+    pixel column and row (least squares over every 4th row and column: as good as all of them)."""
+    H, W = grid.shape[:2]
+    sample = grid[::4, ::4]
+    vv, uu = np.mgrid[0:H:4, 0:W:4]
+    ok = np.all(np.isfinite(sample), axis=2) & (sample[..., 2] > 0)
+    if ok.sum() < 10:
+        return VIRTUAL_K * np.array([[W / 320], [H / 240], [1.0]])
+    a = sample[ok, 0] / sample[ok, 2]
+    b = sample[ok, 1] / sample[ok, 2]
+    # u = fx * a + cx, v = fy * b + cy
+    fx, cx = np.polyfit(a, uu[ok].astype(float), 1)
+    fy, cy = np.polyfit(b, vv[ok].astype(float), 1)
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _filter3(z: np.ndarray, op) -> np.ndarray:
+    """3x3 neighbourhood reduction ignoring NaN (``np.fmin``: nearest, ``np.fmax``: farthest)."""
+    padded = np.pad(z, 1, constant_values=np.nan)
+    out = z.copy()
+    H, W = z.shape
+    for dv in range(3):
+        for du in range(3):
+            out = op(out, padded[dv:dv + H, du:du + W])
+    return out

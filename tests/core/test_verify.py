@@ -1,0 +1,95 @@
+"""Hypothesis verification (``recognition.verify``): a posed model judged against the frame's depth.
+
+Known answers on a synthetic frame (a wall 1 m in front of a Kinect-like camera) and on PCL's real
+Kinect scenes: the milk carton is found in its scene and nothing else is reported there or in a
+scene of planes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cellsight.model_build import database_from_scenario
+from drivers.sim.scenario import load_scenario
+from recognition.align import model_to_scene_rmse
+from recognition.cloud import depth_to_cloud, finite_points, read_cloud
+from recognition.config import RecognitionConfig
+from recognition.models import model_from_cloud
+from recognition.pipeline import Recognizer
+from recognition.verify import DepthView, exclusive, verdict
+from schemas.geometry import make_pose
+from tests.conftest import SHARED_DATA
+
+PCL = SHARED_DATA / "pcl"
+K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
+TOL, NOISE = 0.015, 0.0043
+
+
+def wall(z_m: float = 1.0) -> np.ndarray:
+    return depth_to_cloud(np.full((480, 640), int(z_m * 1000), np.uint16), K)
+
+
+def patch(side_m: float = 0.2, step_m: float = 0.005) -> tuple[np.ndarray, np.ndarray]:
+    """A flat square of points facing the camera (normals -z), centred on its own origin."""
+    g = np.arange(-side_m / 2, side_m / 2 + 1e-9, step_m)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    points = np.c_[xy, np.zeros(len(xy))]
+    return points, np.tile([0.0, 0.0, -1.0], (len(points), 1))
+
+
+@pytest.mark.parametrize("organised", [True, False])
+def test_on_the_surface_in_front_of_it_and_behind_it(organised: bool) -> None:
+    cloud = wall()
+    view = DepthView.of(cloud if organised else cloud.reshape(-1, 3))
+    points, normals = patch()
+    on = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
+    assert on.visible > 100 and on.fitness == 1.0 and on.support == 1.0
+    # 10 cm in front of the wall: the sensor saw through where it would be.
+    front = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 0.9]), TOL, NOISE)
+    assert front.violations == front.visible and front.fitness == 0.0
+    # 10 cm behind it: hidden by the wall, which says nothing against it, and nothing for it.
+    behind = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.1]), TOL, NOISE)
+    assert behind.occluded == behind.visible and behind.violations == 0 and behind.support == 0.0
+    # Turned away from the camera: nothing of it is visible.
+    away = verdict(view, points, -normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
+    assert away.visible == 0
+
+
+def test_the_view_of_an_organised_cloud_recovers_its_intrinsics_at_half_resolution() -> None:
+    view = DepthView.of(wall())
+    np.testing.assert_allclose(view.K, [[262.5, 0, 159.75], [0, 262.5, 119.75], [0, 0, 1]], atol=1e-6)
+
+
+def test_a_pixel_explains_one_object() -> None:
+    view = DepthView.of(wall())
+    points, normals = patch()
+    a = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
+    b = verdict(view, points, normals, make_pose(t=[0.02, 0.0, 1.0]), TOL, NOISE)  # mostly the same surface
+    c = verdict(view, points, normals, make_pose(t=[0.4, 0.0, 1.0]), TOL, NOISE)  # beside it
+    assert exclusive([a, b, c]) == [True, False, True]
+
+
+@pytest.fixture(scope="module")
+def recognizer() -> Recognizer:
+    """The demo objects and PCL's milk carton, as ``cellsight model build --demo --cloud milk=...`` makes them."""
+    cfg = RecognitionConfig()
+    db = database_from_scenario(load_scenario(), cfg.descriptor)
+    db.add(model_from_cloud("milk", read_cloud(PCL / "milk.pcd"), cfg.descriptor))
+    return Recognizer(db, cfg)
+
+
+def test_the_milk_is_found_in_its_real_scene_and_nothing_else_is(recognizer: Recognizer) -> None:
+    """Without verification a ``can`` was reported beside it (the frame saw through 1/3 of it)."""
+    scene = read_cloud(PCL / "milk_cartoon_all_small_clorox.pcd", organised=True)
+    found = recognizer.recognize(scene)
+    assert [d.object_id for d in found] == ["milk"]
+    milk = read_cloud(PCL / "milk.pcd")
+    assert model_to_scene_rmse(milk, found[0].camera_T_object, finite_points(scene)) < 0.01  # PCL's acceptance
+
+
+@pytest.mark.parametrize("scene", ["sac_plane_test.pcd", "table_scene_mug_stereo_textured.pcd"])
+def test_real_scenes_without_the_objects_give_no_detection(recognizer: Recognizer, scene: str) -> None:
+    """Planes, a mug: none of the models. (office1.pcd and five_people.pcd still yield a milk, a
+    single captured view fitted onto other surfaces; verification does not catch those yet.)"""
+    assert recognizer.recognize(read_cloud(PCL / scene)) == []
