@@ -77,7 +77,7 @@ def cell(tmp_path: Path):
         bus = Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), "faults")
         bus.subscribe(keys.estimate_status("faults"), m.EstimatorStatus,
                       callback=lambda r: states.append((time.monotonic(), {c.camera_id: c.state for c in r.msg.cameras})))  # fmt: skip
-        yield run_dir, states, proc
+        yield run_dir, states, proc, bus
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(30)
@@ -108,7 +108,7 @@ def zenoh_segments(pid: int) -> set[str]:
 def test_killed_driver_goes_stale_and_recovers_after_restart(cell) -> None:
     """Also: the restarted driver sends plain bytes (``shm_driver_starts`` = 1) and makes no pool, so
     the router, which keeps every pool it has seen mapped (zenoh issue 2787), maps nothing new."""
-    run_dir, states, _ = cell
+    run_dir, states, _, _ = cell
     wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
     router_before = zenoh_segments(pid_of(run_dir, "router"))
     old, killed = kill_once_localized(run_dir, states, "driver/a")
@@ -121,11 +121,15 @@ def test_killed_driver_goes_stale_and_recovers_after_restart(cell) -> None:
     assert zenoh_segments(pid_of(run_dir, "driver/a")) == set(), "the restarted driver made a shared-memory pool"
     time.sleep(1.0)  # more frames of the new driver through the router
     new = zenoh_segments(pid_of(run_dir, "router")) - router_before
-    assert not new, f"the router mapped {len(new)} new segments after the restart: {sorted(new)}"
+    # Another process's first large message (recognition's cloud) may come late on a slow machine:
+    # its pool is that process's own, not one the restart made.
+    others = set().union(*(zenoh_segments(p["pid"]) for p in json.loads((run_dir / "processes.json").read_text())
+                           if p["name"] not in ("router", "driver/a")))  # fmt: skip
+    assert not new - others, f"the router mapped {len(new - others)} new segments after the restart: {sorted(new - others)}"
 
 
 def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(cell) -> None:
-    run_dir, states, _ = cell
+    run_dir, states, _, _ = cell
     wait_until(lambda: localized(states, "a") and localized(states, "b"), 60, "both cameras localized")
     wait_until(lambda: (run_dir / "estimator_state.json").exists(), 15, "the estimator to save its map")
     _, killed = kill_once_localized(run_dir, states, "estimator")
@@ -139,7 +143,11 @@ def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(ce
 
 
 def test_killed_router_restarts_and_every_process_reconnects(cell) -> None:
-    run_dir, states, _ = cell
+    run_dir, states, _, bus = cell
+    # Every process must have joined before the router goes: one that never connected exits and is
+    # restarted (its first session cannot open), which is not what this test is about.
+    wait_until(lambda: {"estimator", "recognition", "recorder", "driver"} <= {k.split("/")[3] for k in bus.alive()}, 60,
+               "every process's liveliness token")  # fmt: skip
     old, killed = kill_once_localized(run_dir, states, "router")
     wait_until(lambda: pid_of(run_dir, "router") != old, 10, "the supervisor to restart the router")
     wait_until(lambda: any(t > killed + 1.0 for t, _ in states), 30, "status over the restarted router")
