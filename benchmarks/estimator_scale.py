@@ -55,7 +55,10 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def ring_cell(n_cams: int = 8, n_markers: int = 16, per_cam: int = 8):
+def ring_cell(n_cams: int = 8, n_markers: int = 16, per_cam: int | None = None):
+    """Markers on a 2.5 m ring (4 anchors evenly spread), cameras on a 1 m ring looking outward, each
+    seeing its ``per_cam`` nearest markers (default: 8, or enough that every marker is seen twice)."""
+    per_cam = per_cam or max(8, math.ceil(2 * n_markers / n_cams))
     markers = {}
     for i in range(n_markers):
         a = 2 * math.pi * i / n_markers
@@ -73,7 +76,7 @@ def ring_cell(n_cams: int = 8, n_markers: int = 16, per_cam: int = 8):
         T[:3, 3] = p
         seen = sorted(markers, key=lambda m: np.linalg.norm(markers[m][:3, 3] - (-p)))[:per_cam]
         cams[f"cam{j}"] = (T, seen)
-    anchors = [0, 4, 8, 12]
+    anchors = [i * n_markers // 4 for i in range(4)]
     return markers, cams, anchors
 
 
@@ -190,9 +193,36 @@ def median_tick_ms(r: Runner, lo: int, hi: int) -> float:
 
 
 def run(quick: bool, args=None) -> dict[str, float]:
+    if args is not None and args.scan:
+        return scan(0.02 if quick else args.hours if args.hours != 24.0 else 0.05, args.move_every)
     hours = 0.15 if quick else (args.hours if args is not None else 24.0)
     move_every_s = args.move_every if args is not None else 20.0
-    markers, cams, anchors = ring_cell()
+    return measure(hours, move_every_s, args.cameras if args is not None else 8, args.markers if args is not None else 16)
+
+
+#: (cameras, markers) of ``--scan``: cameras doubling with two markers each, then markers at 64 cameras.
+SCAN = [(8, 16), (16, 32), (32, 64), (64, 128), (64, 250), (64, 500), (64, 1000)]
+
+
+def scan(hours: float, move_every_s: float) -> dict[str, float]:
+    """``measure`` over ``SCAN``; the growth exponent of update p99 with cameras (log-log fit over
+    the two-markers-per-camera rows)."""
+    out: dict[str, float] = {"simulated_hours_each": hours, "move_every_s": move_every_s}
+    p99 = {}
+    for n, mk in SCAN:
+        r = measure(hours, move_every_s, n, mk)
+        p99[(n, mk)] = r["update_ms_p99"]
+        for key in ("update_ms_p50", "update_ms_p99", "observations_per_s", "rss_growth_mb", "factors_max", "solver_updates_last_hour"):
+            out[f"{key}_{n}cams_{mk}markers"] = r[key]
+    series = [(n, p99[(n, mk)]) for n, mk in SCAN if mk == 2 * n]
+    out["growth_exponent_cameras"] = float(np.polyfit(np.log([n for n, _ in series]), np.log([v for _, v in series]), 1)[0])
+    out["update_ms_p99_64cams"] = p99[(64, 1000)]
+    return out
+
+
+def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16) -> dict[str, float]:
+    """One cell of ``n_cams`` cameras and ``n_markers`` markers for ``hours`` simulated hours."""
+    markers, cams, anchors = ring_cell(n_cams, n_markers)
     cfg = EstimatorConfig(
         anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors]
     )
@@ -267,6 +297,9 @@ def run(quick: bool, args=None) -> dict[str, float]:
 def add_args(parser) -> None:
     parser.add_argument("--hours", type=float, default=24.0, help="simulated span (default 24 h)")
     parser.add_argument("--move-every", type=float, default=20.0, help="bump one camera, in turn, this often (simulated s; 0: a still cell)")
+    parser.add_argument("--cameras", type=int, default=8, help="cameras on the ring (default 8)")
+    parser.add_argument("--markers", type=int, default=16, help="markers on the ring (default 16; 4 are anchors)")
+    parser.add_argument("--scan", action="store_true", help="a table over cameras 8..64 and markers up to 1,000 (--hours each, default 0.05)")
 
 
 if __name__ == "__main__":
