@@ -39,3 +39,14 @@ def logged_messages(path: Path, log_time_order: bool = True) -> Iterator[tuple[s
     with path.open("rb") as f:
         for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(log_time_order=log_time_order):
             yield channel.topic, msg
+
+
+def ros2_subscriber(endpoint: str, topic: str, msg_type: str) -> tuple[object, list]:
+    """A zenoh-ros2-sdk subscriber (an rmw_zenoh peer nobody here wrote) through the router at
+    ``endpoint`` (``tcp/127.0.0.1:PORT``): it and the list its decoded messages go into."""
+    from zenoh_ros2_sdk import ROS2Subscriber
+
+    got: list = []
+    sub = ROS2Subscriber(topic=topic, msg_type=msg_type, callback=got.append, router_ip="127.0.0.1",
+                         router_port=int(endpoint.rsplit(":", 1)[1]))  # fmt: skip
+    return sub, got

@@ -18,7 +18,7 @@ from schemas.bus import Bus, TransportConfig
 from schemas.rmw_zenoh import attachment, dds_type_name, mangle, topic_key
 from schemas.ros2 import Ros2Config, ros2_types
 from tests.bus.test_estimator_service import CELL, scene
-from tests.helpers import wait_until
+from tests.helpers import ros2_subscriber, wait_until
 
 def test_keys_hashes_and_attachment_as_rmw_zenoh_states_them() -> None:
     """ros2/rmw_zenoh docs/design.md: topic keys are ``<domain>/<topic>/<DDS type>/<type hash>``,
@@ -42,12 +42,8 @@ def test_keys_hashes_and_attachment_as_rmw_zenoh_states_them() -> None:
 
 @pytest.mark.slow
 def test_a_ros2_node_reads_the_estimators_tf_and_poses(ros2_router: str, ros2_messages: Path) -> None:
-    from zenoh_ros2_sdk import ROS2Subscriber
-    port = int(ros2_router.rsplit(":", 1)[1])
-    tf, poses = [], []
-    subs = [ROS2Subscriber(topic="/tf", msg_type="tf2_msgs/msg/TFMessage", callback=tf.append, router_ip="127.0.0.1", router_port=port),
-            ROS2Subscriber(topic="/cellsight/a/pose", msg_type="geometry_msgs/msg/PoseWithCovarianceStamped", callback=poses.append,
-                           router_ip="127.0.0.1", router_port=port)]  # fmt: skip
+    tf_sub, tf = ros2_subscriber(ros2_router, "/tf", "tf2_msgs/msg/TFMessage")
+    poses_sub, poses = ros2_subscriber(ros2_router, "/cellsight/a/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")
     s = scene()
     transport = TransportConfig(connect=[ros2_router])
     with Bus(transport, CELL) as svc_bus, Bus(transport, CELL) as client:
@@ -68,7 +64,7 @@ def test_a_ros2_node_reads_the_estimators_tf_and_poses(ros2_router: str, ros2_me
         finally:
             stop.set()
             thread.join(10)
-    for sub in subs:
+    for sub in (tf_sub, poses_sub):
         sub.close()
     assert any("/NN/%/%/cellsight_estimator" in t for t in tokens), tokens
     assert any("/MP/%/%/cellsight_estimator/%tf/tf2_msgs::msg::dds_::TFMessage_/RIHS01_" in t for t in tokens), tokens

@@ -27,7 +27,7 @@ from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.ros2 import stamp_ns
 from tests.conftest import ROOT
-from tests.helpers import wait_until
+from tests.helpers import ros2_subscriber, wait_until
 
 pytestmark = pytest.mark.slow
 EXAMPLE = ROOT / "examples" / "robot_objects.py"
@@ -85,13 +85,8 @@ def _T(translation, rotation) -> np.ndarray:
 
 
 def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_messages: Path) -> None:
-    from zenoh_ros2_sdk import ROS2Subscriber
-
-    port = int(demo_cell.rsplit(":", 1)[1])
-    tf, objects = [], []
-    subs = [ROS2Subscriber(topic="/tf", msg_type="tf2_msgs/msg/TFMessage", callback=tf.append, router_ip="127.0.0.1", router_port=port),
-            ROS2Subscriber(topic="/cellsight/objects", msg_type="vision_msgs/msg/Detection3DArray", callback=objects.append,
-                           router_ip="127.0.0.1", router_port=port)]  # fmt: skip
+    tf_sub, tf = ros2_subscriber(demo_cell, "/tf", "tf2_msgs/msg/TFMessage")
+    objects_sub, objects = ros2_subscriber(demo_cell, "/cellsight/objects", "vision_msgs/msg/Detection3DArray")
     with Bus(TransportConfig(connect=[demo_cell]), "demo") as bus:
         ours_tf = bus.subscribe(keys.tf("demo"), m.FrameTransforms, capacity=10_000)
         ours_objects = bus.subscribe(keys.objects("demo"), m.ObjectDetections, capacity=10_000)
@@ -100,7 +95,7 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
             time.sleep(3.0)
             tokens = [str(r.ok.key_expr) for r in bus.session.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
         finally:
-            for sub in subs:
+            for sub in (tf_sub, objects_sub):
                 sub.close()
         ours = {(tr.child_frame_id, codec.timestamp_to_stamp(tr.timestamp)): tr for item in ours_tf.drain() for tr in item.msg.transforms}
         ours_obj: dict[tuple[str, int], list[np.ndarray]] = {}  # a detection is re-posed as its camera's pose refines
