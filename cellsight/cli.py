@@ -479,6 +479,7 @@ def model_build(
     demo: Annotated[bool, typer.Option("--demo", help="every object of the built-in demo cell")] = False,
     mesh: Annotated[Optional[list[str]], typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres")] = None,
     cloud: Annotated[Optional[list[str]], typer.Option("--cloud", help="ID=FILE: a point cloud (PCD/PLY), metres, captured from its origin")] = None,
+    points: Annotated[Optional[list[str]], typer.Option("--points", help="ID=FILE: points over the whole surface (PLY/PCD/XYZ), metres, object frame")] = None,
     recording: Annotated[Optional[list[str]], typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board")] = None,
     board: Annotated[Optional[Path], typer.Option("--board", help="marker board TOML of the recordings (see drivers/sim/capture_board.toml)")] = None,
     distance: Annotated[float, typer.Option(help="virtual camera distance for rendered views, m")] = 2.0,
@@ -500,15 +501,16 @@ def model_build(
         return out_
 
     meshes, clouds, recordings = pairs(mesh, "mesh"), pairs(cloud, "cloud"), pairs(recording, "recording")
-    if not (scenario or demo or meshes or clouds or recordings):
-        raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE, --cloud ID=FILE or --recording ID=LOG", 2)
+    surfaces = pairs(points, "points")
+    if not (scenario or demo or meshes or clouds or surfaces or recordings):
+        raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE, --cloud ID=FILE, --points ID=FILE or --recording ID=LOG", 2)
     cfg = _load(cell_config)
     sc = load_scenario(scenario) if (scenario or demo) else None
     board_cfg = load_board(board) if board else None
-    total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds) + len(recordings))
+    total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds) + len(surfaces) + len(recordings))
     with Progress(console=_stderr(), transient=True) as bar:
         task = bar.add_task("rendering and describing views", total=total)
-        db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, recordings=recordings,
+        db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, points=surfaces, recordings=recordings,
                             board=board_cfg, distance_m=distance, progress=lambda: bar.advance(task))
     db.save(out)
     for oid, mdl in sorted(db.models.items()):

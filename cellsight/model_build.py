@@ -12,7 +12,7 @@ from drivers.sim.scenario import Scenario
 from recognition.cloud import read_cloud
 from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
-from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh, read_mesh
+from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh, model_from_points, read_mesh
 from recognition.recording import model_from_recording
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,7 @@ def build_database(
     scenario: Scenario | None = None,
     meshes: dict[str, Path] | None = None,
     clouds: dict[str, Path] | None = None,
+    points: dict[str, Path] | None = None,
     recordings: dict[str, Path] | None = None,
     board: BoardConfig | None = None,
     distance_m: float = 2.0,
@@ -50,6 +51,9 @@ def build_database(
     for oid, path in (clouds or {}).items():
         _check_new(db, oid)
         db.add(model_from_cloud(oid, read_cloud(path), params, progress=progress))
+    for oid, path in (points or {}).items():
+        _check_new(db, oid)
+        db.add(model_from_points(oid, read_cloud(path), params, distance_m=distance_m, progress=progress))
     if recordings and board is None:
         raise ModelError("a recording needs its marker board: give --board BOARD.toml")
     for oid, path in (recordings or {}).items():

@@ -67,7 +67,7 @@ def finite_points(cloud: np.ndarray) -> np.ndarray:
 
 
 def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
-    """Points of a PCD or PLY file in float32 metres (every PCD encoding, LZF-compressed included).
+    """Points of a PCD, PLY or XYZ file in float32 metres (every PCD encoding, LZF-compressed included).
 
     organised=True keeps a PCD's HEIGHT x WIDTH layout and its NaN points: (H, W, 3). Otherwise the
     finite points only: (N, 3).
@@ -75,8 +75,8 @@ def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise CloudError(f"cloud file {path} does not exist")
-    if path.suffix.lower() not in (".pcd", ".ply"):
-        raise CloudError(f"cloud file {path}: use a .pcd or .ply file")
+    if path.suffix.lower() not in (".pcd", ".ply", ".xyz"):
+        raise CloudError(f"cloud file {path}: use a .pcd, .ply or .xyz file")
     if path.suffix.lower() == ".pcd":
         width, height = _pcd_size(path)
     try:
@@ -91,7 +91,7 @@ def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
         if len(found) == 0:
             raise CloudError(f"cloud file {path} holds no finite points")
         return found
-    if path.suffix.lower() == ".ply":
+    if path.suffix.lower() in (".ply", ".xyz"):
         width, height = len(pts), 1
     if width * height != len(pts):
         raise CloudError(f"cloud file {path}: WIDTH x HEIGHT = {width}x{height} but {len(pts)} points")

@@ -255,25 +255,55 @@ def model_from_cloud(
     ok = np.all(np.isfinite(model_normals), axis=1)
     model_pts, model_normals = model_pts[ok], model_normals[ok]
     centre = model_pts.mean(axis=0)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pts_normals, _ = estimate_normals(pts, params.normal_radius_m, vp)
 
     def seen():
         view_T_object = np.eye(4)
         view_T_object[:3, 3] = -vp
         yield pts - vp, view_T_object  # the capture itself (its camera's rotation is the cloud frame's)
-        for direction in sphere_viewpoints(subdivisions):
-            object_T_view = _object_T_view(centre, direction, distance_m)
-            _, visible = pcd.hidden_point_removal(object_T_view[:3, 3], distance_m * 100)
-            idx = np.asarray(visible)
-            facing = np.einsum("ij,ij->i", pts_normals[idx], object_T_view[:3, 3] - pts[idx]) > 0
-            if len(idx) == 0 or facing.mean() < 0.5:
-                continue
-            view_T_object = invert_pose(object_T_view)
-            yield pts[idx] @ view_T_object[:3, :3].T + view_T_object[:3, 3], view_T_object
+        yield from _hidden_point_views(pts, pts_normals, centre, distance_m, subdivisions)
 
     views = describe_views(seen(), params, progress)
     return ObjectModel(object_id, model_pts, model_normals, views, "cloud")
+
+
+def model_from_points(
+    object_id: str,
+    points: np.ndarray,
+    params: DescriptorConfig,
+    *,
+    distance_m: float = 1.0,
+    subdivisions: int = 1,
+    progress: Callable[[], None] | None = None,
+) -> ObjectModel:
+    """A model from points over an object's whole surface (object frame, metres), as model libraries
+    ship them: views from sphere viewpoints through hidden-point removal, normals pointing away
+    from the points' centroid (right for convex shapes and most boxes and bottles)."""
+    pts = finite_points(points).astype(np.float64)
+    if len(pts) < MIN_VIEW_POINTS:
+        raise ModelError(f"object {object_id!r}: the points have {len(pts)} finite ones, need {MIN_VIEW_POINTS}")
+    centre = pts.mean(axis=0)
+    model_pts = voxel_downsample(pts, params.voxel_m)
+    inward, _ = estimate_normals(model_pts, params.normal_radius_m, centre)  # faced to the centroid ...
+    ok = np.all(np.isfinite(inward), axis=1)
+    pts_inward, _ = estimate_normals(pts, params.normal_radius_m, centre)
+    views = describe_views(_hidden_point_views(pts, -pts_inward, centre, distance_m, subdivisions), params, progress)
+    return ObjectModel(object_id, model_pts[ok], -inward[ok], views, "points")  # ... and turned outward
+
+
+def _hidden_point_views(pts: np.ndarray, normals: np.ndarray, centre: np.ndarray, distance_m: float, subdivisions: int):
+    """(points in the view's camera frame, view_T_object) of each sphere viewpoint whose visible
+    points (hidden-point removal) mostly face it: a partial scan seen from behind is not a view."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    for direction in sphere_viewpoints(subdivisions):
+        object_T_view = _object_T_view(centre, direction, distance_m)
+        _, visible = pcd.hidden_point_removal(object_T_view[:3, 3], distance_m * 100)
+        idx = np.asarray(visible)
+        facing = np.einsum("ij,ij->i", normals[idx], object_T_view[:3, 3] - pts[idx]) > 0
+        if len(idx) == 0 or facing.mean() < 0.5:
+            continue
+        view_T_object = invert_pose(object_T_view)
+        yield pts[idx] @ view_T_object[:3, :3].T + view_T_object[:3, 3], view_T_object
 
 
 def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
