@@ -159,7 +159,9 @@ def plot_errors(d: RunData, path: Path) -> None:
         a3.set_ylabel("object position error (mm)")
         a3.legend(ncol=4, fontsize=8)
     for ax in axes:
-        ax.set_yscale("log")
+        ys = np.concatenate([np.asarray(line.get_ydata(), float) for line in ax.get_lines()] or [np.zeros(0)])
+        if np.any(np.isfinite(ys) & (ys > 0)):  # a log axis needs a positive value (a slow run may have none yet)
+            ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both")
     axes[-1].set_xlabel("scenario time (s)")
     fig.tight_layout()

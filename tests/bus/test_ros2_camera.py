@@ -20,6 +20,7 @@ from drivers.sim.source import SimSource
 from schemas.bus import TransportConfig, open_session
 from schemas.geometry import pose_error
 from schemas.ros2 import ros2_types
+from tests.helpers import wait_until
 
 @pytest.mark.slow
 def test_markers_from_ros2_camera_topics_equal_the_sim_drivers(ros2_router: str, ros2_messages: Path) -> None:
@@ -42,6 +43,7 @@ def test_markers_from_ros2_camera_topics_equal_the_sim_drivers(ros2_router: str,
         return store["std_msgs/msg/Header"](stamp=t, frame_id="cam_color_optical_frame")
 
     for f in frames:
+        before = len(got)
         info = f.info
         pubs["info"].publish(header=header(f.stamp_ns), height=info.height, width=info.width, distortion_model="plumb_bob",
                              d=info.D.astype(np.float64), k=info.K.reshape(9), r=np.eye(3).reshape(9),
@@ -52,7 +54,8 @@ def test_markers_from_ros2_camera_topics_equal_the_sim_drivers(ros2_router: str,
                               step=info.width * 3, data=bgr.reshape(-1))  # fmt: skip
         pubs["depth"].publish(header=header(f.stamp_ns), height=info.height, width=info.width, encoding="16UC1", is_bigendian=0,
                               step=info.width * 2, data=f.depth_mm.view(np.uint8).reshape(-1))  # fmt: skip
-        time.sleep(0.3)  # one frame at a time: the source keeps the newest pair only
+        # One frame at a time (the source keeps the newest pair only): the next goes once this one is read.
+        wait_until(lambda: len(got) > before or not reader.is_alive(), 20.0, "the ROS 2 source to read the frame")
     reader.join(20)
     source.close()
     session.close()

@@ -91,7 +91,8 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
         ours_tf = bus.subscribe(keys.tf("demo"), m.FrameTransforms, capacity=10_000)
         ours_objects = bus.subscribe(keys.objects("demo"), m.ObjectDetections, capacity=10_000)
         try:
-            wait_until(lambda: any(len(o.detections) == 3 for o in objects), 240.0, "the ROS 2 node to get all three objects")
+            wait_until(lambda: {d.id for o in list(objects) for d in o.detections} == {"crate", "can", "tote"}, 240.0,
+                       "the ROS 2 node to get all three objects")  # fmt: skip
             time.sleep(3.0)
             tokens = [str(r.ok.key_expr) for r in bus.session.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
         finally:
