@@ -12,6 +12,8 @@ extras="bench"
 # Open3D 0.20 fails to import without libusb; the OpenNI2 driver needs libOpenNI2 and its
 # Dummy device; a fresh Debian python3 needs python3-venv to make a virtual environment.
 apt_pkgs=(libusb-1.0-0 libopenni2-dev libgomp1)
+# The multi-host test builds its hosts from network namespaces with iproute2's `ip`.
+[ "${1:-}" = "--test" ] && apt_pkgs+=(iproute2)
 python3 -m venv --help >/dev/null 2>&1 && python3 -c 'import ensurepip' 2>/dev/null || apt_pkgs+=(python3-venv)
 missing=()
 for p in "${apt_pkgs[@]}"; do

@@ -20,7 +20,7 @@ import typer
 from typer.core import TyperGroup
 
 from cellsight.errors import CellsightError, ConfigError, RunError
-from cellsight.transport_flags import CellOpt, ListenOpt, TransportFlags, ZenohConfigOpt, transport_options
+from cellsight.transport_flags import CellOpt, ConnectOpt, ListenOpt, TransportFlags, ZenohConfigOpt, transport_options
 
 from drivers.errors import DriverError  # noqa: E402  (the packages' exception roots: small modules)
 from estimator.errors import EstimatorError  # noqa: E402
@@ -277,15 +277,17 @@ def bus_list(
 @app.command("router")
 def router(
     listen: ListenOpt = None,
+    connect: ConnectOpt = None,
     config: ZenohConfigOpt = None,
     verbose: VerboseOpt = False,
 ) -> None:
-    """Run a zenoh router (default: tcp/127.0.0.1:7447, loopback only) until Ctrl-C."""
+    """Run a zenoh router (default: tcp/127.0.0.1:7447, loopback only) until Ctrl-C; with --connect,
+    peered with another router (an edge host's, with the cell's)."""
     from schemas.bus import DEFAULT_ROUTER, TransportConfig, open_session
 
     _setup_logging(verbose)
     # A config file (the secure profile's router.json5) brings its own listen endpoints.
-    transport = TransportConfig.router(list(listen) if listen else ([] if config else [DEFAULT_ROUTER]))
+    transport = TransportConfig.router(list(listen) if listen else ([] if config else [DEFAULT_ROUTER]), list(connect or []))
     if config is not None:
         transport = transport.model_copy(update={"zenoh_config": config})
     session = open_session(transport)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -38,6 +38,16 @@ class CellSection(BaseModel):
     name: str = "demo"
     scenario: Path | None = Field(default=None, description="simulated cell scenario (TOML); None: built-in demo")
     record: Path | None = Field(default=None, description="record every key to this MCAP file")
+    role: Literal["cell", "edge"] = Field(
+        default="cell", description="cell: the whole cell on this host; edge: this host's cameras beside a local router peered with `upstream`"
+    )
+    upstream: list[str] = Field(default_factory=list, description="edge: the cell router(s) this host's router connects to, e.g. tcp/10.0.3.2:7447")
+
+    @model_validator(mode="after")
+    def _edge_has_upstream(self) -> "CellSection":
+        if self.role == "edge" and not self.upstream:
+            raise ValueError("an edge host needs [cell] upstream: the cell router(s) its router connects to")
+        return self
 
 
 class CellConfig(BaseModel):

@@ -1,4 +1,5 @@
 """``cellsight run``: one router, one driver per camera, the estimator, recognition and the recorder, supervised.
+On an edge host (``[cell] role = "edge"``): its router, peered with the cell's, and its cameras' drivers.
 
 Every component runs as its own process (``python -m cellsight.cli ...``) with the run's saved
 config, so a crash in one never takes the others down. A process that exits on its own is
@@ -165,14 +166,18 @@ def plan(cfg: CellConfig, run_dir: Path, record: Path | None, max_image_hz: floa
     common = ["--cell-config", str(cfg_path)]
     children = []
     router = router_endpoint(cfg)
+    edge = cfg.cell.role == "edge"
     if router is not None:
-        children.append(Child("router", CLI + ["router", "--listen", router], logs / "router.log"))
+        upstream = [arg for endpoint in cfg.cell.upstream for arg in ("--connect", endpoint)] if edge else []
+        children.append(Child("router", CLI + ["router", "--listen", router] + upstream, logs / "router.log"))
     for cam in cfg.cameras:
         if cam.source == "sim":
             argv = CLI + ["driver", "sim", "--camera", cam.id, "--epoch-ns", str(epoch_ns)] + common
         else:  # openni2 | realsense: the driver reads the rest of its camera section from the config
             argv = CLI + ["driver", cam.source, "--camera", cam.id] + common
         children.append(Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log", shm_starts=cfg.transport.shm_driver_starts))
+    if edge:  # the cameras only: their markers and status cross to the cell, images stay unless asked for
+        return children
     state = cfg.estimator.state_file or run_dir / "estimator_state.json"
     children.append(Child("estimator", CLI + ["estimator", "--state-file", str(state)] + common, logs / "estimator.log"))
     if cfg.recognition.enabled:
@@ -208,7 +213,7 @@ def with_models(cfg: CellConfig, run_dir: Path) -> CellConfig:
     running cell the (niced) worker would compete with the renderers for the CPU for minutes.
     """
     rec = cfg.recognition
-    if not rec.enabled or rec.models is not None:
+    if not rec.enabled or rec.models is not None or cfg.cell.role == "edge":  # an edge host runs no recognition
         return cfg
     from cellsight.model_build import models_for
     from recognition.errors import ModelError

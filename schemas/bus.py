@@ -109,8 +109,9 @@ class TransportConfig(BaseModel):
         return cfg
 
     @classmethod
-    def router(cls, listen: list[str]) -> "TransportConfig":
-        return cls(mode="router", connect=[], listen=listen)
+    def router(cls, listen: list[str], connect: list[str] | None = None) -> "TransportConfig":
+        """A router listening on ``listen``; ``connect``: other routers it peers with."""
+        return cls(mode="router", connect=list(connect or []), listen=listen)
 
 
 def memory_lock_problem(status_file: Path = Path("/proc/self/status")) -> str | None:
