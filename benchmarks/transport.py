@@ -5,6 +5,12 @@ One router, four publisher processes (a 640x480 rgb8 and a 16UC1 image per frame
 protobuf messages, as the recorder and the recognition worker do. Each process reports its own
 CPU time (user + system, ``getrusage``); the same run is made with ``transport.shared_memory``
 on and off. The reference shared memory must beat is plain bytes on the same machine, same run.
+
+Cross-host (root only: two hosts made of network namespaces, ``tests/hosts.py``): an edge host
+runs ``cellsight run`` with ``role = "edge"`` and one simulated camera at 30 Hz (pre-rendered
+frames), the cell host a router (shared memory off: another machine has none to share) and the
+estimator. Bytes per second crossing the link for that camera: as deployed (images stay on the
+edge host), and with a reader of every key on the cell host (everything sent), the reference.
 """
 
 from __future__ import annotations
@@ -92,6 +98,60 @@ def one_run(shm: bool, seconds: float) -> dict[str, float]:
     }
 
 
+def cross_host(seconds: float) -> dict[str, float]:
+    """Bytes/s one edge camera puts on the link: images kept local, and everything sent."""
+    import tempfile
+    from pathlib import Path
+
+    from cellsight.config import load_config
+    from cellsight.scenario_config import cell_config_of
+    from drivers.sim.scenario import load_scenario
+    from tests.hosts import CELL_IP, can_make_hosts, in_ns, rx_bytes, two_hosts
+
+    if not can_make_hosts():
+        return {"cross_host_bytes_per_s_per_camera": float("nan"), "cross_host_everything_bytes_per_s_per_camera": float("nan")}
+    endpoint = f"tcp/{CELL_IP}:7447"
+    me = [sys.executable, "-m", "benchmarks.transport", "--role"]
+    with two_hosts("csbench") as (cell, edge), tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        (tmp_path / "base.toml").write_text(f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\nshared_memory = false\n')
+        cfg = cell_config_of(load_scenario(), None, load_config(tmp_path / "base.toml"))
+        (tmp_path / "cell.toml").write_text(cfg.to_toml())
+        edge_cfg = cfg.model_copy(update={
+            "cell": cfg.cell.model_copy(update={"role": "edge", "upstream": [endpoint]}),
+            "transport": cfg.transport.model_copy(update={"connect": ["tcp/127.0.0.1:7447"], "shared_memory": True}),
+            "cameras": [c.model_copy(update={"prerender_frames": 30}) for c in cfg.cameras if c.id == "cam1"],
+        })  # fmt: skip
+        (tmp_path / "edge.toml").write_text(edge_cfg.to_toml())
+        procs = [in_ns(cell, me + ["router", endpoint, "0", str(3 * seconds + 120)])]
+        time.sleep(1.0)
+        procs.append(in_ns(cell, [sys.executable, "-m", "cellsight.cli", "estimator", "--cell-config", str(tmp_path / "cell.toml")]))
+        procs.append(in_ns(edge, [sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "edge.toml"), "--out", str(tmp_path / "edge")]))
+        try:
+            time.sleep(25.0)  # pre-rendering, then the camera at its rate
+
+            def rate() -> float:
+                before, t0 = rx_bytes(cell), time.monotonic()
+                time.sleep(seconds)
+                return (rx_bytes(cell) - before) / (time.monotonic() - t0)
+
+            kept = rate()
+            everything = in_ns(cell, me + ["reader", endpoint, "0", str(seconds + 10)])
+            time.sleep(2.0)
+            sent = rate()
+            everything.wait(seconds + 30)
+        finally:
+            for p in procs:
+                p.terminate()
+            for p in procs:
+                try:
+                    p.wait(20)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    return {"cross_host_bytes_per_s_per_camera": kept, "cross_host_everything_bytes_per_s_per_camera": sent,
+            "cross_host_everything_over_kept_ratio": sent / kept}  # fmt: skip
+
+
 def run(quick: bool) -> dict[str, float]:
     seconds = 8.0 if quick else 30.0
     shm, plain = one_run(True, seconds), one_run(False, seconds)
@@ -99,6 +159,7 @@ def run(quick: bool) -> dict[str, float]:
     figures.update({f"shm_{k}": v for k, v in shm.items()})
     figures.update({f"plain_{k}": v for k, v in plain.items()})
     figures["plain_over_shm_cpu_ratio"] = plain["cpu_s_per_s_total"] / shm["cpu_s_per_s_total"]
+    figures.update(cross_host(5.0 if quick else 15.0))
     return figures
 
 

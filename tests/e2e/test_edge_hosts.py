@@ -14,8 +14,6 @@ the routers; the cell host turns shared memory off, as a second machine has none
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 import sys
 import threading
@@ -29,44 +27,17 @@ from cellsight.config import load_config
 from cellsight.scenario_config import cell_config_of
 from drivers.sim.scenario import load_scenario
 from tests.helpers import wait_until
+from tests.hosts import CELL_DEV, CELL_IP, EDGE_DEV, can_make_hosts, in_ns, ip, rx_bytes, two_hosts
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(os.geteuid() != 0 or shutil.which("ip") is None, reason="needs root and iproute2 (CI has both)")]  # fmt: skip
-CELL_IP, EDGE_IP = "10.213.7.1", "10.213.7.2"
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not can_make_hosts(), reason="needs root and iproute2 (CI has both)")]
 CELL_ROUTER = f"tcp/{CELL_IP}:7447"
 CLI = [sys.executable, "-m", "cellsight.cli"]
 
 
-def ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True)
-
-
 @pytest.fixture()
 def hosts() -> Iterator[tuple[str, str]]:
-    cell, edge = f"cs{os.getpid()}cell", f"cs{os.getpid()}edge"
-    ip("netns", "add", cell)
-    ip("netns", "add", edge)
-    try:
-        ip("link", "add", "cs-veth-c", "type", "veth", "peer", "name", "cs-veth-e")
-        ip("link", "set", "cs-veth-c", "netns", cell)
-        ip("link", "set", "cs-veth-e", "netns", edge)
-        for ns, dev, addr in ((cell, "cs-veth-c", CELL_IP), (edge, "cs-veth-e", EDGE_IP)):
-            ip("-n", ns, "addr", "add", f"{addr}/24", "dev", dev)
-            ip("-n", ns, "link", "set", dev, "up")
-            ip("-n", ns, "link", "set", "lo", "up")
-        yield cell, edge
-    finally:
-        ip("netns", "del", cell)  # takes the veth pair with it
-        ip("netns", "del", edge)
-
-
-def in_ns(ns: str, argv: list[str], log: Path, **kw) -> subprocess.Popen:
-    return subprocess.Popen(["ip", "netns", "exec", ns, *argv], stdout=kw.pop("stdout", log.open("w")), stderr=subprocess.STDOUT, **kw)
-
-
-def rx_bytes(ns: str, dev: str) -> int:
-    out = subprocess.run(["ip", "-n", ns, "-j", "-s", "link", "show", dev], check=True, capture_output=True, text=True).stdout
-    return int(json.loads(out)[0]["stats64"]["rx"]["bytes"])
+    with two_hosts() as pair:
+        yield pair
 
 
 def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping(hosts: tuple[str, str], tmp_path: Path) -> None:
@@ -107,25 +78,25 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
         wait_until(lambda: states and states[-1][1] == "LOCALIZED", 90.0, "cam1 localised by the cell's estimator across the link")
         # Images stay on the edge host: with nobody on the cell host asking, the link carries the
         # markers and status (kilobytes a second), not 640x480 RGB-D at the camera's rate (megabytes).
-        before, t0 = rx_bytes(cell, "cs-veth-c"), time.monotonic()
+        before, t0 = rx_bytes(cell, CELL_DEV), time.monotonic()
         time.sleep(3.0)
-        rate = (rx_bytes(cell, "cs-veth-c") - before) / (time.monotonic() - t0)
+        rate = (rx_bytes(cell, CELL_DEV) - before) / (time.monotonic() - t0)
         assert rate < 200_000, f"{rate / 1e3:.0f} kB/s crossed the link: images are leaving the edge host"
         # ... and they do cross when someone on the cell host asks (the measurement can tell).
         viewer = in_ns(cell, CLI + ["bus", "echo", "cellsight/net/cam1/depth/image_raw", "--cell-config", str(tmp_path / "cell.toml")],
                        tmp_path / "viewer.log")
         time.sleep(2.0)
-        before, t0 = rx_bytes(cell, "cs-veth-c"), time.monotonic()
+        before, t0 = rx_bytes(cell, CELL_DEV), time.monotonic()
         time.sleep(3.0)
-        asked = (rx_bytes(cell, "cs-veth-c") - before) / (time.monotonic() - t0)
+        asked = (rx_bytes(cell, CELL_DEV) - before) / (time.monotonic() - t0)
         viewer.terminate()
         viewer.wait(20)
         assert asked > 10 * rate and asked > 1_000_000, f"{asked / 1e3:.0f} kB/s with a depth subscriber on the cell host"
-        ip("-n", edge, "link", "set", "cs-veth-e", "down")
+        ip("-n", edge, "link", "set", EDGE_DEV, "down")
         down_at = time.monotonic()
         wait_until(lambda: states[-1][1] == "STALE", 5.0, "cam1 stale while its host's link is down")
         time.sleep(max(5.0 - (time.monotonic() - down_at), 0.0))
-        ip("-n", edge, "link", "set", "cs-veth-e", "up")
+        ip("-n", edge, "link", "set", EDGE_DEV, "up")
         wait_until(lambda: states[-1][1] == "LOCALIZED", 60.0, "cam1 back once the link is up")
         edge_run = json.loads((tmp_path / "edge_run" / "processes.json").read_text())
         assert {p["name"] for p in edge_run} == {"router", "driver/cam1"}  # no estimator, recognition or recorder on the edge
