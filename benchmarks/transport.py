@@ -106,7 +106,7 @@ def cross_host(seconds: float) -> dict[str, float]:
     from cellsight.config import load_config
     from cellsight.scenario_config import cell_config_of
     from drivers.sim.scenario import load_scenario
-    from tests.hosts import CELL_IP, can_make_hosts, in_ns, rx_bytes, two_hosts
+    from tests.hosts import CELL_IP, can_make_hosts, in_ns, rx_bytes, stop_all, two_hosts
 
     if not can_make_hosts():
         return {"cross_host_bytes_per_s_per_camera": float("nan"), "cross_host_everything_bytes_per_s_per_camera": float("nan")}
@@ -141,13 +141,7 @@ def cross_host(seconds: float) -> dict[str, float]:
             sent = rate()
             everything.wait(seconds + 30)
         finally:
-            for p in procs:
-                p.terminate()
-            for p in procs:
-                try:
-                    p.wait(20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+            stop_all(procs)
     return {"cross_host_bytes_per_s_per_camera": kept, "cross_host_everything_bytes_per_s_per_camera": sent,
             "cross_host_everything_over_kept_ratio": sent / kept}  # fmt: skip
 

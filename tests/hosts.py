@@ -58,3 +58,14 @@ def rx_bytes(ns: str, dev: str = CELL_DEV) -> int:
     """Bytes received so far on a namespace's interface."""
     out = subprocess.run(["ip", "-n", ns, "-j", "-s", "link", "show", dev], check=True, capture_output=True, text=True).stdout
     return int(json.loads(out)[0]["stats64"]["rx"]["bytes"])
+
+
+def stop_all(procs: list[subprocess.Popen], grace_s: float = 20.0) -> None:
+    """SIGTERM every process (last started first), then SIGKILL what has not exited within ``grace_s``."""
+    for p in reversed(procs):
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            p.kill()

@@ -27,7 +27,7 @@ from cellsight.config import load_config
 from cellsight.scenario_config import cell_config_of
 from drivers.sim.scenario import load_scenario
 from tests.helpers import wait_until
-from tests.hosts import CELL_DEV, CELL_IP, EDGE_DEV, can_make_hosts, in_ns, ip, rx_bytes, two_hosts
+from tests.hosts import CELL_DEV, CELL_IP, EDGE_DEV, can_make_hosts, in_ns, ip, rx_bytes, stop_all, two_hosts
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not can_make_hosts(), reason="needs root and iproute2 (CI has both)")]
 CELL_ROUTER = f"tcp/{CELL_IP}:7447"
@@ -102,10 +102,4 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
         assert {p["name"] for p in edge_run} == {"router", "driver/cam1"}  # no estimator, recognition or recorder on the edge
         assert not any(p["restarts"] for p in edge_run), f"edge processes restarted instead of reconnecting: {edge_run}"
     finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(20)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_all(procs)
