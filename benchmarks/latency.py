@@ -28,6 +28,7 @@ import numpy as np
 from benchmarks.common import main
 from benchmarks.load import EXTRA, scenario_toml
 from cellsight.config import load_config
+from cellsight.launch import wait_for_router
 from cellsight.scenario_config import cell_config_of
 from drivers.sim.scenario import load_scenario
 from schemas import keys
@@ -96,7 +97,8 @@ def trial(n_cams: int, seconds: float) -> Trial:
         status: dict[str, m.DriverStatus] = {}
         measuring = False
         try:
-            bus = _connect(endpoint)
+            wait_for_router(endpoint, timeout_s=60.0)
+            bus = Bus(TransportConfig(connect=[endpoint]), CELL)
 
             def on_poses(r) -> None:
                 if measuring:
@@ -129,17 +131,6 @@ def trial(n_cams: int, seconds: float) -> Trial:
     frames = sum(after[c][0] - before.get(c, (0, 0))[0] for c in after)
     dropped = sum(after[c][1] - before.get(c, (0, 0))[1] for c in after)
     return Trial(n_cams, t1 - t0, np.array(latency), frames, dropped, (cpu1 - cpu0) / (t1 - t0))
-
-
-def _connect(endpoint: str) -> Bus:
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            return Bus(TransportConfig(connect=[endpoint]), CELL)
-        except Exception:  # the router is still starting
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.5)
 
 
 def run(quick: bool) -> dict[str, float]:

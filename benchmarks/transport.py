@@ -98,7 +98,7 @@ def one_run(shm: bool, seconds: float) -> dict[str, float]:
     }
 
 
-def cross_host(seconds: float) -> dict[str, float]:
+def cross_host(seconds: float, settle_s: float) -> dict[str, float]:
     """Bytes/s one edge camera puts on the link: images kept local, and everything sent."""
     import tempfile
     from pathlib import Path
@@ -128,7 +128,7 @@ def cross_host(seconds: float) -> dict[str, float]:
         procs.append(in_ns(cell, [sys.executable, "-m", "cellsight.cli", "estimator", "--cell-config", str(tmp_path / "cell.toml")]))
         procs.append(in_ns(edge, [sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "edge.toml"), "--out", str(tmp_path / "edge")]))
         try:
-            time.sleep(25.0)  # pre-rendering, then the camera at its rate
+            time.sleep(settle_s)  # pre-rendering, then the camera at its rate
 
             def rate() -> float:
                 before, t0 = rx_bytes(cell), time.monotonic()
@@ -147,13 +147,13 @@ def cross_host(seconds: float) -> dict[str, float]:
 
 
 def run(quick: bool) -> dict[str, float]:
-    seconds = 8.0 if quick else 30.0
+    seconds = 5.0 if quick else 30.0
     shm, plain = one_run(True, seconds), one_run(False, seconds)
     figures: dict[str, float] = {"seconds": seconds}
     figures.update({f"shm_{k}": v for k, v in shm.items()})
     figures.update({f"plain_{k}": v for k, v in plain.items()})
     figures["plain_over_shm_cpu_ratio"] = plain["cpu_s_per_s_total"] / shm["cpu_s_per_s_total"]
-    figures.update(cross_host(5.0 if quick else 15.0))
+    figures.update(cross_host(5.0, 12.0) if quick else cross_host(15.0, 25.0))
     return figures
 
 

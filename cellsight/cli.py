@@ -125,11 +125,14 @@ def _drive(cfg, publish_images: bool, camera: str, make_source, transport: Trans
         DriverService(bus, make_source(bus), camera, cfg.markers, publish_images=publish_images).run(stop, duration)
 
 
-def _camera_section(cfg, camera: str, source: str):
-    """The cell config's section of ``camera``, or a default one of the given source."""
+def _camera_section(cell_config: Path | None, camera: str, source: str, verbose: bool):
+    """A driver command's start: logging set up, the cell config, and its section of ``camera``
+    (or a default one of the given source)."""
     from drivers.config import CameraConfig
 
-    return next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source=source)
+    _setup_logging(verbose)
+    cfg = _load(cell_config)
+    return cfg, next((c for c in cfg.cameras if c.id == camera), None) or CameraConfig(id=camera, source=source)
 
 
 def _stop_event():
@@ -393,9 +396,7 @@ def driver_realsense(
     """Run one Intel RealSense D4xx (or play its recording): frames and marker observations on the bus."""
     from drivers.realsense import RealSenseSource
 
-    _setup_logging(verbose)
-    cfg = _load(cell_config)
-    cam = _camera_section(cfg, camera, "realsense")
+    cfg, cam = _camera_section(cell_config, camera, "realsense", verbose)
     recording = bag if bag is not None else cam.recording
     source = RealSenseSource(camera, serial=serial or cam.serial or None, recording=recording, width=cam.width, height=cam.height,
                              rate_hz=cam.rate_hz, record_to=record_to)  # fmt: skip
@@ -418,9 +419,7 @@ def driver_ros2(
     from drivers.ros2_topics import Ros2TopicsSource
     from schemas.ros2 import ros2_types
 
-    _setup_logging(verbose)
-    cfg = _load(cell_config)
-    cam = _camera_section(cfg, camera, "ros2")
+    cfg, cam = _camera_section(cell_config, camera, "ros2", verbose)
 
     def topics(bus):  # subscribes on the driver's own session
         return Ros2TopicsSource(camera, bus.session, ros2_types(cfg.ros2.distro), color=color or cam.color_topic, depth=depth or cam.depth_topic,

@@ -139,7 +139,7 @@ def load_run(log_path: Path, cell: str) -> RunData:
             for o in lm.msg.objects:
                 T = codec.pose_from_msg(o.world_T_object, f"object {o.object_id!r}")
                 stamp = o.stamp_ns or lm.msg.stamp_ns  # logs before objects had their own stamps
-                d.est_objects.add_pose(StampedPose("world", f"object_{o.object_id}", stamp, T))
+                d.est_objects.add_pose(StampedPose("world", keys.object_frame(o.object_id), stamp, T))
         else:
             for cam in lm.msg.cameras:
                 d.states[cam.camera_id].append((lm.msg.stamp_ns, cam.state))

@@ -94,9 +94,9 @@ def _convert(types: Ros2Types, camera: str | None, topic: str, msg, resolved: bo
     elif topic == "objects":
         yield OBJECTS, DETECTIONS, types.detections(msg)
         for o in msg.objects:
-            yield TF, TF_TYPE, types.tf_message(o.stamp_ns, [(WORLD, f"object_{o.object_id}", codec.pose_from_msg(o.world_T_object))])
+            yield TF, TF_TYPE, types.tf_message(o.stamp_ns, [(WORLD, keys.object_frame(o.object_id), codec.pose_from_msg(o.world_T_object))])
     elif topic == "points":
-        yield POINTS, CLOUD, types.point_cloud(msg)
+        yield POINTS, CLOUD, types.point_cloud(codec.timestamp_to_stamp(msg.timestamp), msg.frame_id, *codec.points_from_msg(msg))
     elif topic == "markers":
         a = codec.marker_arrays(msg, check=False)  # read_log validated it
         yield f"/{camera}/markers", "geometry_msgs/msg/PoseArray", types.pose_array(msg.stamp_ns, optical_frame(camera), list(a.poses))

@@ -135,7 +135,7 @@ class Ros2Out:
             self._last_static = time.monotonic()
         for item in self._objects.drain():  # each object stamped with the depth frame it was seen in
             for o in item.msg.objects:
-                frame = (WORLD, f"object_{o.object_id}", codec.pose_from_msg(o.world_T_object))
+                frame = (WORLD, keys.object_frame(o.object_id), codec.pose_from_msg(o.world_T_object))
                 self.tf.put(self.types.tf_message(o.stamp_ns, [frame]), o.stamp_ns)
 
     def close(self) -> None:

@@ -25,7 +25,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
-from recognition.verify import DepthView, Verdict, exclusive, verdict
+from recognition.verify import DepthView, Explained, Verdict, verdict
 from schemas.geometry import invert_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -191,16 +191,14 @@ class Recognizer:
         verdicts = self._verify(cloud, [det for _, det in candidates]) if c.verify else [None] * len(candidates)
         found: dict[str, Detection] = {}
         taken: set[int] = set()
-        kept: list[Verdict] = []
+        explained = Explained()
         for (p, det), v in zip(candidates, verdicts):
             if p in taken or det.object_id in found:
                 continue
-            if v is not None:
-                if v.fitness < c.min_visible_fitness or v.support < c.min_visible_support or not exclusive(kept + [v])[-1]:
-                    log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible pixels, "
-                              "%d seen through)", det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations)  # fmt: skip
-                    continue
-                kept.append(v)
+            if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support and explained.admit(v)):
+                log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible pixels, "
+                          "%d seen through)", det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations)  # fmt: skip
+                continue
             taken.add(p)
             found[det.object_id] = det
         return sorted(found.values(), key=lambda d: d.object_id)

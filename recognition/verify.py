@@ -16,7 +16,7 @@ pixel with a measured depth d and is
 ``support`` = inliers / visible is how much of the visible model is actually seen. A hypothesis is
 kept when both reach their thresholds (``recognition.config``, measured in
 ``benchmarks.recognition``); among kept ones a scene pixel explains at most one object
-(``exclusive``).
+(``Explained``).
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class Verdict:
     inliers: int
     violations: int
     occluded: int
-    pixels: np.ndarray  # flat indices of the inlier pixels (for ``exclusive``)
+    pixels: np.ndarray  # flat indices of the inlier pixels (for ``Explained``)
 
     @property
     def fitness(self) -> float:
@@ -116,19 +116,21 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier])
 
 
-def exclusive(verdicts: list[Verdict], max_shared: float = 0.2) -> list[bool]:
-    """In order (best hypothesis first): may each be accepted, given those accepted before it? A
-    scene pixel explains one object: a hypothesis whose inlier pixels are more than ``max_shared``
-    already explained by an accepted one competes for the same surface and loses."""
-    taken: set[int] = set()
-    out = []
-    for v in verdicts:
-        shared = len(taken.intersection(v.pixels.tolist())) / max(len(v.pixels), 1)
-        ok = shared <= max_shared
-        if ok:
-            taken.update(v.pixels.tolist())
-        out.append(ok)
-    return out
+class Explained:
+    """The scene pixels the hypotheses accepted so far explain: a pixel explains one object."""
+
+    def __init__(self, max_shared: float = 0.2) -> None:
+        self.max_shared = max_shared
+        self.pixels: set[int] = set()
+
+    def admit(self, v: Verdict) -> bool:
+        """Accept ``v`` unless more than ``max_shared`` of its inlier pixels are already explained
+        (it then competes for the same surface with a better hypothesis and loses)."""
+        mine = v.pixels.tolist()
+        if len(self.pixels.intersection(mine)) > self.max_shared * max(len(mine), 1):
+            return False
+        self.pixels.update(mine)
+        return True
 
 
 def _project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

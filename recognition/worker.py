@@ -95,8 +95,9 @@ def fuse(detections: list[WorldDetection]) -> list[FusedObject]:
     return out
 
 
-def fused_cloud(stamp_ns: int, clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> m.PointCloud:
-    """The cameras' points (camera frame, (N, 3) each) in world frame as one cloud, a colour per camera.
+def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The cameras' points (camera frame, (N, 3) each) in world frame as one cloud: xyz (M, 3)
+    float32 and a colour per camera, rgba (M, 4) uint8.
 
     Where the cameras' clouds of the same surface separate, their poses disagree: the view shows
     the calibration's quality at a glance.
@@ -107,8 +108,8 @@ def fused_cloud(stamp_ns: int, clouds: dict[str, np.ndarray], world_T_camera: di
         xyz.append(clouds[cam] @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
         rgba.append(np.broadcast_to(CLOUD_COLOURS[i % len(CLOUD_COLOURS)], (len(clouds[cam]), 4)))
     if not xyz:
-        return codec.points_to_msg(stamp_ns, "world", np.zeros((0, 3), np.float32), np.zeros((0, 4), np.uint8))
-    return codec.points_to_msg(stamp_ns, "world", np.concatenate(xyz), np.concatenate(rgba))
+        return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.uint8)
+    return np.concatenate(xyz), np.concatenate(rgba)
 
 
 def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDetections:
@@ -127,7 +128,7 @@ def scene_to_msg(stamp_ns: int, objects: list[FusedObject], boxes: dict[str, tup
         if o.object_id not in boxes:
             continue
         centre, size = boxes[o.object_id]
-        ent = msg.entities.add(frame_id="world", id=f"object_{o.object_id}")
+        ent = msg.entities.add(frame_id="world", id=keys.object_frame(o.object_id))
         codec.stamp_to_timestamp(stamp_ns, ent.timestamp)
         ent.lifetime.FromNanoseconds(2_000_000_000)
         cube = ent.cubes.add()
@@ -162,10 +163,11 @@ class Ros2Objects:
         self.points = self.node.publisher("/cellsight/points", CLOUD)
         self.boxes = boxes
 
-    def publish(self, objects: m.ObjectDetections, cloud: m.PointCloud | None) -> None:
+    def publish(self, objects: m.ObjectDetections, cloud: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """The fused objects, and the world cloud (xyz, rgba; ``fused_cloud``) if there is one."""
         self.objects.put(self.types.detections(objects, self.boxes), objects.stamp_ns)
         if cloud is not None:
-            self.points.put(self.types.point_cloud(cloud), codec.timestamp_to_stamp(cloud.timestamp))
+            self.points.put(self.types.point_cloud(objects.stamp_ns, "world", *cloud), objects.stamp_ns)
 
     def close(self) -> None:
         self.node.close()
@@ -293,11 +295,11 @@ class RecognitionWorker:
         objects = fuse(self.current_detections())
         stamp = max((o.stamp_ns for o in objects), default=0)
         detections = detections_to_msg(stamp, objects)
-        cloud = fused_cloud(stamp, self.clouds, self.world_T_camera) if self.config.cloud_voxel_m > 0 else None
+        cloud = fused_cloud(self.clouds, self.world_T_camera) if self.config.cloud_voxel_m > 0 else None
         self._pub.put(detections)
         self._pub_scene.put(scene_to_msg(stamp, objects, self.boxes))
         if cloud is not None:
-            self._pub_points.put(cloud)
+            self._pub_points.put(codec.points_to_msg(stamp, "world", *cloud))
         if self.ros2 is not None:
             self.ros2.publish(detections, cloud)
         return objects

@@ -58,6 +58,11 @@ def marker_frame(marker_id: int) -> str:
     return f"marker_{marker_id}"
 
 
+def object_frame(object_id: str) -> str:
+    """Child frame id of a recognised object's pose in transforms, scenes and pose lists."""
+    return f"object_{object_id}"
+
+
 def _camera(cell: str, camera: str, topic: str) -> str:
     check_name(camera, "camera id")
     if camera in _RESERVED:

@@ -138,17 +138,16 @@ class Ros2Types:
                                                         bbox=t("vision_msgs/msg/BoundingBox3D")(center=self.pose(box_T), size=size_v), id=o.object_id))  # fmt: skip
         return t(DETECTIONS)(header=self.header(msg.stamp_ns, WORLD), detections=out)
 
-    def point_cloud(self, msg: m.PointCloud) -> Any:
-        """sensor_msgs/PointCloud2 of our cloud: float32 x y z and the colour as PCL packs it
-        (``rgb``, 0x00RRGGBB in a float32's bytes), 16 bytes a point, unorganised."""
-        xyz, rgba = codec.points_from_msg(msg)
+    def point_cloud(self, stamp_ns: int, frame_id: str, xyz: np.ndarray, rgba: np.ndarray) -> Any:
+        """sensor_msgs/PointCloud2 of xyz (N, 3) metres coloured rgba (N, 4) uint8: float32 x y z and
+        the colour as PCL packs it (``rgb``, 0x00RRGGBB in a float32's bytes), 16 bytes a point."""
         packed = np.zeros((len(xyz), 4), np.float32)
         packed[:, :3] = xyz
         rgb = (rgba[:, 0].astype(np.uint32) << 16) | (rgba[:, 1].astype(np.uint32) << 8) | rgba[:, 2].astype(np.uint32)
         packed[:, 3] = rgb.view(np.float32)
         field = self._t("sensor_msgs/msg/PointField")
         fields = [field(name=n, offset=4 * i, datatype=field.FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))]
-        return self._t(CLOUD)(header=self.header(codec.timestamp_to_stamp(msg.timestamp), msg.frame_id), height=1, width=len(xyz),
+        return self._t(CLOUD)(header=self.header(stamp_ns, frame_id), height=1, width=len(xyz),
                               fields=fields, is_bigendian=False, point_step=16, row_step=16 * len(xyz),
                               data=packed.view(np.uint8).reshape(-1), is_dense=True)  # fmt: skip
 

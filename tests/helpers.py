@@ -50,3 +50,12 @@ def ros2_subscriber(endpoint: str, topic: str, msg_type: str) -> tuple[object, l
     sub = ROS2Subscriber(topic=topic, msg_type=msg_type, callback=got.append, router_ip="127.0.0.1",
                          router_port=int(endpoint.rsplit(":", 1)[1]))  # fmt: skip
     return sub, got
+
+
+def ros_matrix(translation, rotation) -> np.ndarray:
+    """4x4 pose of a ROS translation/position (x y z) and rotation/orientation (x y z w), as decoded
+    from CDR by a ROS 2 implementation; through our own message so the quaternion is checked."""
+    from schemas import codec
+
+    return codec.pose_from_msg(codec.m.Pose(x=translation.x, y=translation.y, z=translation.z,
+                                            qx=rotation.x, qy=rotation.y, qz=rotation.z, qw=rotation.w))  # fmt: skip

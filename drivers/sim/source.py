@@ -58,7 +58,7 @@ class SimSource:
         s = self.scenario
         cams = [StampedPose("world", self.camera.id, stamp, self.camera.world_T_camera(t_s))]
         markers = [StampedPose("world", keys.marker_frame(mk.id), stamp, s.world_T_marker(mk, t_s)) for mk in s.markers]
-        objects = [StampedPose("world", f"object_{o.id}", stamp, o.world_T_object(t_s)) for o in s.objects]
+        objects = [StampedPose("world", keys.object_frame(o.id), stamp, o.world_T_object(t_s)) for o in s.objects]
         return cams, markers, objects
 
     def close(self) -> None:

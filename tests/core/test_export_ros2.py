@@ -18,6 +18,7 @@ from schemas.errors import SchemaError
 from schemas.geometry import make_pose, rpy_matrix
 from schemas.log import LogWriter, read_log
 from schemas.ros2 import ros2_types, stamp_ns
+from tests.helpers import ros_matrix
 
 CELL = "ex"
 T0 = 1_700_000_000_000_000_000
@@ -48,11 +49,6 @@ def write_log(path: Path, frames: int) -> None:
     w.close()
 
 
-def ros_T(translation, rotation) -> np.ndarray:
-    return codec.pose_from_msg(codec.m.Pose(x=translation.x, y=translation.y, z=translation.z,
-                                            qx=rotation.x, qy=rotation.y, qz=rotation.z, qw=rotation.w))  # fmt: skip
-
-
 def test_the_bag_holds_every_message_and_tf_round_trips(tmp_path: Path) -> None:
     write_log(tmp_path / "log.mcap", 5)
     result = export_bag(tmp_path / "log.mcap", tmp_path / "bag")
@@ -71,12 +67,12 @@ def test_the_bag_holds_every_message_and_tf_round_trips(tmp_path: Path) -> None:
                 k = round((stamp_ns(tr.header.stamp) - T0) / 33_333_333)
                 offset = {"cam1_color_optical_frame": 0, "marker_3": 1, "object_box": 2}[tr.child_frame_id]
                 assert tr.header.frame_id == "world"
-                np.testing.assert_allclose(ros_T(tr.transform.translation, tr.transform.rotation), pose(k + offset), atol=1e-9)
+                np.testing.assert_allclose(ros_matrix(tr.transform.translation, tr.transform.rotation), pose(k + offset), atol=1e-9)
             elif conn.topic == OBJECTS:
                 (d,) = msg.detections
                 k = round((stamp_ns(d.header.stamp) - T0) / 33_333_333)
                 assert d.id == d.results[0].hypothesis.class_id == "box" and d.results[0].hypothesis.score == 0.75
-                np.testing.assert_allclose(ros_T(d.results[0].pose.pose.position, d.results[0].pose.pose.orientation), pose(k + 2), atol=1e-9)
+                np.testing.assert_allclose(ros_matrix(d.results[0].pose.pose.position, d.results[0].pose.pose.orientation), pose(k + 2), atol=1e-9)
             elif conn.topic == POINTS:
                 assert [f.name for f in msg.fields] == ["x", "y", "z", "rgb"] and msg.width == 7 and msg.point_step == 16
                 cloud = np.frombuffer(bytes(msg.data), np.float32).reshape(7, 4)
@@ -118,4 +114,4 @@ def test_a_resolved_solution_becomes_tf_over_the_logs_time(tmp_path: Path) -> No
     for tr in tfs:
         k = stamps.index(stamp_ns(tr.header.stamp))
         want = pose(k) if tr.child_frame_id == "cam1_color_optical_frame" else pose(k + 5)
-        np.testing.assert_allclose(ros_T(tr.transform.translation, tr.transform.rotation), want, atol=1e-9)
+        np.testing.assert_allclose(ros_matrix(tr.transform.translation, tr.transform.rotation), want, atol=1e-9)

@@ -17,7 +17,7 @@ from recognition.cloud import depth_to_cloud, finite_points, read_cloud
 from recognition.config import RecognitionConfig
 from recognition.models import model_from_cloud
 from recognition.pipeline import Recognizer
-from recognition.verify import DepthView, exclusive, verdict
+from recognition.verify import DepthView, Explained, verdict
 from schemas.geometry import make_pose
 from tests.conftest import SHARED_DATA
 
@@ -67,7 +67,8 @@ def test_a_pixel_explains_one_object() -> None:
     a = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
     b = verdict(view, points, normals, make_pose(t=[0.02, 0.0, 1.0]), TOL, NOISE)  # mostly the same surface
     c = verdict(view, points, normals, make_pose(t=[0.4, 0.0, 1.0]), TOL, NOISE)  # beside it
-    assert exclusive([a, b, c]) == [True, False, True]
+    explained = Explained()  # in order, best first
+    assert [explained.admit(v) for v in (a, b, c)] == [True, False, True]
 
 
 @pytest.fixture(scope="module")

@@ -77,11 +77,12 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
     try:
         wait_until(lambda: states and states[-1][1] == "LOCALIZED", 90.0, "cam1 localised by the cell's estimator across the link")
         # Images stay on the edge host: with nobody on the cell host asking, the link carries the
-        # markers and status (kilobytes a second), not 640x480 RGB-D at the camera's rate (megabytes).
+        # markers, camera info, status and the simulator's truth (~220 kB/s at 30 Hz), not 640x480
+        # RGB-D (1.5 MB a frame: over 1 MB/s at even 1 frame/s).
         before, t0 = rx_bytes(cell, CELL_DEV), time.monotonic()
         time.sleep(3.0)
         rate = (rx_bytes(cell, CELL_DEV) - before) / (time.monotonic() - t0)
-        assert rate < 200_000, f"{rate / 1e3:.0f} kB/s crossed the link: images are leaving the edge host"
+        assert rate < 1_000_000, f"{rate / 1e3:.0f} kB/s crossed the link: images are leaving the edge host"
         # ... and they do cross when someone on the cell host asks (the measurement can tell).
         viewer = in_ns(cell, CLI + ["bus", "echo", "cellsight/net/cam1/depth/image_raw", "--cell-config", str(tmp_path / "cell.toml")],
                        tmp_path / "viewer.log")

@@ -27,7 +27,7 @@ from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.ros2 import stamp_ns
 from tests.conftest import ROOT
-from tests.helpers import ros2_subscriber, wait_until
+from tests.helpers import ros2_subscriber, ros_matrix, wait_until
 
 pytestmark = pytest.mark.slow
 EXAMPLE = ROOT / "examples" / "robot_objects.py"
@@ -79,11 +79,6 @@ def test_robot_subscriber_prints_world_poses_of_the_demo_objects(demo_cell: str)
         assert err < 0.04, f"{oid} printed {printed} (median), {err * 1000:.0f} mm from where it stands"
 
 
-def _T(translation, rotation) -> np.ndarray:
-    return codec.pose_from_msg(m.Pose(x=translation.x, y=translation.y, z=translation.z,
-                                      qx=rotation.x, qy=rotation.y, qz=rotation.z, qw=rotation.w))  # fmt: skip
-
-
 def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_messages: Path) -> None:
     tf_sub, tf = ros2_subscriber(demo_cell, "/tf", "tf2_msgs/msg/TFMessage")
     objects_sub, objects = ros2_subscriber(demo_cell, "/cellsight/objects", "vision_msgs/msg/Detection3DArray")
@@ -112,7 +107,7 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
             cam = t.child_frame_id.removesuffix("_color_optical_frame")
             key = (cam, stamp_ns(t.header.stamp))
             if cam != t.child_frame_id and key in ours:
-                np.testing.assert_allclose(_T(t.transform.translation, t.transform.rotation), _T(ours[key].translation, ours[key].rotation), atol=1e-9)
+                np.testing.assert_allclose(ros_matrix(t.transform.translation, t.transform.rotation), ros_matrix(ours[key].translation, ours[key].rotation), atol=1e-9)
                 compared[cam] = compared.get(cam, 0) + 1
     assert set(compared) == {c.id for c in load_scenario().cameras}, compared
     matched = 0
@@ -121,7 +116,7 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
             candidates = ours_obj.get((d.id, stamp_ns(d.header.stamp)), [])
             if candidates:
                 pose = d.results[0].pose.pose
-                got = _T(pose.position, pose.orientation)
+                got = ros_matrix(pose.position, pose.orientation)
                 assert min(np.abs(got - T).max() for T in candidates) < 1e-9, f"{d.id}: no pose of ours at its stamp equals it"
                 matched += 1
     assert matched >= 3, f"{matched} objects matched ours by id and stamp"
