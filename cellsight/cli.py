@@ -195,13 +195,15 @@ def security_init(
     (driver, estimator, recognition, recorder, viewer; a ROS 2 robot's zenoh router or node uses
     robot.pem / robot.key). Keep DIR/ca.key offline once done.
     """
-    from schemas.security import PUBLISH, PUBLISH_ROS2, write_profile
+    from schemas.security import EDGE_LISTEN, PUBLISH, PUBLISH_ROS2, write_profile
 
     profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"), ros2_domain)
     typer.echo(f"router:      cellsight router --config {profile.router_config}")
     for role, path in profile.role_configs.items():
         topics = PUBLISH[role] + ([f"ROS 2 {ros2_domain}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else [])
         typer.echo(f"{role + ':':12} --config {path}   publishes: {', '.join(topics) or 'nothing (subscribe and query only)'}")
+    typer.echo(f"edge host:   [cell] router_config = \"{profile.edge_router_config}\", its drivers --config {profile.role_configs['driver']} "
+               f"--connect {EDGE_LISTEN}   publishes: what a driver may")
 
 
 # ---------------------------------------------------------------- bus
@@ -282,6 +284,7 @@ def router(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     config: ZenohConfigOpt = None,
+    shared_memory: Annotated[bool, typer.Option("--shared-memory/--no-shared-memory", help="pass frames between processes on this host through shared memory (off: a host that shares /dev/shm with another, e.g. a network namespace)")] = True,
     verbose: VerboseOpt = False,
 ) -> None:
     """Run a zenoh router (default: tcp/127.0.0.1:7447, loopback only) until Ctrl-C; with --connect,
@@ -291,8 +294,7 @@ def router(
     _setup_logging(verbose)
     # A config file (the secure profile's router.json5) brings its own listen endpoints.
     transport = TransportConfig.router(list(listen) if listen else ([] if config else [DEFAULT_ROUTER]), list(connect or []))
-    if config is not None:
-        transport = transport.model_copy(update={"zenoh_config": config})
+    transport = transport.model_copy(update={"zenoh_config": config, "shared_memory": shared_memory})
     session = open_session(transport)
     logging.getLogger("cellsight.router").info("router listening on %s", ", ".join(transport.listen) or f"the endpoints of {config}")
     try:

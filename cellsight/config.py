@@ -42,11 +42,19 @@ class CellSection(BaseModel):
         default="cell", description="cell: the whole cell on this host; edge: this host's cameras beside a local router peered with `upstream`"
     )
     upstream: list[str] = Field(default_factory=list, description="edge: the cell router(s) this host's router connects to, e.g. tcp/10.0.3.2:7447")
+    router_config: Path | None = Field(
+        default=None, description="edge: zenoh config of the router `cellsight run` starts here, e.g. the secure profile's "
+        "edge_router.json5 (TLS both ways); its drivers then take transport.zenoh_config = driver.json5 and "
+        "transport.connect = [\"tls/127.0.0.1:7447\"]. Unset: a plain TCP router on the loopback endpoint",
+    )
 
     @model_validator(mode="after")
     def _edge_has_upstream(self) -> "CellSection":
         if self.role == "edge" and not self.upstream:
             raise ValueError("an edge host needs [cell] upstream: the cell router(s) its router connects to")
+        if self.router_config is not None and self.role != "edge":
+            raise ValueError("[cell] router_config is for edge hosts (role = \"edge\"); a cell host's secure router is "
+                             "started on its own: cellsight router --config ROUTER.json5")
         return self
 
 

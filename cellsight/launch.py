@@ -151,7 +151,8 @@ class Supervisor:
 def router_endpoint(cfg: CellConfig) -> str | None:
     """The loopback router the launcher must start, or None when the config joins existing routers."""
     t = cfg.transport
-    if t.mode not in (None, "client") or t.zenoh_config is not None:
+    secure_edge = cfg.cell.role == "edge" and cfg.cell.router_config is not None
+    if t.mode not in (None, "client") or (t.zenoh_config is not None and not secure_edge):
         return None
     loopback = [e for e in (t.connect if t.connect is not None else [DEFAULT_ROUTER])
                 if "127.0.0.1" in e or "localhost" in e or "[::1]" in e]
@@ -169,7 +170,8 @@ def plan(cfg: CellConfig, run_dir: Path, record: Path | None, max_image_hz: floa
     edge = cfg.cell.role == "edge"
     if router is not None:
         upstream = [arg for endpoint in cfg.cell.upstream for arg in ("--connect", endpoint)] if edge else []
-        children.append(Child("router", CLI + ["router", "--listen", router] + upstream, logs / "router.log"))
+        secure = ["--config", str(cfg.cell.router_config)] if edge and cfg.cell.router_config is not None else []
+        children.append(Child("router", CLI + ["router", "--listen", router] + upstream + secure, logs / "router.log"))
     for cam in cfg.cameras:
         if cam.source == "sim":
             argv = CLI + ["driver", "sim", "--camera", cam.id, "--epoch-ns", str(epoch_ns)] + common

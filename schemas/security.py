@@ -11,7 +11,11 @@ Who may do what is decided at the router, by the common name of the client certi
   simulator's; a real driver has none);
 - ``estimator`` publishes ``tf`` and ``estimate/``, and answers ``estimate/map`` queries;
 - ``recognition`` publishes ``objects`` and ``points``;
-- ``recorder``, ``viewer`` (Foxglove, ``cellsight status``) and ``robot`` only subscribe and query.
+- ``recorder``, ``viewer`` (Foxglove, ``cellsight status``) and ``robot`` only subscribe and query;
+- ``edge`` is an edge host's router (``edge_router.json5``), peered with the cell's: it may put what
+  a driver may. The cell's router enforces that; the edge router only authenticates its own
+  clients (the host's drivers, with ``driver.json5`` pointed at it), so a compromised edge host
+  reaches no further than its cameras' topics.
 
 Every role may subscribe, query and hold a liveliness token under its own cell. With a ROS 2
 domain (``ros2_domain``), the same split holds on rmw_zenoh's keys (``<domain>/<topic>/...``):
@@ -46,6 +50,7 @@ PUBLISH: dict[str, list[str]] = {
     "recorder": [],
     "viewer": [],
     "robot": [],
+    "edge": [f"*/{topic}" for topic in keys.CAMERA_TOPICS] + ["truth/**"],
 }
 #: What each role may publish on rmw_zenoh's keys, relative to ``<domain>/`` (topic, then type and hash).
 PUBLISH_ROS2: dict[str, list[str]] = {
@@ -53,6 +58,10 @@ PUBLISH_ROS2: dict[str, list[str]] = {
     "recognition": ["cellsight/objects/**", "cellsight/points/**"],
 }
 ROLES = tuple(PUBLISH)
+#: The roles whose processes are zenoh clients (``edge`` is a router).
+CLIENT_ROLES = tuple(role for role in ROLES if role != "edge")
+#: Where an edge host's router listens for the drivers beside it.
+EDGE_LISTEN = "tls/127.0.0.1:7447"
 VALID_DAYS = 825
 
 
@@ -65,6 +74,7 @@ class Profile:
     ca_certificate: Path
     router_config: Path
     role_configs: dict[str, Path]
+    edge_router_config: Path  # an edge host's router: TLS to the cell's router and to its own drivers
 
 
 def _key() -> ec.EllipticCurvePrivateKey:
@@ -187,7 +197,7 @@ def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447"
     router_config.write_text(json.dumps(router, indent=2))
     endpoint = listen.replace("0.0.0.0", hosts[0]) if hosts else listen
     role_configs = {}
-    for role in ROLES:
+    for role in CLIENT_ROLES:
         cert, key = _issue(directory, role, ca, ca_key)
         cfg = {
             "mode": "client",
@@ -199,4 +209,17 @@ def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447"
         }
         role_configs[role] = directory / f"{role}.json5"
         role_configs[role].write_text(json.dumps(cfg, indent=2))
-    return Profile(directory, endpoint, ca_path, router_config, role_configs)
+    edge_cert, edge_key = _issue(directory, "edge", ca, ca_key, ("127.0.0.1", "localhost"))
+    edge = {
+        "mode": "router",
+        "listen": {"endpoints": [EDGE_LISTEN]},
+        "connect": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"protocols": ["tls"], "tls": {
+            "root_ca_certificate": str(ca_path), "enable_mtls": True,
+            "listen_certificate": str(edge_cert), "listen_private_key": str(edge_key),
+            "connect_certificate": str(edge_cert), "connect_private_key": str(edge_key)}}},
+    }
+    edge_config = directory / "edge_router.json5"
+    edge_config.write_text(json.dumps(edge, indent=2))
+    return Profile(directory, endpoint, ca_path, router_config, role_configs, edge_config)

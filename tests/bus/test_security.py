@@ -155,3 +155,29 @@ def test_the_default_local_profile_stays_on_loopback() -> None:
     client = TransportConfig().to_zenoh()
     assert client.get_json("mode") == '"client"'
     assert client.get_json("connect/endpoints") == '["tcp/127.0.0.1:7447"]'
+
+
+def test_an_edge_router_passes_its_cameras_topics_and_the_cell_drops_anything_else_from_it(profile: Profile) -> None:
+    """The edge router only authenticates; the cell's router holds it to what a driver may put. A
+    process on the edge host (with the driver's certificate) puts markers and, as a compromised host
+    might, tf and objects: only the markers reach the cell."""
+    edge_listen = f"tls/127.0.0.1:{free_port()}"
+    edge_router = open_session(TransportConfig(zenoh_config=profile.edge_router_config, listen=[edge_listen]))
+    viewer = _as(profile, "viewer")
+    on_edge = Bus(TransportConfig(zenoh_config=profile.role_configs["driver"], connect=[edge_listen]), CELL)
+    got: list[str] = []
+    try:
+        viewer.subscribe_raw(f"{keys.ROOT}/{CELL}/**", lambda key, _p, _ns: got.append(key))
+        wait_until(lambda: on_edge.session.put(keys.status(CELL, "probe"), b"") or got, 10.0,
+                   "the edge host's messages at the cell, router to router")  # fmt: skip
+        got.clear()
+        for k in (keys.tf(CELL), keys.objects(CELL), keys.estimate_cameras(CELL), keys.markers(CELL, "cam1")):
+            on_edge.session.put(k, b"x")  # denied first: one session's order is kept
+        wait_until(lambda: keys.markers(CELL, "cam1") in got, 5.0, "the edge camera's markers")
+        time.sleep(0.3)
+        arrived = [k for k in got if k != keys.status(CELL, "probe")]  # late probes may still come in
+        assert arrived == [keys.markers(CELL, "cam1")], f"the cell received {arrived} from the edge host"
+    finally:
+        on_edge.close()
+        viewer.close()
+        edge_router.close()

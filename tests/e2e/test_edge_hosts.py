@@ -9,6 +9,10 @@ localises; images stay on the edge host (the link carries kilobytes, not video) 
 the cell host subscribes to them; with the link down for 5 s the camera goes stale and comes back
 by itself once it is up. Namespaces share /dev/shm, through which zenoh would pass images between
 the routers; the cell host turns shared memory off, as a second machine has none to share.
+
+With the secure profile, router to router: the edge host's router (``edge_router.json5``) joins the
+cell's over mutual TLS and its camera's messages arrive; an edge router whose certificates come from
+another authority never joins, though its own camera runs beside it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import pytest
 
 from cellsight.config import load_config
 from cellsight.scenario_config import cell_config_of
+from schemas.security import EDGE_LISTEN, write_profile
 from drivers.sim.scenario import load_scenario
 from tests.helpers import wait_until
 from tests.hosts import CELL_DEV, CELL_IP, EDGE_DEV, can_make_hosts, in_ns, ip, rx_bytes, stop_all, two_hosts
@@ -52,9 +57,7 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
         "cameras": [c for c in cell_cfg.cameras if c.id == "cam1"],
     })  # fmt: skip
     (tmp_path / "edge.toml").write_text(edge_cfg.to_toml())
-    router = ("import time; from schemas.bus import TransportConfig, open_session; "
-              f"s = open_session(TransportConfig.router([{CELL_ROUTER!r}]).model_copy(update={{'shared_memory': False}})); time.sleep(600)")
-    procs = [in_ns(cell, [sys.executable, "-c", router], tmp_path / "cell_router.log")]
+    procs = [in_ns(cell, CLI + ["router", "--listen", CELL_ROUTER, "--no-shared-memory"], tmp_path / "cell_router.log")]
     time.sleep(1.0)
     procs.append(in_ns(cell, CLI + ["estimator", "--cell-config", str(tmp_path / "cell.toml")], tmp_path / "estimator.log"))
     echo = in_ns(cell, CLI + ["bus", "echo", "cellsight/net/estimate/status", "--json", "--cell-config", str(tmp_path / "cell.toml")],
@@ -102,5 +105,60 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
         edge_run = json.loads((tmp_path / "edge_run" / "processes.json").read_text())
         assert {p["name"] for p in edge_run} == {"router", "driver/cam1"}  # no estimator, recognition or recorder on the edge
         assert not any(p["restarts"] for p in edge_run), f"edge processes restarted instead of reconnecting: {edge_run}"
+    finally:
+        stop_all(procs)
+
+
+def _statuses(echo: subprocess.Popen, seen: dict[str, float]) -> None:
+    """Record, per camera, when its first status message came out of ``echo`` (a --json bus echo)."""
+    for line in echo.stdout:
+        try:
+            camera = json.loads(line)["key"].split("/")[2]
+        except (ValueError, KeyError, IndexError):
+            continue
+        seen.setdefault(camera, time.monotonic())
+
+
+def test_with_the_secure_profile_only_an_edge_router_of_the_cells_authority_joins(hosts: tuple[str, str], tmp_path: Path) -> None:
+    cell, edge = hosts
+    secure_router = f"tls/{CELL_IP}:7447"
+    pki = write_profile(tmp_path / "pki", "net", listen=secure_router, hosts=(CELL_IP,))
+    rogue = write_profile(tmp_path / "rogue", "net", listen=secure_router, hosts=(CELL_IP,))  # same names, another CA
+    (tmp_path / "base.toml").write_text('[cell]\nname = "net"\n')
+    base = cell_config_of(load_scenario(), None, load_config(tmp_path / "base.toml"))
+    edge_cfg = base.model_copy(update={
+        "cell": base.cell.model_copy(update={"role": "edge", "upstream": [secure_router], "router_config": pki.edge_router_config}),
+        "transport": base.transport.model_copy(update={"zenoh_config": pki.role_configs["driver"], "connect": [EDGE_LISTEN]}),
+        "cameras": [c for c in base.cameras if c.id == "cam1"],
+    })  # fmt: skip
+    (tmp_path / "edge.toml").write_text(edge_cfg.to_toml())
+    rogue_listen = EDGE_LISTEN.replace("7447", "7448")
+    rogue_cfg = base.model_copy(update={
+        "transport": base.transport.model_copy(update={"zenoh_config": rogue.role_configs["driver"], "connect": [rogue_listen]})})
+    (tmp_path / "rogue.toml").write_text(rogue_cfg.to_toml())
+
+    procs = [in_ns(cell, CLI + ["router", "--config", str(pki.router_config), "--no-shared-memory"], tmp_path / "cell_router.log")]
+    time.sleep(1.0)
+    at_cell: dict[str, float] = {}
+    echo = in_ns(cell, CLI + ["bus", "echo", "cellsight/net/*/status", "--json", "--config", str(pki.role_configs["viewer"])],
+                 tmp_path / "echo.log", stdout=subprocess.PIPE, text=True)  # fmt: skip
+    procs.append(echo)
+    threading.Thread(target=_statuses, args=(echo, at_cell), daemon=True).start()
+    # The rogue edge host: its router and a camera, all with certificates of the other authority.
+    procs.append(in_ns(edge, CLI + ["router", "--config", str(rogue.edge_router_config), "--listen", rogue_listen,
+                                    "--connect", secure_router], tmp_path / "rogue_router.log"))  # fmt: skip
+    procs.append(in_ns(edge, CLI + ["driver", "sim", "--camera", "cam2", "--cell-config", str(tmp_path / "rogue.toml")],
+                       tmp_path / "rogue_driver.log"))  # fmt: skip
+    at_rogue: dict[str, float] = {}
+    rogue_echo = in_ns(edge, CLI + ["bus", "echo", "cellsight/net/*/status", "--json", "--config", str(rogue.role_configs["viewer"]),
+                                    "--connect", rogue_listen], tmp_path / "rogue_echo.log", stdout=subprocess.PIPE, text=True)  # fmt: skip
+    procs.append(rogue_echo)
+    threading.Thread(target=_statuses, args=(rogue_echo, at_rogue), daemon=True).start()
+    procs.append(in_ns(edge, CLI + ["run", str(tmp_path / "edge.toml"), "--out", str(tmp_path / "edge_run")], tmp_path / "edge.log"))
+    try:
+        wait_until(lambda: "cam1" in at_cell, 90.0, "the legitimate edge camera's status at the cell, over mutual TLS router to router")
+        wait_until(lambda: "cam2" in at_rogue, 60.0, "the rogue camera running on its own router")
+        time.sleep(5.0)  # several of its 1 Hz status messages, had the rogue router been let in
+        assert "cam2" not in at_cell, "an edge router with another authority's certificate got its camera into the cell"
     finally:
         stop_all(procs)
