@@ -603,6 +603,8 @@ def record(
         rec.close()
     parts = ", ".join(str(p) for p in rec.parts)
     _stderr().print(f"{parts}: {rec.messages} messages ({rec.thinned} images thinned, {sum(rec.bad.values())} malformed skipped)")
+    for gap in rec.gaps:
+        _stderr().print(f"[yellow]gap:[/] nothing from {gap.camera} for {gap.seconds:.1f} s (marked in the log)")
     if rec.failures:
         raise _fail(f"recording interrupted {len(rec.failures)} time(s), {rec.lost} messages not recorded; last error: {rec.failures[-1]}", 1)
 

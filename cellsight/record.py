@@ -5,6 +5,11 @@ thinned to ``max_image_hz`` per key so a long run stays a reasonable size. A rec
 overwritten: a restarted recorder writes ``NAME.1.mcap``, ``NAME.2.mcap``, ... beside the first
 part. A failing disk ends the current part (readable up to its last complete chunk); every
 ``retry_s`` the recorder tries a new part, so recording resumes once there is space again.
+
+A camera it hears nothing from for ``gap_after_s`` (its driver sends a status every second, so
+this is a dead driver or a dropped link, not a quiet scene) is marked in the log when it is heard
+again, or when the recording ends: an MCAP metadata record ``gap/<camera>/<from_ns>``
+(``schemas.log.Gap``), so that whoever reads the log knows the silence was not the scene's.
 """
 
 from __future__ import annotations
@@ -20,11 +25,13 @@ from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
 from schemas.errors import SchemaError
-from schemas.log import LogWriter, stamp_of
+from schemas.log import Gap, LogWriter, stamp_of
 
 log = logging.getLogger(__name__)
 #: Seconds between attempts to start a new part after a write failed.
 RETRY_S = 5.0
+#: Seconds without a message from a camera that make a gap (its driver's status comes every second).
+GAP_AFTER_S = 3.0
 
 
 def free_part(path: Path) -> Path:
@@ -40,7 +47,7 @@ class Recorder:
     """Records bus traffic into ``parts`` (the first at ``path`` or the next free name)."""
 
     def __init__(self, bus: Bus, path: Path, key_exprs: list[str] | None = None, max_image_hz: float | None = None,
-                 metadata: dict[str, str] | None = None, retry_s: float = RETRY_S) -> None:  # fmt: skip
+                 metadata: dict[str, str] | None = None, retry_s: float = RETRY_S, gap_after_s: float = GAP_AFTER_S) -> None:  # fmt: skip
         self.path = path
         self.max_image_hz = max_image_hz
         self.retry_s = retry_s
@@ -51,6 +58,9 @@ class Recorder:
         self.lost = 0  # valid messages that arrived while no part could be written
         self.bad: Counter[str] = Counter()
         self.thinned = 0
+        self.gap_after_s = gap_after_s
+        self.gaps: list[Gap] = []
+        self._heard: dict[str, int] = {}  # camera -> receive time (ns) of its last message
         self._writer: LogWriter | None = None
         self._retry_at = 0.0
         self._last_image: dict[str, int] = {}
@@ -86,6 +96,7 @@ class Recorder:
                 log.warning("not recording malformed payload on %s: %s", key, exc)
             return
         stamp = stamp_of(msg, receive_ns)
+        camera = keys.parse(key).camera
         if self.max_image_hz and msg_type is m.RawImage:
             last = self._last_image.get(key)
             if last is not None and stamp - last < 1e9 / self.max_image_hz:
@@ -93,6 +104,11 @@ class Recorder:
                 return
             self._last_image[key] = stamp
         with self._lock:
+            if camera is not None:
+                last = self._heard.get(camera)
+                self._heard[camera] = receive_ns
+                if last is not None and receive_ns - last > self.gap_after_s * 1e9:
+                    self._mark(Gap(camera, last, receive_ns))
             if self._writer is None and (time.monotonic() < self._retry_at or not self._new_part()):
                 self.lost += 1
                 return
@@ -108,10 +124,24 @@ class Recorder:
                 log.error("recording to %s stopped: %s (readable up to its last complete chunk; a new part is tried "
                           "every %.0f s)", self.parts[-1], exc, self.retry_s)  # fmt: skip
 
+    def _mark(self, gap: Gap) -> None:
+        """Note a gap (caller holds the lock); written into the current part, if there is one."""
+        self.gaps.append(gap)
+        log.warning("nothing from camera %s for %.1f s: marked in the log", gap.camera, gap.seconds)
+        if self._writer is not None:
+            try:
+                self._writer.add_metadata(*gap.metadata())
+            except OSError as exc:  # the next message's write ends the part; the gap stays in self.gaps
+                log.error("could not mark the gap in %s: %s", self.parts[-1], exc)
+
     def close(self) -> None:
         for sub in self._subs:
             sub.undeclare()
         with self._lock:
+            end = time.time_ns()
+            for camera, last in self._heard.items():  # silent until the end
+                if end - last > self.gap_after_s * 1e9:
+                    self._mark(Gap(camera, last, end))
             if self._writer is not None:
                 try:
                     self._writer.close()

@@ -90,6 +90,10 @@ class LogWriter:
         self._channels: dict[str, int] = {}
         self.messages = 0
 
+    def add_metadata(self, name: str, metadata: dict[str, str]) -> None:
+        """An MCAP metadata record (``mcap list metadata`` shows it), written where the log has got to."""
+        self._writer.add_metadata(name, metadata)
+
     def _channel(self, key: str, msg_type: type[Message]) -> int:
         if key not in self._channels:
             name = msg_type.DESCRIPTOR.full_name
@@ -146,6 +150,33 @@ class ReadReport:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # MCAP metadata records by name
     unknown_keys: set[str] = field(default_factory=set)
     stopped_early: str | None = None
+
+    def gaps(self) -> list["Gap"]:
+        """The silences the recorder marked (metadata records ``gap/<camera>/<from_ns>``), oldest first."""
+        found = [Gap(md["camera"], int(md["from_ns"]), int(md["to_ns"])) for name, md in self.metadata.items()
+                 if name.startswith(GAP_PREFIX) and {"camera", "from_ns", "to_ns"} <= md.keys()]  # fmt: skip
+        return sorted(found, key=lambda g: g.from_ns)
+
+
+GAP_PREFIX = "gap/"
+
+
+@dataclass(frozen=True)
+class Gap:
+    """A camera the recorder heard nothing from between two receive times (ns, recorder's clock)."""
+
+    camera: str
+    from_ns: int  # its last message before the silence
+    to_ns: int  # its first message after it (or the end of the recording)
+
+    @property
+    def seconds(self) -> float:
+        return (self.to_ns - self.from_ns) / 1e9
+
+    def metadata(self) -> tuple[str, dict[str, str]]:
+        """The record's name and content."""
+        return f"{GAP_PREFIX}{self.camera}/{self.from_ns}", {
+            "camera": self.camera, "from_ns": str(self.from_ns), "to_ns": str(self.to_ns), "seconds": f"{self.seconds:.3f}"}
 
 
 def chunk_records(chunk: Chunk) -> Iterator[Channel | Schema | McapMessage]:

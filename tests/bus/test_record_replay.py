@@ -98,3 +98,36 @@ def test_a_restarted_recorder_never_overwrites_a_recording(client_transport: Tra
         second.close()
     assert first.parts == [path] and second.parts == [tmp_path / "log.1.mcap"]
     assert path.read_bytes() == kept
+
+
+def test_a_camera_falling_silent_is_marked_in_the_log(client_transport: TransportConfig, tmp_path: Path) -> None:
+    """cam1 stops for ~1.5 s (a dropped link) and comes back; cam2 goes on throughout, and stops for
+    good before the end: one gap each, cam1's within the silence, nothing for a camera that kept talking."""
+    path = tmp_path / "log.mcap"
+    with Bus(client_transport, CELL) as rec_bus, Bus(client_transport, CELL) as pub_bus:
+        rec = Recorder(rec_bus, path, gap_after_s=0.5)
+        cam1, cam2 = pub_bus.publisher(keys.status(CELL, "cam1")), pub_bus.publisher(keys.status(CELL, "cam2"))
+        wait_until(lambda: (cam1.put(status(0)), rec.messages > 0)[1], 5.0, "the recorder to subscribe")
+
+        def talk(seconds: float, *pubs) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                for pub in pubs:
+                    pub.put(status(1))
+                time.sleep(0.05)
+
+        talk(0.5, cam1, cam2)
+        silent_from = time.time_ns()
+        talk(1.5, cam2)
+        silent_to = time.time_ns()
+        talk(0.5, cam1, cam2)
+        talk(1.0, cam1)
+        rec.close()
+    report = ReadReport()
+    for _ in read_log(path, report=report):
+        pass
+    gaps = report.gaps()
+    assert [g.camera for g in gaps] == ["cam1", "cam2"]
+    assert silent_from - 0.2e9 <= gaps[0].from_ns <= silent_from and silent_to <= gaps[0].to_ns <= silent_to + 0.2e9
+    assert gaps[1].seconds >= 0.9  # silent from its last message to the end of the recording
+    assert rec.gaps == gaps

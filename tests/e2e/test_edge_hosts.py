@@ -7,7 +7,7 @@ cell host runs a router and the estimator; the edge host runs ``cellsight run`` 
 camera's driver. Proved: the camera's markers reach the estimator across the link and it
 localises; images stay on the edge host (the link carries kilobytes, not video) unless someone on
 the cell host subscribes to them; with the link down for 5 s the camera goes stale and comes back
-by itself once it is up. Namespaces share /dev/shm, through which zenoh would pass images between
+by itself once it is up, and the recorder on the cell host marks the gap in its log. Namespaces share /dev/shm, through which zenoh would pass images between
 the routers; the cell host turns shared memory off, as a second machine has none to share.
 
 With the secure profile, router to router: the edge host's router (``edge_router.json5``) joins the
@@ -29,6 +29,7 @@ import pytest
 
 from cellsight.config import load_config
 from cellsight.scenario_config import cell_config_of
+from schemas.log import ReadReport, read_log
 from schemas.security import EDGE_LISTEN, write_profile
 from drivers.sim.scenario import load_scenario
 from tests.helpers import wait_until
@@ -96,12 +97,25 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
         viewer.terminate()
         viewer.wait(20)
         assert asked > 10 * rate and asked > 1_000_000, f"{asked / 1e3:.0f} kB/s with a depth subscriber on the cell host"
+        recorder = in_ns(cell, CLI + ["record", "--out", str(tmp_path / "cell.mcap"), "--keys", "cellsight/net/*/status",
+                                      "--keys", "cellsight/net/*/markers", "--cell-config", str(tmp_path / "cell.toml")],
+                         tmp_path / "recorder.log")  # fmt: skip
+        procs.append(recorder)
+        time.sleep(3.0)
         ip("-n", edge, "link", "set", EDGE_DEV, "down")
         down_at = time.monotonic()
         wait_until(lambda: states[-1][1] == "STALE", 5.0, "cam1 stale while its host's link is down")
         time.sleep(max(5.0 - (time.monotonic() - down_at), 0.0))
         ip("-n", edge, "link", "set", EDGE_DEV, "up")
         wait_until(lambda: states[-1][1] == "LOCALIZED", 60.0, "cam1 back once the link is up")
+        # The recorder on the cell host marked the silence in its log.
+        time.sleep(1.0)
+        recorder.terminate()
+        assert recorder.wait(20) == 0
+        report = ReadReport()
+        for _ in read_log(tmp_path / "cell.mcap", report=report):
+            pass
+        assert [(g.camera, 4.0 <= g.seconds <= 30.0) for g in report.gaps()] == [("cam1", True)], report.gaps()
         edge_run = json.loads((tmp_path / "edge_run" / "processes.json").read_text())
         assert {p["name"] for p in edge_run} == {"router", "driver/cam1"}  # no estimator, recognition or recorder on the edge
         assert not any(p["restarts"] for p in edge_run), f"edge processes restarted instead of reconnecting: {edge_run}"
