@@ -105,6 +105,17 @@ class RecognitionConfig(BaseModel):
     min_visible_support: float = Field(
         default=0.6, ge=0, le=1, description="verification: share of the visible model found on the measured surface (simulated true detections: min 0.67)"
     )
+    max_clutter: float = Field(
+        default=0.2, ge=0, le=1,
+        description="verification: largest share of the measured outline where the scene continues the model's surface "
+        "(fitted onto part of a larger surface; simulated true detections: max 0.12; a milk carton on a person in PCL's "
+        "five_people.pcd: 0.26)",
+    )
+    min_outline_seen: float = Field(
+        default=0.6, ge=0, le=1,
+        description="verification: share of the outline with measured depth; below it nothing shows the object ends "
+        "there (simulated true detections: min 0.89; PCL's milk in its scene 0.84; a false milk in office1.pcd 0.48)",
+    )
     min_fitness_shared: float = Field(
         default=0.8, ge=0, le=1, description="fitness that accepts a match covering only part of a cluster (touching objects)"
     )

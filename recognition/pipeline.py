@@ -170,6 +170,7 @@ class Recognizer:
                 used[k] = match[0].coverage >= c.min_coverage
                 candidates.append((-1 - len(candidates), match[0]))
         part = 0
+        cluster_of: dict[int, int] = {}  # part -> its cluster
         for k, idx in enumerate(clusters):
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
@@ -179,6 +180,7 @@ class Recognizer:
                 if not matches:
                     break
                 candidates.extend((part, det) for det, _ in matches)
+                cluster_of[part] = k
                 part += 1
                 det, explained = matches[0]
                 rest = rest[~explained]
@@ -190,17 +192,32 @@ class Recognizer:
         candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
         verdicts = self._verify(cloud, [det for _, det in candidates]) if c.verify else [None] * len(candidates)
         found: dict[str, Detection] = {}
+        part_of: dict[str, int] = {}
         taken: set[int] = set()
         explained = Explained()
         for (p, det), v in zip(candidates, verdicts):
             if p in taken or det.object_id in found:
                 continue
-            if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support and explained.admit(v)):
+            if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support
+                                      and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
+                                      and explained.admit(v)):  # fmt: skip
                 log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible pixels, "
-                          "%d seen through)", det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations)  # fmt: skip
+                          "%d seen through), clutter %.2f, outline seen %.2f (of %d pixels)", det.object_id, v.fitness,
+                          v.support, v.inliers, v.visible, v.violations, v.clutter, v.outline_seen, v.outline)  # fmt: skip
                 continue
             taken.add(p)
             found[det.object_id] = det
+            part_of[det.object_id] = p
+        # A match explaining only part of its cluster was kept for touching objects: it stands only
+        # if another object was found in the same cluster. Alone, it is a shape that fits a piece of
+        # some larger unknown surface (a carton's faces on a person, on a cabinet).
+        for oid, det in list(found.items()):
+            k = cluster_of.get(part_of[oid])
+            if k is not None and det.coverage < c.min_coverage and not any(
+                    cluster_of.get(part_of[other]) == k for other in found if other != oid):  # fmt: skip
+                log.debug("%s rejected: it explains %.0f %% of its cluster and nothing else was found in the rest",
+                          oid, 100 * det.coverage)  # fmt: skip
+                del found[oid]
         return sorted(found.values(), key=lambda d: d.object_id)
 
     def _verify(self, cloud: np.ndarray, detections: list[Detection]) -> list[Verdict | None]:

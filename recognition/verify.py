@@ -13,8 +13,17 @@ pixel with a measured depth d and is
 - unmeasured: no depth there (neutral).
 
 ``fitness`` = inliers / (inliers + violations) is how much of what the sensor could judge agrees;
-``support`` = inliers / visible is how much of the visible model is actually seen. A hypothesis is
-kept when both reach their thresholds (``recognition.config``, measured in
+``support`` = inliers / visible is how much of the visible model is actually seen.
+
+The outline: the ring of pixels just outside the model's silhouette (``OUTLINE_PX``). An object
+ends there: beyond it the sensor sees background, a support it stands on, or something in front.
+A ring pixel where the measured surface continues the model's own (it lies on the tangent plane of
+the nearest model point, within the tolerance, normals within ``SAME_SURFACE_DEG``) says the model
+was fitted onto part of a larger surface: Aldoma et al.'s clutter term. ``clutter`` is the share of the
+measured ring that continues; ``outline_seen`` the share of the ring measured at all (where most of
+the outline has no depth, nothing says the object ends there).
+
+A hypothesis is kept when these reach their thresholds (``recognition.config``, measured in
 ``benchmarks.recognition``); among kept ones a scene pixel explains at most one object
 (``Explained``).
 """
@@ -23,6 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 #: The virtual camera unorganised clouds are projected with: a 640x480 Kinect's intrinsics at half
@@ -32,6 +42,14 @@ VIRTUAL_SIZE = (240, 320)
 #: Model points further than this behind the model's nearest point on their coarse cell are hidden
 #: by the model itself (m); the coarse cell is this many pixels wide.
 SELF_OCCLUSION_M, SELF_CELL_PX = 0.01, 4
+#: The outline ring: pixels more than OUTLINE_PX[0] and at most OUTLINE_PX[1] (virtual-camera
+#: pixels, ~4 mm at 1 m) outside the silhouette. The gap keeps the silhouette's own ragged edge out.
+OUTLINE_PX = (2, 6)
+#: A ring pixel continues the model's surface when its normal is within this of the model's there.
+SAME_SURFACE_DEG = 30.0
+#: Normals from depth differences this many pixels either side (a Kinect's depth noise at 2 m, ~7 mm,
+#: would swamp neighbouring pixels' 8 mm spacing).
+NORMAL_STEP_PX = 2
 
 
 @dataclass(frozen=True)
@@ -42,12 +60,16 @@ class DepthView:
     near: np.ndarray
     far: np.ndarray
     K: np.ndarray
+    z: np.ndarray  # (H, W) the measured depth itself (m, NaN: none)
+    normals: np.ndarray  # (H, W, 3) unit surface normals from z (NaN where z or a neighbour is missing)
 
     @classmethod
     def of(cls, cloud: np.ndarray) -> "DepthView":
         """From a camera-frame cloud: (H, W, 3) organised (every other row and column of its own
         grid, with the K its points fit) or (N, 3), projected with ``VIRTUAL_K``."""
         pts = np.asarray(cloud)
+        if pts.ndim == 3 and min(pts.shape[:2]) == 1:  # a PCD with HEIGHT 1 is a list of points, not an image
+            pts = pts.reshape(-1, 3)
         if pts.ndim == 3:  # every other row and column: the virtual camera's resolution
             grid = pts[::2, ::2].astype(np.float64)
             z = grid[..., 2].copy()
@@ -63,7 +85,7 @@ class DepthView:
             np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
             z = z.reshape(H, W)
             z[np.isinf(z)] = np.nan
-        return cls(_filter3(z, np.fmin), _filter3(z, np.fmax), K)
+        return cls(_filter3(z, np.fmin), _filter3(z, np.fmax), K, z, _depth_normals(z, K))
 
 
 @dataclass(frozen=True)
@@ -75,6 +97,9 @@ class Verdict:
     violations: int
     occluded: int
     pixels: np.ndarray  # flat indices of the inlier pixels (for ``Explained``)
+    outline: int = 0  # ring pixels around the silhouette, inside the image
+    outline_measured: int = 0  # ... with a depth
+    outline_continuing: int = 0  # ... where the model's surface goes on
 
     @property
     def fitness(self) -> float:
@@ -83,6 +108,16 @@ class Verdict:
     @property
     def support(self) -> float:
         return self.inliers / max(self.visible, 1)
+
+    @property
+    def clutter(self) -> float:
+        """Share of the measured outline where the scene continues the model's surface."""
+        return self.outline_continuing / max(self.outline_measured, 1)
+
+    @property
+    def outline_seen(self) -> float:
+        """Share of the outline with measured depth (1 when the silhouette has no ring in the image)."""
+        return self.outline_measured / self.outline if self.outline else 1.0
 
 
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
@@ -113,7 +148,49 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     inlier = measured & (z >= near - tol) & (z <= far + tol)
     violation = measured & (z < near - tol)
     occluded = measured & (z > far + tol)
-    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier])
+    outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
+    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline)
+
+
+def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance_m: float,
+             noise_per_m2: float) -> tuple[int, int, int]:  # fmt: skip
+    """(ring pixels, measured, continuing) around the silhouette of the seen model points p (M, 3,
+    camera frame) with outward normals n, at pixels (u, v): a ring pixel continues when the measured
+    surface there lies on the tangent plane of the nearest model point (within the tolerance, normals
+    within ``SAME_SURFACE_DEG``): the model's surface would go on past its own outline."""
+    if len(u) == 0:
+        return 0, 0, 0
+    H, W = view.z.shape
+    inner, outer = OUTLINE_PX
+    # Work in the silhouette's box plus the ring: a hypothesis covers a small part of the frame.
+    u0, v0 = max(int(u.min()) - outer - 1, 0), max(int(v.min()) - outer - 1, 0)
+    u1, v1 = min(int(u.max()) + outer + 2, W), min(int(v.max()) + outer + 2, H)
+    box = (v1 - v0, u1 - u0)
+    source = np.ones(box, np.uint8)  # zero at the model's pixels: the distance transform's sources
+    source[v - v0, u - u0] = 0
+    disc = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))  # noqa: E731
+    silhouette = cv2.morphologyEx(1 - source, cv2.MORPH_CLOSE, disc(2))  # the gaps between model points filled
+    ring = (cv2.dilate(silhouette, disc(outer)) > 0) & ~(cv2.dilate(silhouette, disc(inner)) > 0)
+    rv, ru = np.nonzero(ring)
+    if len(rv) == 0:
+        return 0, 0, 0
+    plane_n = np.zeros(box + (3,))
+    plane_d = np.zeros(box)
+    plane_n[v - v0, u - u0] = n
+    plane_d[v - v0, u - u0] = np.einsum("ij,ij->i", n, p)
+    _, label = cv2.distanceTransformWithLabels(source, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    order = np.flatnonzero(source.reshape(-1) == 0)  # label k is the k-th source pixel in scan order
+    nearest = order[label[rv, ru] - 1]
+    normal, offset = plane_n.reshape(-1, 3)[nearest], plane_d.reshape(-1)[nearest]
+    gv, gu = rv + v0, ru + u0
+    ray = np.stack([(gu - view.K[0, 2]) / view.K[0, 0], (gv - view.K[1, 2]) / view.K[1, 1], np.ones(len(gu))], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a plane along the ray continues nowhere
+        z_plane = offset / np.einsum("ij,ij->i", normal, ray)
+        z = view.z[gv, gu]
+        measured = np.isfinite(z)
+        same_plane = np.abs(z - z_plane) <= tolerance_m + noise_per_m2 * z**2
+        same_normal = np.abs(np.einsum("ij,ij->i", view.normals[gv, gu], normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
+    return len(rv), int(measured.sum()), int((measured & same_plane & same_normal).sum())
 
 
 class Explained:
@@ -159,6 +236,22 @@ def _fit_intrinsics(grid: np.ndarray) -> np.ndarray:
     fx, cx = np.polyfit(a, uu[ok].astype(float), 1)
     fy, cy = np.polyfit(b, vv[ok].astype(float), 1)
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _depth_normals(z: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of a depth map z (H, W, m) back-projected with K: the cross product of
+    its central differences along rows and columns (NaN at the border and next to missing depth)."""
+    H, W = z.shape
+    s = NORMAL_STEP_PX
+    vv, uu = np.mgrid[0:H, 0:W]
+    X = np.stack([(uu - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+    du = np.full_like(X, np.nan)
+    dv = np.full_like(X, np.nan)
+    du[:, s:-s] = X[:, 2 * s:] - X[:, :-2 * s]
+    dv[s:-s] = X[2 * s:] - X[:-2 * s]
+    n = np.cross(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
 def _filter3(z: np.ndarray, op) -> np.ndarray:
