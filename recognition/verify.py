@@ -61,7 +61,6 @@ class DepthView:
     far: np.ndarray
     K: np.ndarray
     z: np.ndarray  # (H, W) the measured depth itself (m, NaN: none)
-    normals: np.ndarray  # (H, W, 3) unit surface normals from z (NaN where z or a neighbour is missing)
 
     @classmethod
     def of(cls, cloud: np.ndarray) -> "DepthView":
@@ -85,7 +84,7 @@ class DepthView:
             np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
             z = z.reshape(H, W)
             z[np.isinf(z)] = np.nan
-        return cls(_filter3(z, np.fmin), _filter3(z, np.fmax), K, z, _depth_normals(z, K))
+        return cls(_filter3(z, np.fmin), _filter3(z, np.fmax), K, z)
 
 
 @dataclass(frozen=True)
@@ -189,7 +188,7 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
         z = view.z[gv, gu]
         measured = np.isfinite(z)
         same_plane = np.abs(z - z_plane) <= tolerance_m + noise_per_m2 * z**2
-        same_normal = np.abs(np.einsum("ij,ij->i", view.normals[gv, gu], normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
+        same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
     return len(rv), int(measured.sum()), int((measured & same_plane & same_normal).sum())
 
 
@@ -238,20 +237,21 @@ def _fit_intrinsics(grid: np.ndarray) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _depth_normals(z: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Unit normals (H, W, 3) of a depth map z (H, W, m) back-projected with K: the cross product of
-    its central differences along rows and columns (NaN at the border and next to missing depth)."""
-    H, W = z.shape
+def _depth_normals(view: DepthView, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Unit surface normals (N, 3) at pixels (u, v) of the view's depth: the cross product of the
+    back-projected differences ``NORMAL_STEP_PX`` either side along the row and the column (NaN at
+    the border and next to missing depth)."""
+    H, W = view.z.shape
     s = NORMAL_STEP_PX
-    vv, uu = np.mgrid[0:H, 0:W]
-    X = np.stack([(uu - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z], axis=-1)
-    du = np.full_like(X, np.nan)
-    dv = np.full_like(X, np.nan)
-    du[:, s:-s] = X[:, 2 * s:] - X[:, :-2 * s]
-    dv[s:-s] = X[2 * s:] - X[:-2 * s]
-    n = np.cross(du, dv)
+
+    def point(uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
+        inside = (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
+        z = np.where(inside, view.z[np.clip(vv, 0, H - 1), np.clip(uu, 0, W - 1)], np.nan)
+        return np.stack([(uu - view.K[0, 2]) / view.K[0, 0] * z, (vv - view.K[1, 2]) / view.K[1, 1] * z, z], axis=1)
+
+    n = np.cross(point(u + s, v) - point(u - s, v), point(u, v + s) - point(u, v - s))
     with np.errstate(invalid="ignore", divide="ignore"):
-        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 def _filter3(z: np.ndarray, op) -> np.ndarray:
