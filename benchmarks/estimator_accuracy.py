@@ -8,6 +8,18 @@ covariance model, 5 % planar-PnP flips), every camera at 30 Hz. The same observa
 Figures: camera errors after 10 s (median over static cameras and seeds), the ratios, each of the
 paper's four relation cases, and the time a bumped camera (2 deg + 30 mm) needs to get back
 within 5 mm / 0.25 deg.
+
+Chains (``corridor``): marker groups along a wall 1.2 m apart, the first group the anchors, and
+cameras each seeing two neighbouring groups, so the k-th camera reaches the anchors through k - 1
+others (1 to 4 hops). Each camera's view of each marker carries a bias that averaging its frames
+does not remove, drawn once per seed from the estimator's own factor model (the fused
+covariance: mean single-frame covariance / max_fused plus the view rotation floor), and per-frame
+noise on top. The floor is what that model predicts: each camera's position sigma from the
+marginals of the batch solve over the same fused factors (``offline``, LM). Per camera: RMS error
+over seeds, sigma, their ratio (the model's consistency: ~1), online over offline, and the
+run-to-run spread (standard deviation of the error over seeds). ``chain_pairs``: the same with
+two markers a group, so that neighbouring cameras share two (a weak rotation about the line
+through them). Observation level (no renderer): the rendered front-end's own biases are not in it.
 """
 
 from __future__ import annotations
@@ -19,10 +31,12 @@ import numpy as np
 
 from benchmarks.chain import chain_solve
 from benchmarks.common import main
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations
-from drivers.sim.scenario import CameraMotion, Scenario, load_scenario
+from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, perturb
+from drivers.sim.scenario import BoxSpec, CameraMotion, CameraSpec, MarkerSpec, Scenario, load_scenario
 from estimator.graph import CameraState, Estimator, camera_symbol, marker_symbol
-from schemas.geometry import cov_ros_to_gtsam, pose_error
+from estimator.observation import Observation
+from schemas.geometry import cov_ros_to_gtsam, pose_error, quat_from_matrix
+from schemas.spec import PoseSpec
 
 RATE = 30.0
 NOISE = NoiseSettings(depth=True, flip_rate=0.05)
@@ -139,10 +153,134 @@ def bump_recovery(seed: int) -> float:
     return float("inf") if ok_since is None else ok_since - bump_t
 
 
+#: Corridor geometry (m): marker groups this far apart along the wall, cameras this far from it.
+GROUP_SPACING, CAMERA_DISTANCE = 1.2, 2.0
+
+
+#: A group's markers (offset along the wall, height), m: three spread in a triangle, or the first two.
+GROUP = [(-0.35, 1.0), (0.35, 1.0), (0.0, 1.6)]
+
+
+def corridor(hops: int = 4, per_group: int = 3) -> Scenario:
+    """A wall (y = 1.2 m) with ``hops`` + 1 groups of ``per_group`` markers (0.2 m; three spread
+    0.7 m wide and 0.6 m high, or two side by side), group 0 the anchors; camera k (1..hops) 2 m
+    from the wall between groups k - 1 and k, seeing those two only. With two, neighbouring cameras
+    share two markers: the rotation about the line through them rests on the markers' own rotations."""
+    markers = []
+    for g in range(hops + 1):
+        x = g * GROUP_SPACING
+        for j, (dx, z) in enumerate(GROUP[:per_group]):
+            markers.append(MarkerSpec(id=10 * g + j, role="anchor" if g == 0 else "static", side_m=0.2,
+                                      pose=PoseSpec(position=(x + dx, 1.199, z), normal=(0.0, -1.0, 0.0))))  # fmt: skip
+    cameras = [CameraSpec(id=f"cam{k}", pose=PoseSpec(position=((k - 0.5) * GROUP_SPACING, 1.2 - CAMERA_DISTANCE, 1.3),
+                                                       look_at=((k - 0.5) * GROUP_SPACING, 1.2, 1.3)))
+               for k in range(1, hops + 1)]  # fmt: skip
+    wall = BoxSpec(size=(hops * GROUP_SPACING + 2.0, 0.02, 2.0), pose=PoseSpec(position=(hops * GROUP_SPACING / 2, 1.21, 1.0)))
+    return Scenario(name="corridor", marker_side_m=0.2, floor_size=(hops * GROUP_SPACING + 3.0, 4.0), boxes=[wall],
+                    markers=markers, cameras=cameras)  # fmt: skip
+
+
+def surveyed_off(s: Scenario, seed: int) -> Scenario:
+    """The scenario with its anchors where they really are: off their surveyed poses by an error
+    drawn from their survey sigmas (the configuration keeps the surveyed ones)."""
+    rng = np.random.default_rng(10_000 + seed)
+    markers = []
+    for mk in s.markers:
+        if mk.role == "anchor":
+            xi = np.r_[rng.normal(0, np.radians(mk.sigma_rotation_deg), 3), rng.normal(0, mk.sigma_position_m, 3)]
+            T = (gtsam.Pose3(s.world_T_marker(mk, 0.0)) * gtsam.Pose3.Expmap(xi)).matrix()
+            mk = mk.model_copy(update={"pose": PoseSpec(position=tuple(T[:3, 3]), quaternion=tuple(quat_from_matrix(T[:3, :3])))})
+        markers.append(mk)
+    return s.model_copy(update={"markers": markers})
+
+
+def biased_frames(s: Scenario, seconds: float, seed: int, max_fused: int, floor_rad: float) -> list[list]:
+    """As ``simulate``, with each (camera, marker) view's bias drawn once from the factor model."""
+    rng = np.random.default_rng(seed)
+    bias: dict[tuple[str, int], np.ndarray] = {}
+    frames = []
+    for k in range(int(seconds * RATE)):
+        stamp = int(round(k / RATE * 1e9))
+        frame = []
+        for c in s.cameras:
+            obs = []
+            for o in frame_observations(s, c.id, k / RATE, stamp, rng, NOISE):
+                if (c.id, o.marker_id) not in bias:
+                    view_cov = o.covariance / max_fused
+                    view_cov[3:, 3:] += np.eye(3) * floor_rad**2
+                    bias[(c.id, o.marker_id)] = perturb(np.eye(4), view_cov, rng)
+                B = bias[(c.id, o.marker_id)]
+                obs.append(Observation(o.camera_id, o.stamp_ns, o.marker_id, o.camera_T_marker @ B, o.covariance,
+                                       o.alternative @ B, o.ambiguous))  # fmt: skip
+            frame.append((c.id, stamp, obs))
+        frames.append(frame)
+    return frames
+
+
+def fused_batch(est: Estimator) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """LM over the estimator's own fused factors (as the offline solve builds them) and, from its
+    marginals, each camera's predicted position sigma (mm, sqrt of the covariance's trace)."""
+    graph = gtsam.NonlinearFactorGraph()
+    for a in est.config.anchors:
+        sig = [np.radians(a.sigma_rotation_deg)] * 3 + [a.sigma_position_m] * 3
+        graph.add(gtsam.PriorFactorPose3(marker_symbol(a.marker_id), gtsam.Pose3(a.world_T_marker.matrix()),
+                                         gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))  # fmt: skip
+    for ((cid, seg), mk), pair in est.pairs.items():
+        if pair.n == 0 or mk in est.object_markers:
+            continue
+        cov = cov_ros_to_gtsam(pair.factor_covariance(est.config.max_fused, est.rotation_floor_rad))
+        graph.add(gtsam.BetweenFactorPose3(camera_symbol(est.camera_index[(cid, seg)]), marker_symbol(mk),
+                                           gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov)))  # fmt: skip
+    result = gtsam.LevenbergMarquardtOptimizer(graph, est.values, gtsam.LevenbergMarquardtParams()).optimize()
+    marginals = gtsam.Marginals(graph, result)
+    poses, sigma = {}, {}
+    for (cid, seg), i in est.camera_index.items():
+        poses[cid] = result.atPose3(camera_symbol(i)).matrix()
+        cov = marginals.marginalCovariance(camera_symbol(i))  # tangent (rotation, translation), body frame
+        R = poses[cid][:3, :3]
+        sigma[cid] = 1000 * float(np.sqrt(np.trace(R @ cov[3:, 3:] @ R.T)))
+    return poses, sigma
+
+
+def chains(seeds: list[int], seconds: float, hops: int = 4, per_group: int = 3, prefix: str = "chain") -> dict[str, float]:
+    """The corridor, online and offline, against the predicted floor (see the module docstring);
+    figures named ``<prefix>_<k>hop_...``."""
+    s = corridor(hops, per_group)
+    err = {"online": {c.id: [] for c in s.cameras}, "offline": {c.id: [] for c in s.cameras}}
+    sigma: dict[str, list[float]] = {c.id: [] for c in s.cameras}
+    for seed in seeds:
+        cfg = estimator_config(s)  # the anchors as surveyed ...
+        probe = Estimator(cfg)
+        frames = biased_frames(surveyed_off(s, seed), seconds, seed, cfg.max_fused, probe.rotation_floor_rad)
+        est = online(s, frames)
+        e = est.estimate(frames[-1][0][1], with_covariance=False)
+        off, sig = fused_batch(est)
+        for c in s.cameras:
+            truth = c.pose.matrix()
+            cam = e.cameras.get(c.id)
+            err["online"][c.id].append(pose_error(cam.pose.T, truth)[0] if cam and cam.pose else np.inf)
+            err["offline"][c.id].append(pose_error(off[c.id], truth)[0])
+            sigma[c.id].append(sig[c.id])
+    out: dict[str, float] = {f"{prefix}_seeds": float(len(seeds))}
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
+    for k, c in enumerate(s.cameras, start=1):
+        on, off, sg = rms(err["online"][c.id]), rms(err["offline"][c.id]), float(np.mean(sigma[c.id]))
+        name = f"{prefix}_{k}hop"
+        out.update({f"{name}_error_mm": on, f"{name}_offline_error_mm": off, f"{name}_sigma_mm": sg,
+                    f"{name}_error_over_floor": on / sg, f"{name}_online_over_offline": on / off,
+                    f"{name}_spread_mm": float(np.std(err["online"][c.id]))})  # fmt: skip
+    return out
+
+
 def run(quick: bool) -> dict[str, float]:
     seeds = [0, 1] if quick else [0, 1, 2, 3, 4]
     out = accuracy(seeds, 10.0)
     out["bump_recovery_s"] = float(np.median([bump_recovery(sd) for sd in seeds[:2]]))
+    chain_seeds = seeds if quick else list(range(10))
+    out.update(chains(chain_seeds, 10.0, per_group=3, prefix="chain"))
+    out.update(chains(chain_seeds, 10.0, per_group=2, prefix="chain_pairs"))
+    for ratio in ("error_over_floor", "online_over_offline"):
+        out[f"chain_{ratio}_max"] = max(v for k, v in out.items() if k.endswith(f"hop_{ratio}"))
     return out
 
 
