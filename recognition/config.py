@@ -116,6 +116,12 @@ class RecognitionConfig(BaseModel):
         description="verification: share of the outline with measured depth; below it nothing shows the object ends "
         "there (simulated true detections: min 0.89; PCL's milk in its scene 0.84; a false milk in office1.pcd 0.48)",
     )
+    max_penetration: float = Field(
+        default=0.01, ge=0, le=1,
+        description="verification: largest share of the visible model hidden by a removed support plane and over "
+        "icp_distance_m behind it, i.e. inside the table (simulated true detections: 0 over 104; a crate posed into "
+        "a tote and the table: 0.016, 0.02)",
+    )
     min_fitness_shared: float = Field(
         default=0.8, ge=0, le=1, description="fitness that accepts a match covering only part of a cluster (touching objects)"
     )

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
@@ -79,6 +79,7 @@ class SceneCloud:
     points: np.ndarray
     normals: np.ndarray
     graph: PointGraph
+    planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
 
 
 class Recognizer:
@@ -127,14 +128,15 @@ class Recognizer:
         pts = voxel_downsample(pts, d.voxel_m)
         # Planes first, normals after: most of a scene is table, and an object's normals should not
         # lean towards the table it stands on (the model's views have no table either).
-        pts = pts[remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)]
+        off_planes, planes = remove_planes(pts, c.plane_distance_m, c.max_planes, c.min_plane_fraction, c.plane_noise_per_m2)
+        pts = pts[off_planes]
         if len(pts) == 0:
             return empty
         neighbours = radius_neighbours(pts, max(d.normal_radius_m, c.cluster_tolerance_m))
         normals, _ = estimate_normals(pts, d.normal_radius_m, neighbours=neighbours)
         ok = np.flatnonzero(np.all(np.isfinite(normals), axis=1))
         graph = PointGraph.from_neighbours(neighbours).subgraph(ok, c.cluster_tolerance_m)
-        return SceneCloud(pts[ok], normals[ok], graph)
+        return SceneCloud(pts[ok], normals[ok], graph, planes)
 
     def recognize(
         self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None
@@ -190,7 +192,7 @@ class Recognizer:
         # a part two objects fit goes to the one not found better elsewhere. A hypothesis the frame
         # contradicts never takes a part, and a pixel explains one object.
         candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
-        verdicts = self._verify(cloud, [det for _, det in candidates]) if c.verify else [None] * len(candidates)
+        verdicts = self._verify(cloud, [det for _, det in candidates], scene.planes) if c.verify else [None] * len(candidates)
         found: dict[str, Detection] = {}
         part_of: dict[str, int] = {}
         taken: set[int] = set()
@@ -200,10 +202,11 @@ class Recognizer:
                 continue
             if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support
                                       and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
-                                      and explained.admit(v)):  # fmt: skip
+                                      and v.penetration <= c.max_penetration and explained.admit(v)):  # fmt: skip
                 log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible pixels, "
-                          "%d seen through), clutter %.2f, outline seen %.2f (of %d pixels)", det.object_id, v.fitness,
-                          v.support, v.inliers, v.visible, v.violations, v.clutter, v.outline_seen, v.outline)  # fmt: skip
+                          "%d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a support %.3f",
+                          det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations, v.clutter,
+                          v.outline_seen, v.outline, v.penetration)  # fmt: skip
                 continue
             taken.add(p)
             found[det.object_id] = det
@@ -220,14 +223,15 @@ class Recognizer:
                 del found[oid]
         return sorted(found.values(), key=lambda d: d.object_id)
 
-    def _verify(self, cloud: np.ndarray, detections: list[Detection]) -> list[Verdict | None]:
-        """Each hypothesis judged against the frame's depth (``recognition.verify``)."""
+    def _verify(self, cloud: np.ndarray, detections: list[Detection], planes: np.ndarray) -> list[Verdict | None]:
+        """Each hypothesis judged against the frame's depth and the supports removed from it
+        (``recognition.verify``)."""
         if not detections:
             return []
         view = DepthView.of(cloud)
         c = self.config
         return [verdict(view, self.db.models[d.object_id].points, self.db.models[d.object_id].normals, d.camera_T_object,
-                        c.icp_distance_m, c.plane_noise_per_m2) for d in detections]  # fmt: skip
+                        c.icp_distance_m, c.plane_noise_per_m2, planes) for d in detections]  # fmt: skip
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None

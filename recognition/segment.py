@@ -24,8 +24,9 @@ def remove_planes(
     min_fraction: float,
     noise_per_m2: float = 0.0,
     seed: int = 0,
-) -> np.ndarray:
-    """Mask (N,) of the points that are neither on nor behind a dominant plane (camera at the origin).
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mask (N,) of the points that are neither on nor behind a dominant plane (camera at the origin),
+    and the planes found (P, 4): a, b, c, d with a x + b y + c z + d = 0, the normal towards the camera.
 
     Up to max_planes planes are found, largest first, each only if its RANSAC inliers are at least
     min_fraction of all points (so a box face is not taken for the table). A point is removed when it
@@ -33,6 +34,7 @@ def remove_planes(
     the square of range, and a fixed band leaves the far end of a table behind as clutter. Seeded.
     """
     keep = np.ones(len(points), dtype=bool)
+    planes: list[tuple[float, float, float, float]] = []
     o3d.utility.random.seed(seed)
     rng = np.random.default_rng(seed)
     pts = np.asarray(points, dtype=np.float64)
@@ -51,7 +53,8 @@ def remove_planes(
             a, b, c, d = -a, -b, -c, -d
         signed = pts[rest] @ np.array([a, b, c]) + d
         keep[rest[signed < band[rest]]] = False
-    return keep
+        planes.append((a, b, c, d))
+    return keep, np.array(planes, dtype=np.float64).reshape(-1, 4)
 
 
 @dataclass(frozen=True)

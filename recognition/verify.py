@@ -99,6 +99,7 @@ class Verdict:
     outline: int = 0  # ring pixels around the silhouette, inside the image
     outline_measured: int = 0  # ... with a depth
     outline_continuing: int = 0  # ... where the model's surface goes on
+    inside_support: int = 0  # visible pixels hidden by a support plane the model point lies behind
 
     @property
     def fitness(self) -> float:
@@ -114,15 +115,24 @@ class Verdict:
         return self.outline_continuing / max(self.outline_measured, 1)
 
     @property
+    def penetration(self) -> float:
+        """Share of the visible model inside a support (behind the table's plane, hidden by its surface)."""
+        return self.inside_support / max(self.visible, 1)
+
+    @property
     def outline_seen(self) -> float:
         """Share of the outline with measured depth (1 when the silhouette has no ring in the image)."""
         return self.outline_measured / self.outline if self.outline else 1.0
 
 
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
-            tolerance_m: float, noise_per_m2: float) -> Verdict:  # fmt: skip
+            tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None) -> Verdict:  # fmt: skip
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
-    camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m)."""
+    camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
+
+    planes (P, 4): supports removed from the scene (a x + b y + c z + d = 0, normal towards the
+    camera). An occluded model point hidden by a surface on one of them, and itself behind that
+    plane by more than ``tolerance_m``, would be inside the support: a pose no object can have."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
     p = points @ R.T + t
     n = normals @ R.T
@@ -147,8 +157,23 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     inlier = measured & (z >= near - tol) & (z <= far + tol)
     violation = measured & (z < near - tol)
     occluded = measured & (z > far + tol)
+    inside = 0
+    if planes is not None and len(planes) and occluded.any():
+        zp = z[occluded]  # the hidden model points' depths, and where they are
+        rows, cols = np.divmod(flat[occluded], W)
+        ray = np.stack([(cols - view.K[0, 2]) / view.K[0, 0], (rows - view.K[1, 2]) / view.K[1, 1], np.ones(len(cols))], axis=1)
+        hider = ray * view.z.reshape(-1)[flat[occluded]][:, None]  # the measured surface in front of them
+        hidden = ray * zp[:, None]
+        band = tol[occluded]
+        for a, b, c, d in planes:
+            nrm = np.array([a, b, c])
+            on_plane = np.abs(hider @ nrm + d) <= band  # a single pixel: the sensor's noise
+            # The plane and the pose are each fitted to hundreds of points: depth noise averages
+            # out of both, so their distance is judged without it.
+            inside_it = hidden @ nrm + d < -tolerance_m
+            inside += int((on_plane & inside_it).sum())
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
-    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline)
+    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline, inside)
 
 
 def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance_m: float,

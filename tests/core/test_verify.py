@@ -109,3 +109,17 @@ def test_a_model_fitted_onto_part_of_a_larger_surface_is_clutter() -> None:
     depth[depth == 1200] = 0  # nothing measured around it: nothing says where it ends
     unseen = verdict(DepthView.of(depth_to_cloud(depth, K)), points, normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
     assert unseen.outline_seen < 0.05
+
+
+def test_a_pose_inside_the_support_plane_is_caught() -> None:
+    """The wall 1 m away is a removed support plane: a patch hidden 5 cm inside it is inside the
+    support; 1 cm inside (within the fit's tolerance: an object resting on it) is not; and without
+    the plane a hidden patch says nothing either way."""
+    view = DepthView.of(wall())
+    wall_plane = np.array([[0.0, 0.0, -1.0, 1.0]])  # z = 1 m, the normal towards the camera
+    points, normals = patch()
+    inside = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.05]), TOL, NOISE, wall_plane)
+    assert inside.visible > 100 and inside.inside_support == inside.visible and inside.penetration == 1.0
+    resting = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.01]), TOL, NOISE, wall_plane)
+    assert resting.inside_support == 0
+    assert verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.05]), TOL, NOISE).inside_support == 0
