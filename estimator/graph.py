@@ -38,7 +38,9 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
 from estimator.observation import Observation, ObservationRows, observations_of
-from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, rotation_angle
+from schemas.geometry import (
+    ROS_TO_GTSAM, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, rotation_angle,
+)
 
 log = logging.getLogger(__name__)
 K = TypeVar("K")
@@ -80,6 +82,13 @@ def project_rotation(M: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (chordal L2 mean of a sum of rotations)."""
     U, _, Vt = np.linalg.svd(M)
     return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def project_rotations(M: np.ndarray) -> np.ndarray:
+    """``project_rotation`` of each of (N, 3, 3) matrices."""
+    U, _, Vt = np.linalg.svd(M)
+    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+    return U @ Vt
 
 
 class BestView(Generic[K, V]):
@@ -376,6 +385,7 @@ class Estimator:
         self.known = None if known is None else set(known) | set(self.anchors) | self.object_markers
         self.tracks: dict[str, CameraTrack] = {}
         self.pairs: dict[tuple[CameraKey, int], Pair] = {}
+        self._may_need_placing = False  # a pair appeared since _place_new last found everything placed
         self.camera_index: dict[CameraKey, int] = {}
         self._next_camera = 0  # camera_index values are never reused: folded segments leave it
         self.history: dict[str, History] = {}  # camera id -> its folded segments (bounded history)
@@ -444,7 +454,10 @@ class Estimator:
             return False
         seg = (camera_id, track.segment)
         for obs in static:
-            pair = self.pairs.setdefault((seg, obs.marker_id), Pair())
+            pair = self.pairs.get((seg, obs.marker_id))
+            if pair is None:
+                pair = self.pairs[(seg, obs.marker_id)] = Pair()
+                self._may_need_placing = True
             if pair.add(obs):
                 self.counters.observations += 1
             else:
@@ -596,11 +609,30 @@ class Estimator:
 
     def _pair_factor(self, ck: int, mk: int, pair: Pair) -> gtsam.BetweenFactorPose3:
         """The robust factor of a pair's current mean; remembers what it holds (``factor_*``)."""
-        pair.factor_cov = pair.factor_covariance(self.config.max_fused, self.rotation_floor_rad)
-        pair.factor_n_eff = min(pair.n, self.config.max_fused)
-        pair.factor_mean = pair.mean(exact=True).copy()
-        noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(pair.factor_cov)))
-        return gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(pair.factor_mean), noise)
+        return self._pair_factors([(ck, mk, pair)])[0]
+
+    def _pair_factors(self, items: list[tuple[int, int, Pair]]) -> list[gtsam.BetweenFactorPose3]:
+        """``_pair_factor`` for many (camera key, marker key, pair) at once: the means' rotation
+        projections and the covariances in one batch (per pair they were most of an update's cost
+        in a large cell); only the gtsam objects are made one by one."""
+        if not items:
+            return []
+        sums = np.stack([p.sums for _, _, p in items])
+        n = np.array([p.n for _, _, p in items], float)
+        means = np.tile(np.eye(4), (len(items), 1, 1))
+        means[:, :3, :3] = project_rotations(sums[:, 3:12].reshape(-1, 3, 3))
+        means[:, :3, 3] = sums[:, :3] / n[:, None]
+        covs = sums[:, 21:].reshape(-1, 6, 6) / (n * np.minimum(n, self.config.max_fused))[:, None, None]
+        covs[:, [3, 4, 5], [3, 4, 5]] += self.rotation_floor_rad**2
+        covs_gtsam = covs[:, ROS_TO_GTSAM][:, :, ROS_TO_GTSAM]
+        factors = []
+        for (ck, mk, pair), T, cov, cov_g in zip(items, means, covs, covs_gtsam):
+            pair.factor_cov, pair.factor_mean = cov, T
+            pair.factor_n_eff = min(pair.n, self.config.max_fused)
+            pair._cached, pair._cached_n = T.copy(), pair.n  # the exact mean, as Pair.mean(exact=True) leaves it
+            noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_g))
+            factors.append(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(T), noise))
+        return factors
 
     def ended_segments(self, now_ns: int) -> list[CameraKey]:
         """Segments a camera left (it moved and settled again) at least ``fold_after_s`` ago: by
@@ -664,18 +696,19 @@ class Estimator:
                     slotted.append((position, history))
         new_values = gtsam.Values(values)
         self._place_new(new_values)
-        refreshed = 0
         due = [(k, p) for k, p in self.pairs.items() if p.dirty] if refresh_all else self._due_pairs(now_ns)
+        rebuild = []
         for (cam, marker_id), pair in due:
             ck, mk = self._camera_key(cam), marker_symbol(marker_id)
-            if not (self._has(ck, new_values) and self._has(mk, new_values)):
-                continue
+            if self._has(ck, new_values) and self._has(mk, new_values):
+                rebuild.append((ck, mk, pair))
+        for (_, _, pair), factor in zip(rebuild, self._pair_factors(rebuild)):
             slotted.append((graph.size(), pair))
-            graph.add(self._pair_factor(ck, mk, pair))
+            graph.add(factor)
             if pair.slot is not None:
                 remove.append(pair.slot)
-            refreshed += 1
             pair.refreshed_ns, pair.dirty = now_ns, False
+        refreshed = len(rebuild)
         self.counters.last_update_rebuilt = refreshed
         if graph.size() == 0 and not remove:
             # A tick with nothing due still reports its own (tiny) cost: a stale figure here made
@@ -744,11 +777,14 @@ class Estimator:
 
     def _place_new(self, new_values: gtsam.Values) -> None:
         """Initial values for cameras and markers that just got a path to an anchor."""
+        if not self._may_need_placing:
+            return  # every pair's camera and marker were placed, and no pair appeared since
         unplaced = [
             (cam, mk) for (cam, mk) in self.pairs
             if self._camera_key(cam) not in self.in_graph or marker_symbol(mk) not in self.in_graph
         ]  # fmt: skip
         if not unplaced:
+            self._may_need_placing = False
             return
         # Only what touches an unplaced camera or marker can place it: the rest is not looked up.
         cams_needed = {cam for cam, _ in unplaced}

@@ -13,7 +13,7 @@ from typing import Iterable
 import numpy as np
 
 # Index map between ROS order (x y z rx ry rz) and gtsam's Pose3 tangent order (rx ry rz x y z).
-_ROS_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
+ROS_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
 
 
 # ---------------------------------------------------------------- rotations
@@ -212,7 +212,7 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 def cov_ros_to_gtsam(cov: np.ndarray) -> np.ndarray:
     """Reorder a 6x6 covariance from ROS (x y z rx ry rz) to gtsam Pose3 tangent (rx ry rz x y z)."""
     cov = np.asarray(cov, dtype=np.float64).reshape(6, 6)
-    return cov[np.ix_(_ROS_TO_GTSAM, _ROS_TO_GTSAM)]
+    return cov[np.ix_(ROS_TO_GTSAM, ROS_TO_GTSAM)]
 
 
 def cov_gtsam_to_ros(cov: np.ndarray) -> np.ndarray:
