@@ -80,3 +80,14 @@ def test_only_geometry_defines_a_rotation_angle() -> None:
                 continue
             offenders += [f"{f.relative_to(ROOT)}:{i}" for i, line in enumerate(f.read_text().splitlines(), 1) if pattern.search(line)]
     assert not offenders, offenders
+
+
+def test_no_document_repeats_a_paragraph() -> None:
+    """A bad edit once inserted one paragraph between every character of design.md (400k lines):
+    every document stays readable-sized, and no paragraph of four lines or more appears twice."""
+    for doc in sorted((ROOT / "docs").glob("*.md")):
+        text = doc.read_text()
+        assert len(text.splitlines()) < 1500, f"{doc.name} has {len(text.splitlines())} lines"
+        paragraphs = [p for p in text.split("\n\n") if p.count("\n") >= 3 and not p.startswith("|")]  # generated tables may repeat
+        repeated = {p[:60] for p in paragraphs if paragraphs.count(p) > 1}
+        assert not repeated, f"{doc.name} repeats {repeated}"
