@@ -262,14 +262,22 @@ def factors_current(pairs: list[Pair], max_fused: int, sigmas: float, rotation_f
     if not full:
         return out
     sel = [pairs[i] for i in full]
+    sums = np.stack([p.sums for p in sel])  # one row per pair: the means and covariances come from these
     n = np.array([p.n for p in sel], float)
-    cov_diag = np.stack([np.diagonal(p.cov_sum) for p in sel]) / (n * np.minimum(n, max_fused))[:, None]
+    cov_diag = sums[:, COV_DIAGONAL] / (n * np.minimum(n, max_fused))[:, None]
     cov_diag[:, 3:] += rotation_floor_rad**2
     built = np.stack([p.factor_cov for p in sel])
     same_cov = np.abs(cov_diag / np.diagonal(built, axis1=1, axis2=2) - 1.0).max(axis=1) <= 0.1
-    d = pose_difference(np.stack([p.factor_mean for p in sel]), np.stack([p.mean() for p in sel]))
+    means = np.tile(np.eye(4), (len(sel), 1, 1))
+    means[:, :3, :3] = project_rotations(sums[:, 3:12].reshape(-1, 3, 3))
+    means[:, :3, 3] = sums[:, :3] / n[:, None]
+    d = pose_difference(np.stack([p.factor_mean for p in sel]), means)
     out[full] = same_cov & (mahalanobis_sq(d, built) < sigmas**2)
     return out
+
+
+#: Columns of ``Pair.sums`` holding the covariance sum's diagonal.
+COV_DIAGONAL = 21 + 7 * np.arange(6)
 
 
 @dataclass(frozen=True)
