@@ -50,6 +50,8 @@ FLIP_GATE_RAD = math.radians(15.0)  # a candidate further than this from the pai
 POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, caught separately)
 MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
 YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
+MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (see Estimator._due_pairs)
+RELINEARIZE_SKIP = 10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
 TRACE_GATE = 1.0 + 2.0 * math.cos(FLIP_GATE_RAD)  # trace(R_mean^T R) above this: within the flip gate
 
 
@@ -384,7 +386,7 @@ class Estimator:
         self.keep_history = keep_history
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(config.relinearize_threshold)
-        params.relinearizeSkip = 1
+        params.relinearizeSkip = RELINEARIZE_SKIP
         params.findUnusedFactorSlots = True  # refreshed pair factors reuse their slots
         self.isam = gtsam.ISAM2(params)
         self.anchors = {a.marker_id: a.world_T_marker.matrix() for a in config.anchors}
@@ -723,9 +725,18 @@ class Estimator:
             # the status repeat the last real update's time at 10 Hz.
             self._timed(t0, c0)
             return
-        result = self.isam.update(graph, new_values, remove)
-        if new_values.size() > 0:
-            self.relax(2)  # new variables start from BFS guesses: let them settle like a batch solve
+        params = gtsam.ISAM2UpdateParams()
+        params.removeFactorIndices = remove
+        # Relinearisation is checked every RELINEARIZE_SKIP updates, and at once while anything is
+        # young (new variables, factors of fewer than YOUNG_PAIR observations): a young estimate
+        # still moves far from where it was linearised.
+        params.force_relinearize = new_values.size() > 0 or any(p.n < YOUNG_PAIR for _, _, p in rebuild)
+        result = self.isam.update(graph, new_values, params)
+        if new_values.size() > 1:
+            # New variables start from BFS guesses: let them settle like a batch solve. One alone (a
+            # camera's new segment after a move) is placed from its own markers and converges with
+            # its young factors' refreshes over the next updates.
+            self.relax(2)
         slots = list(result.getNewFactorsIndices())  # one per factor of ``graph``, in its order
         for position, owner in slotted:
             owner.slot = slots[position]
@@ -760,7 +771,10 @@ class Estimator:
                 urgent.append((key, pair))
             elif age >= refresh_ns:
                 overdue.append((age, key, pair))
-        share = max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0)))
+        # A large cell does not rebuild its share of every pair each update: each rebuilt factor costs
+        # iSAM2 a re-elimination, and settled pairs change slowly. Past MAX_MATURE_PER_UPDATE they are
+        # looked at less often than refresh_s (64 cameras x 32 markers: every ~4 s).
+        share = min(max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0))), MAX_MATURE_PER_UPDATE)
         # The most overdue first; at most 2 x share looked at per update (the look costs a
         # Mahalanobis test each): the rest wait, so looks spread over the updates too.
         overdue.sort(key=lambda x: -x[0])
