@@ -81,16 +81,18 @@ def object_symbol(index: int) -> int:
 
 
 def project_rotation(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrix (chordal L2 mean of a sum of rotations)."""
+    """Nearest rotation matrix (chordal L2 mean of a sum of rotations); batched over leading axes."""
     U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-
-
-def project_rotations(M: np.ndarray) -> np.ndarray:
-    """``project_rotation`` of each of (N, 3, 3) matrices."""
-    U, _, Vt = np.linalg.svd(M)
-    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+    U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[..., None]
     return U @ Vt
+
+
+def pair_means(sums: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Exact mean poses (P, 4, 4) of pairs from their ``Pair.sums`` rows (P, 57) and counts (P,)."""
+    means = np.tile(np.eye(4), (len(n), 1, 1))
+    means[:, :3, :3] = project_rotation(sums[:, 3:12].reshape(-1, 3, 3))
+    means[:, :3, 3] = sums[:, :3] / n[:, None]
+    return means
 
 
 class BestView(Generic[K, V]):
@@ -191,6 +193,13 @@ class Pair:
         self._cached[:3, 3] = self.pos_sum / self.n
         return self._cached
 
+    def holds(self, mean: np.ndarray, covariance: np.ndarray, max_fused: int) -> None:
+        """Note the factor just built from this pair: its exact mean (4, 4), which is also the mean
+        from now on, and covariance (6, 6, ROS order)."""
+        self.factor_mean, self.factor_cov = mean, covariance
+        self.factor_n_eff = min(self.n, max_fused)
+        self._cached, self._cached_n = mean.copy(), self.n
+
     def factor_covariance(self, max_fused: int, rotation_floor_rad: float) -> np.ndarray:
         """The fused factor's covariance (6x6, ROS order, marker frame): the mean single-frame one
         over at most ``max_fused`` observations, plus the view's rotation bias on the diagonal."""
@@ -270,10 +279,7 @@ def factors_current(pairs: list[Pair], max_fused: int, sigmas: float, rotation_f
     cov_diag[:, 3:] += rotation_floor_rad**2
     built = np.stack([p.factor_cov for p in sel])
     same_cov = np.abs(cov_diag / np.diagonal(built, axis1=1, axis2=2) - 1.0).max(axis=1) <= 0.1
-    means = np.tile(np.eye(4), (len(sel), 1, 1))
-    means[:, :3, :3] = project_rotations(sums[:, 3:12].reshape(-1, 3, 3))
-    means[:, :3, 3] = sums[:, :3] / n[:, None]
-    d = pose_difference(np.stack([p.factor_mean for p in sel]), means)
+    d = pose_difference(np.stack([p.factor_mean for p in sel]), pair_means(sums, n))
     out[full] = same_cov & (mahalanobis_sq(d, built) < sigmas**2)
     return out
 
@@ -629,17 +635,13 @@ class Estimator:
             return []
         sums = np.stack([p.sums for _, _, p in items])
         n = np.array([p.n for _, _, p in items], float)
-        means = np.tile(np.eye(4), (len(items), 1, 1))
-        means[:, :3, :3] = project_rotations(sums[:, 3:12].reshape(-1, 3, 3))
-        means[:, :3, 3] = sums[:, :3] / n[:, None]
+        means = pair_means(sums, n)
         covs = sums[:, 21:].reshape(-1, 6, 6) / (n * np.minimum(n, self.config.max_fused))[:, None, None]
         covs[:, [3, 4, 5], [3, 4, 5]] += self.rotation_floor_rad**2
         covs_gtsam = covs[:, ROS_TO_GTSAM][:, :, ROS_TO_GTSAM]
         factors = []
         for (ck, mk, pair), T, cov, cov_g in zip(items, means, covs, covs_gtsam):
-            pair.factor_cov, pair.factor_mean = cov, T
-            pair.factor_n_eff = min(pair.n, self.config.max_fused)
-            pair._cached, pair._cached_n = T.copy(), pair.n  # the exact mean, as Pair.mean(exact=True) leaves it
+            pair.holds(T, cov, self.config.max_fused)
             noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_g))
             factors.append(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(T), noise))
         return factors
