@@ -194,7 +194,7 @@ class Recognizer:
         candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
         verdicts = self._verify(cloud, [det for _, det in candidates], scene.planes) if c.verify else [None] * len(candidates)
         found: dict[str, Detection] = {}
-        part_of: dict[str, int] = {}
+        cluster_found: dict[str, int | None] = {}  # object -> the cluster its part came from (None: a prior's)
         taken: set[int] = set()
         explained = Explained()
         for (p, det), v in zip(candidates, verdicts):
@@ -210,14 +210,14 @@ class Recognizer:
                 continue
             taken.add(p)
             found[det.object_id] = det
-            part_of[det.object_id] = p
+            cluster_found[det.object_id] = cluster_of.get(p)
         # A match explaining only part of its cluster was kept for touching objects: it stands only
         # if another object was found in the same cluster. Alone, it is a shape that fits a piece of
         # some larger unknown surface (a carton's faces on a person, on a cabinet).
         for oid, det in list(found.items()):
-            k = cluster_of.get(part_of[oid])
+            k = cluster_found[oid]
             if k is not None and det.coverage < c.min_coverage and not any(
-                    cluster_of.get(part_of[other]) == k for other in found if other != oid):  # fmt: skip
+                    cluster_found[other] == k for other in found if other != oid):  # fmt: skip
                 log.debug("%s rejected: it explains %.0f %% of its cluster and nothing else was found in the rest",
                           oid, 100 * det.coverage)  # fmt: skip
                 del found[oid]

@@ -159,21 +159,27 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     occluded = measured & (z > far + tol)
     inside = 0
     if planes is not None and len(planes) and occluded.any():
-        zp = z[occluded]  # the hidden model points' depths, and where they are
-        rows, cols = np.divmod(flat[occluded], W)
-        ray = np.stack([(cols - view.K[0, 2]) / view.K[0, 0], (rows - view.K[1, 2]) / view.K[1, 1], np.ones(len(cols))], axis=1)
-        hider = ray * view.z.reshape(-1)[flat[occluded]][:, None]  # the measured surface in front of them
-        hidden = ray * zp[:, None]
-        band = tol[occluded]
-        for a, b, c, d in planes:
-            nrm = np.array([a, b, c])
-            on_plane = np.abs(hider @ nrm + d) <= band  # a single pixel: the sensor's noise
-            # The plane and the pose are each fitted to hundreds of points: depth noise averages
-            # out of both, so their distance is judged without it.
-            inside_it = hidden @ nrm + d < -tolerance_m
-            inside += int((on_plane & inside_it).sum())
+        inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline, inside)
+
+
+def _inside_support(view: DepthView, pixels: np.ndarray, z: np.ndarray, band: np.ndarray, planes: np.ndarray,
+                    tolerance_m: float) -> int:  # fmt: skip
+    """How many hidden model points (flat pixel indices, depths z m) are hidden by a surface on one
+    of the planes (P, 4), within ``band`` (m, per point: one pixel's noise), and lie over
+    ``tolerance_m`` behind it. The plane and the pose are each fitted to hundreds of points: depth
+    noise averages out of both, so their distance is judged without it."""
+    rows, cols = np.divmod(pixels, view.z.shape[1])
+    ray = _rays(view.K, cols, rows)
+    hider = ray * view.z.reshape(-1)[pixels][:, None] @ planes[:, :3].T + planes[:, 3]  # (N, P) signed distances
+    hidden = ray * z[:, None] @ planes[:, :3].T + planes[:, 3]
+    return int(np.any((np.abs(hider) <= band[:, None]) & (hidden < -tolerance_m), axis=1).sum())
+
+
+def _rays(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Camera-frame rays (N, 3) with z = 1 through pixel columns u and rows v (N,)."""
+    return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(u))], axis=1)
 
 
 def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance_m: float,
@@ -207,9 +213,8 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
     nearest = order[label[rv, ru] - 1]
     normal, offset = plane_n.reshape(-1, 3)[nearest], plane_d.reshape(-1)[nearest]
     gv, gu = rv + v0, ru + u0
-    ray = np.stack([(gu - view.K[0, 2]) / view.K[0, 0], (gv - view.K[1, 2]) / view.K[1, 1], np.ones(len(gu))], axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):  # a plane along the ray continues nowhere
-        z_plane = offset / np.einsum("ij,ij->i", normal, ray)
+        z_plane = offset / np.einsum("ij,ij->i", normal, _rays(view.K, gu, gv))
         z = view.z[gv, gu]
         measured = np.isfinite(z)
         same_plane = np.abs(z - z_plane) <= tolerance_m + noise_per_m2 * z**2
@@ -272,7 +277,7 @@ def _depth_normals(view: DepthView, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     def point(uu: np.ndarray, vv: np.ndarray) -> np.ndarray:
         inside = (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
         z = np.where(inside, view.z[np.clip(vv, 0, H - 1), np.clip(uu, 0, W - 1)], np.nan)
-        return np.stack([(uu - view.K[0, 2]) / view.K[0, 0] * z, (vv - view.K[1, 2]) / view.K[1, 1] * z, z], axis=1)
+        return _rays(view.K, uu, vv) * z[:, None]
 
     n = np.cross(point(u + s, v) - point(u - s, v), point(u, v + s) - point(u, v - s))
     with np.errstate(invalid="ignore", divide="ignore"):
