@@ -88,7 +88,8 @@ class Recorder:
 
     def _on_sample(self, key: str, payload: bytes, receive_ns: int) -> None:
         try:
-            msg_type = keys.message_type(key)
+            parsed = keys.parse(key)
+            msg_type = parsed.message_type
             msg = codec.decode(payload, msg_type)
         except SchemaError as exc:
             self.bad[key] += 1
@@ -96,7 +97,6 @@ class Recorder:
                 log.warning("not recording malformed payload on %s: %s", key, exc)
             return
         stamp = stamp_of(msg, receive_ns)
-        camera = keys.parse(key).camera
         if self.max_image_hz and msg_type is m.RawImage:
             last = self._last_image.get(key)
             if last is not None and stamp - last < 1e9 / self.max_image_hz:
@@ -104,11 +104,11 @@ class Recorder:
                 return
             self._last_image[key] = stamp
         with self._lock:
-            if camera is not None:
-                last = self._heard.get(camera)
-                self._heard[camera] = receive_ns
+            if parsed.camera is not None:
+                last = self._heard.get(parsed.camera)
+                self._heard[parsed.camera] = receive_ns
                 if last is not None and receive_ns - last > self.gap_after_s * 1e9:
-                    self._mark(Gap(camera, last, receive_ns))
+                    self._mark(Gap(parsed.camera, last, receive_ns))
             if self._writer is None and (time.monotonic() < self._retry_at or not self._new_part()):
                 self.lost += 1
                 return

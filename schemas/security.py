@@ -43,14 +43,15 @@ from schemas import keys
 from schemas.errors import BusError
 
 #: What each role may publish, as key expressions relative to ``cellsight/<cell>/``.
+_CAMERA_HOST = [f"*/{topic}" for topic in keys.CAMERA_TOPICS] + ["truth/**"]
 PUBLISH: dict[str, list[str]] = {
-    "driver": [f"*/{topic}" for topic in keys.CAMERA_TOPICS] + ["truth/**"],
+    "driver": _CAMERA_HOST,
     "estimator": ["tf", "estimate/**"],
     "recognition": ["objects", "objects/scene", "points"],
     "recorder": [],
     "viewer": [],
     "robot": [],
-    "edge": [f"*/{topic}" for topic in keys.CAMERA_TOPICS] + ["truth/**"],
+    "edge": _CAMERA_HOST,  # an edge host's router: what its drivers may put
 }
 #: What each role may publish on rmw_zenoh's keys, relative to ``<domain>/`` (topic, then type and hash).
 PUBLISH_ROS2: dict[str, list[str]] = {
