@@ -7,8 +7,8 @@ Every ``--move-every`` simulated seconds (default 20; 0: a still cell) one camer
 bumped: 2-5 cm and 0.5-2 deg from where it was installed; its pool moves with it (each
 observation left-multiplied by the bump, so its noise stays what it was in the marker's frame).
 The daemon's own path: every 10 Hz tick, each camera's 3 new frames go in as one block
-(``Estimator.add_frames``), then one ``update``. Figures: update and tick (ingest + update)
-latency, factors in the graph (largest seen), resident memory growth after the first simulated
+(``Estimator.add_frames``), then one ``update``, then the ``estimate`` the daemon publishes
+(poses and covariances). Figures: update, estimate and tick (ingest + update) latency, factors in the graph (largest seen), resident memory growth after the first simulated
 minute, observations consumed per wall-clock second, how many updates did solver work, and each
 camera's position error against truth just before the last move.
 
@@ -156,11 +156,13 @@ class Runner:
     ingest_ms: np.ndarray = field(init=False)
     update_ms: np.ndarray = field(init=False)
     solved: np.ndarray = field(init=False)  # per tick: did the update run iSAM2 (not return early)
+    estimate_ms: np.ndarray = field(init=False)  # the daemon's next step: poses and covariances to publish
 
     def __post_init__(self) -> None:
         # np.full writes every page now (np.zeros would commit them as ticks fill them in)
         self.ingest_ms, self.update_ms = np.full(self.ticks, np.nan), np.full(self.ticks, np.nan)
         self.solved = np.full(self.ticks, False)
+        self.estimate_ms = np.full(self.ticks, np.nan)
 
     def step(self) -> int:
         """One 10 Hz tick; returns the observations it fed."""
@@ -176,9 +178,12 @@ class Runner:
         before = self.est.counters.updates
         self.est.update(int(stamps[-1]))
         t2 = time.perf_counter()
+        self.est.estimate(int(stamps[-1]), with_covariance=True)
+        t3 = time.perf_counter()
         self.solved[k] = self.est.counters.updates > before
         self.ingest_ms[k] = (t1 - t0) * 1e3
         self.update_ms[k] = (t2 - t1) * 1e3
+        self.estimate_ms[k] = (t3 - t2) * 1e3
         self.tick += 1
         return n
 
@@ -212,7 +217,7 @@ def scan(hours: float, move_every_s: float) -> dict[str, float]:
     for n, mk in SCAN:
         r = measure(hours, move_every_s, n, mk)
         p99[(n, mk)] = r["update_ms_p99"]
-        for key in ("update_ms_p50", "update_ms_p99", "observations_per_s", "rss_growth_mb", "factors_max", "solver_updates_last_hour"):
+        for key in ("update_ms_p50", "update_ms_p99", "estimate_ms_p99", "observations_per_s", "rss_growth_mb", "factors_max", "solver_updates_last_hour"):
             out[f"{key}_{n}cams_{mk}markers"] = r[key]
     series = [(n, p99[(n, mk)]) for n, mk in SCAN if mk == 2 * n]
     out["growth_exponent_cameras"] = float(np.polyfit(np.log([n for n, _ in series]), np.log([v for _, v in series]), 1)[0])
@@ -279,6 +284,8 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
         "update_ms_p50": float(np.median(upd)),
         "update_ms_p99": float(np.percentile(upd, 99)),
         "update_ms_max": float(np.max(upd)),
+        "estimate_ms_p50": float(np.median(aged.estimate_ms[warmup:n_ticks])),
+        "estimate_ms_p99": float(np.percentile(aged.estimate_ms[warmup:n_ticks], 99)),
         "tick_ms_p50": float(np.median(tick)),
         "tick_ms_p99": float(np.percentile(tick, 99)),
         "warmup_update_ms_max": float(np.max(aged.update_ms[:warmup])) if warmup else 0.0,

@@ -27,8 +27,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import OrderedDict
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Generic, TypeVar
 
@@ -51,6 +52,12 @@ POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, ca
 MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
 YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
 MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (see Estimator._due_pairs)
+#: Covariances recomputed per ``estimate`` beyond new variables' (the rest are the cached ones): in
+#: a 64-camera ring one costs 0.1-3 ms after an update (iSAM2 recomputes the Bayes tree's shortcuts
+#: to the root), all 1,064 up to 300 ms, and a settled variable's covariance barely changes.
+COVARIANCES_PER_ESTIMATE = 8
+#: How often the anchors are checked against their observations (ns): ~15 ms at 64 cameras.
+ANCHOR_CHECK_NS = 1_000_000_000
 RELINEARIZE_SKIP = 10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
 TRACE_GATE = 1.0 + 2.0 * math.cos(FLIP_GATE_RAD)  # trace(R_mean^T R) above this: within the flip gate
 
@@ -391,7 +398,11 @@ class Estimator:
         self.config = config
         self.keep_history = keep_history
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(config.relinearize_threshold)
+        thresholds = gtsam.ISAM2ThresholdMap()  # per key type; gtsam expects every type in the graph
+        for chr_ in "cko":
+            thresholds.insert((chr_, np.full(6, config.relinearize_threshold)))
+        thresholds.insert(("m", np.full(6, config.relinearize_threshold_markers)))
+        params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = RELINEARIZE_SKIP
         params.findUnusedFactorSlots = True  # refreshed pair factors reuse their slots
         self.isam = gtsam.ISAM2(params)
@@ -401,7 +412,12 @@ class Estimator:
         self.known = None if known is None else set(known) | set(self.anchors) | self.object_markers
         self.tracks: dict[str, CameraTrack] = {}
         self.pairs: dict[tuple[CameraKey, int], Pair] = {}
-        self._may_need_placing = False  # a pair appeared since _place_new last found everything placed
+        # The refresh schedule (``_due_pairs``) without a pass over every pair: pairs without a
+        # factor or with fewer than YOUNG_PAIR observations, and the settled rest, least recently
+        # looked at first (looks set refreshed_ns to the update's stamp, so this is its order too).
+        self._young: dict[tuple[CameraKey, int], Pair] = {}
+        self._settled: OrderedDict[tuple[CameraKey, int], Pair] = OrderedDict()
+        self._unplaced: set[tuple[CameraKey, int]] = set()  # pairs whose camera or marker may not be in the graph yet
         self.camera_index: dict[CameraKey, int] = {}
         self._next_camera = 0  # camera_index values are never reused: folded segments leave it
         self.history: dict[str, History] = {}  # camera id -> its folded segments (bounded history)
@@ -413,6 +429,9 @@ class Estimator:
         self.rotation_floor_rad = math.radians(config.view_rotation_sigma_deg)
         self._pending_priors = self._anchor_priors()
         self.seeded: set[int] = set()
+        self._cov: dict[int, np.ndarray] = {}  # gtsam key -> covariance (ROS order), see _covariances
+        self._cov_next = 0  # where the round of covariance refreshes goes on
+        self._flagged: tuple[int, list[int]] = (-ANCHOR_CHECK_NS, [])  # (stamp ns, anchors flagged then)
 
     def seed_map(self, markers: dict[int, tuple[np.ndarray, np.ndarray]], inflate: float = 4.0) -> None:
         """Start from a saved map: each static marker gets a prior (its saved covariance x ``inflate``).
@@ -473,11 +492,13 @@ class Estimator:
             pair = self.pairs.get((seg, obs.marker_id))
             if pair is None:
                 pair = self.pairs[(seg, obs.marker_id)] = Pair()
-                self._may_need_placing = True
+                self._unplaced.add((seg, obs.marker_id))
             if pair.add(obs):
                 self.counters.observations += 1
             else:
                 self.counters.rejected += 1
+            if pair.n < YOUNG_PAIR:  # new, or restarted by the majority rule
+                self._young_again((seg, obs.marker_id), pair)
         return True
 
     def add_frames(self, camera_id: str, stamps: np.ndarray, a: ObservationRows) -> list[int | None]:
@@ -516,6 +537,8 @@ class Estimator:
                 k = sum(pair.add_pose(T, A, C) for T, A, C in zip(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows]))
                 self.counters.observations += k
                 self.counters.rejected += int(rows.sum()) - k
+                if pair.n < YOUNG_PAIR:
+                    self._young_again((seg_key, int(marker_ids[j])), pair)
                 continue
             pair.fold(folded, j)
             self.counters.observations += int(folded.accepted[j])
@@ -664,6 +687,9 @@ class Estimator:
         pairs = [(mk, p) for (c, mk), p in self.pairs.items() if c == cam]
         for mk, _ in pairs:
             del self.pairs[(cam, mk)]
+            self._young.pop((cam, mk), None)
+            self._settled.pop((cam, mk), None)
+            self._unplaced.discard((cam, mk))
         del self.camera_index[cam]
         if ck not in self.in_graph:
             return None
@@ -709,17 +735,20 @@ class Estimator:
         new_values = gtsam.Values(values)
         self._place_new(new_values)
         due = [(k, p) for k, p in self.pairs.items() if p.dirty] if refresh_all else self._due_pairs(now_ns)
-        rebuild = []
+        rebuild, rebuilt_keys = [], []
         for (cam, marker_id), pair in due:
             ck, mk = self._camera_key(cam), marker_symbol(marker_id)
             if self._has(ck, new_values) and self._has(mk, new_values):
                 rebuild.append((ck, mk, pair))
-        for (_, _, pair), factor in zip(rebuild, self._pair_factors(rebuild)):
+                rebuilt_keys.append(((cam, marker_id), pair))
+        for (key, _), (_, _, pair), factor in zip(rebuilt_keys, rebuild, self._pair_factors(rebuild)):
             slotted.append((graph.size(), pair))
             graph.add(factor)
             if pair.slot is not None:
                 remove.append(pair.slot)
             pair.refreshed_ns, pair.dirty = now_ns, False
+            if key in self._settled:
+                self._settled.move_to_end(key)
         refreshed = len(rebuild)
         self.counters.last_update_rebuilt = refreshed
         if graph.size() == 0 and not remove:
@@ -754,40 +783,53 @@ class Estimator:
         self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
         self.counters.last_update_cpu_ms = (time.thread_time() - c0) * 1e3
 
+    def _young_again(self, key: tuple[CameraKey, int], pair: Pair) -> None:
+        """Schedule a pair with fewer than YOUNG_PAIR observations (new or restarted) as young."""
+        if key not in self._young:
+            self._settled.pop(key, None)
+            self._young[key] = pair
+
     def _due_pairs(self, now_ns: int) -> list[tuple[tuple[CameraKey, int], Pair]]:
         """Pairs whose factor should be (re)built now.
 
         New pairs always; young ones (fewer than ``YOUNG_PAIR`` observations) every refresh_s / 10
-        so a new segment converges within a fraction of a second; mature ones once per refresh_s,
-        the most overdue first and at most their fair share per update, so refreshes spread over
-        the updates instead of all landing in one (that was the p99 latency), and only if the
-        rebuilt factor would differ (``Pair.factor_is_current``).
+        so a new segment converges within a fraction of a second; settled ones once per refresh_s,
+        the longest unlooked-at first and at most their fair share per update, so refreshes spread
+        over the updates instead of all landing in one (that was the p99 latency), and only if the
+        rebuilt factor would differ (``Pair.factor_is_current``). Costs the young pairs plus the
+        few settled ones looked at, not a pass over every pair (at 2,000 pairs that pass was most
+        of an update).
         """
         refresh_ns = int(self.config.refresh_s * 1e9)
-        urgent, overdue = [], []
-        for key, pair in self.pairs.items():
-            if not pair.dirty:
-                continue
-            age = now_ns - pair.refreshed_ns
-            if pair.slot is None or (pair.n < YOUNG_PAIR and age >= refresh_ns // 10):
+        urgent = []
+        for key, pair in list(self._young.items()):
+            if pair.slot is not None and pair.n >= YOUNG_PAIR:
+                del self._young[key]  # settled: its last refresh counts as a look
+                self._settled[key] = pair
+            elif pair.dirty and (pair.slot is None or now_ns - pair.refreshed_ns >= refresh_ns // 10):
                 urgent.append((key, pair))
-            elif age >= refresh_ns:
-                overdue.append((age, key, pair))
         # A large cell does not rebuild its share of every pair each update: each rebuilt factor costs
         # iSAM2 a re-elimination, and settled pairs change slowly. Past MAX_MATURE_PER_UPDATE they are
         # looked at less often than refresh_s (64 cameras x 32 markers: every ~4 s).
         share = min(max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0))), MAX_MATURE_PER_UPDATE)
-        # The most overdue first; at most 2 x share looked at per update (the look costs a
-        # Mahalanobis test each): the rest wait, so looks spread over the updates too.
-        overdue.sort(key=lambda x: -x[0])
-        looked = overdue[: 2 * share]
-        current = factors_current([p for _, _, p in looked], self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad)
+        # At most 2 x share looked at per update (a look costs a Mahalanobis test): the rest wait
+        # at the front, so looks spread over the updates too. A pair with nothing new since its
+        # last refresh counts as looked at.
+        looked, idle = [], []
+        for key, pair in self._settled.items():
+            if now_ns - pair.refreshed_ns < refresh_ns or len(looked) == 2 * share:
+                break
+            (looked if pair.dirty else idle).append((key, pair))
+        current = factors_current([p for _, p in looked], self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad)
         mature: list[tuple[tuple[CameraKey, int], Pair]] = []
-        for (_, key, pair), ok in zip(looked, current):
+        for (key, pair), ok in zip(looked, current):
             if ok:
-                pair.refreshed_ns = now_ns  # looked at: next look in refresh_s
+                idle.append((key, pair))
             elif len(mature) < share:
-                mature.append((key, pair))
+                mature.append((key, pair))  # moves to the back when rebuilt (update)
+        for key, pair in idle:
+            pair.refreshed_ns = now_ns
+            self._settled.move_to_end(key)
         return urgent + mature
 
     def relax(self, iterations: int) -> None:
@@ -801,14 +843,14 @@ class Estimator:
 
     def _place_new(self, new_values: gtsam.Values) -> None:
         """Initial values for cameras and markers that just got a path to an anchor."""
-        if not self._may_need_placing:
-            return  # every pair's camera and marker were placed, and no pair appeared since
+        # Only pairs that appeared since everything they touch was placed are looked at (a pass
+        # over every pair cost a large cell ~10 ms after each move).
         unplaced = [
-            (cam, mk) for (cam, mk) in self.pairs
+            (cam, mk) for (cam, mk) in self._unplaced
             if self._camera_key(cam) not in self.in_graph or marker_symbol(mk) not in self.in_graph
         ]  # fmt: skip
+        self._unplaced = set(unplaced)  # kept until placed: a camera may reach an anchor only later
         if not unplaced:
-            self._may_need_placing = False
             return
         # Only what touches an unplaced camera or marker can place it: the rest is not looked up.
         cams_needed = {cam for cam, _ in unplaced}
@@ -841,6 +883,7 @@ class Estimator:
         """Current poses and states. ``now_ns`` decides staleness (same clock as the stamps)."""
         stale_ns = int(self.config.stale_after_s * 1e9)
         cams: dict[str, CameraEstimate] = {}
+        in_graph: dict[str, int] = {}  # camera id -> its variable, for those posed by the graph
         for cid, track in self.tracks.items():
             key = self._camera_key((cid, track.segment)) if (cid, track.segment) in self.camera_index else None
             pose = None
@@ -850,17 +893,41 @@ class Estimator:
                 pose = None if T is None else PoseEstimate(T, None)
             elif key is not None and key in self.in_graph:
                 state = CameraState.LOCALIZED
-                pose = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)
+                pose = PoseEstimate(self._pose(key), None)  # its covariance below, with the markers'
+                in_graph[cid] = key
             else:
                 state = CameraState.UNANCHORED
             if now_ns - track.last_stamp_ns > stale_ns:
                 state = CameraState.STALE
             cams[cid] = CameraEstimate(cid, state, track.segment, track.last_stamp_ns, track.markers_seen, pose)
-        markers = {}
-        for key in sorted(self.in_graph):
-            if gtsam.Symbol(key).chr() == ord("m"):
-                markers[gtsam.Symbol(key).index()] = PoseEstimate(self._pose(key), self._covariance(key) if with_covariance else None)
-        return Estimate(cams, markers, self._object_markers(cams), self._flagged_anchors())
+        marker_keys = [key for key in sorted(self.in_graph) if gtsam.Symbol(key).chr() == ord("m")]
+        if with_covariance:
+            covs = self._covariances(list(in_graph.values()) + marker_keys)
+            for cid, key in in_graph.items():
+                cams[cid] = replace(cams[cid], pose=PoseEstimate(cams[cid].pose.T, covs[key]))
+        else:
+            covs = {}
+        markers = {gtsam.Symbol(key).index(): PoseEstimate(self._pose(key), covs.get(key)) for key in marker_keys}
+        if now_ns - self._flagged[0] >= ANCHOR_CHECK_NS or now_ns < self._flagged[0]:
+            self._flagged = (now_ns, self._flagged_anchors())
+        return Estimate(cams, markers, self._object_markers(cams), self._flagged[1])
+
+    def _covariances(self, keys: list[int]) -> dict[int, np.ndarray]:
+        """Covariances (6x6, ROS order) of the variables ``keys``: new ones computed now, and the next
+        COVARIANCES_PER_ESTIMATE of the rest in turn; the others as last computed (at most
+        len(keys) / COVARIANCES_PER_ESTIMATE estimates old: a camera that moved is a new variable)."""
+        cache = self._cov
+        for key in [k for k in cache if k not in self.in_graph]:
+            del cache[key]
+        due = [k for k in keys if k not in cache]
+        if len(keys) > len(due):
+            start = self._cov_next % len(keys)
+            turn = (keys[start:] + keys[:start])[:COVARIANCES_PER_ESTIMATE]
+            self._cov_next = start + len(turn)
+            due += [k for k in turn if k in cache]
+        for key in due:
+            cache[key] = self._covariance(key)
+        return {k: cache[k] for k in keys}
 
     def _track_pose(self, track: CameraTrack) -> np.ndarray | None:
         """Pose of a moving camera from its newest frame against the mapped markers (not in the graph)."""
@@ -908,20 +975,22 @@ class Estimator:
         for seen in by_cam.values():
             if not any(mk in self.anchors for mk in seen):
                 continue
-            implied = {}
+            ids, implied = [], []
             for mk, pair in seen.items():
                 ref = self.anchors.get(mk)
                 if ref is None and marker_symbol(mk) in self.in_graph:
                     ref = self._pose(marker_symbol(mk))
                 if ref is not None:
-                    implied[mk] = (ref @ invert_pose(pair.mean()))[:3, 3]
-            if len(implied) < 3:
+                    ids.append(mk)
+                    implied.append((ref @ invert_pose(pair.mean()))[:3, 3])
+            if len(ids) < 3:
                 continue
-            agree = {k: {j for j in implied if np.linalg.norm(implied[j] - implied[k]) <= tol} for k in implied}
-            consensus = max(agree.values(), key=len)
-            if len(consensus) * 2 <= len(implied):
+            P = np.array(implied)  # (k, 3) camera positions, one per reference; all pairs at once
+            agree = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2) <= tol
+            consensus = agree[int(np.argmax(agree.sum(axis=1)))]  # the first largest group, as before
+            if consensus.sum() * 2 <= len(ids):
                 continue  # no majority: cannot tell which anchor moved
-            flagged |= {k for k in implied if k in self.anchors and k not in consensus}
+            flagged |= {mk for mk, ok in zip(ids, consensus) if mk in self.anchors and not ok}
         return sorted(flagged)
 
     # ------------------------------------------------------------ for tests and the offline solver

@@ -37,10 +37,10 @@ def cam_pose(x: float, jitter: np.ndarray | None = None) -> np.ndarray:
     return T if jitter is None else T @ jitter
 
 
-def config(fold_after_s: float = 0.0) -> EstimatorConfig:
+def config(fold_after_s: float = 0.0, **kw: float) -> EstimatorConfig:
     T = MARKERS[0]
     anchor = AnchorConfig(marker_id=0, world_T_marker=PoseSpec(position=tuple(T[:3, 3]), quaternion=tuple(quat_from_matrix(T[:3, :3]))))
-    return EstimatorConfig(anchors=[anchor], fold_after_s=fold_after_s, view_rotation_sigma_deg=0.0)
+    return EstimatorConfig(anchors=[anchor], fold_after_s=fold_after_s, view_rotation_sigma_deg=0.0, **kw)
 
 
 def frame(cid: str, stamp: int, world_T_camera: np.ndarray, seen: list[int], rng: np.random.Generator) -> list[Observation]:
@@ -94,7 +94,12 @@ def test_a_camera_moved_1000_times_leaves_the_graph_no_larger_than_after_10() ->
     assert cell.est.history["a"].segments >= 999
     e = cell.est.estimate(cell.now())
     assert e.cameras["a"].state is CameraState.LOCALIZED
-    assert_pose_close(e.cameras["a"].pose.T, cell.poses["a"], 0.003, 0.3, "a after 1000 moves")
+    # a's last segment is 0.5 s old (a few frames): its position sigma is ~5 mm, so a fixed mm bound
+    # would test the noise draw. Its error must be what its own covariance allows (3 dof, 99.9 %).
+    a = e.cameras["a"].pose
+    d = a.T[:3, 3] - cell.poses["a"][:3, 3]
+    assert d @ np.linalg.solve(a.covariance[:3, :3], d) <= 16.27, f"a after 1000 moves: {1e3 * d} mm, sigmas {1e3 * np.sqrt(np.diag(a.covariance[:3, :3]))}"
+    assert_pose_close(a.T, cell.poses["a"], 0.01, 0.3, "a after 1000 moves")
     assert_pose_close(e.cameras["b"].pose.T, cell.poses["b"], 0.002, 0.2, "b after a's 1000 moves")
 
 
@@ -102,10 +107,11 @@ def test_a_folded_segment_still_constrains_the_markers_it_saw() -> None:
     """Marker 2 is seen by b and by a's first segment only; a then moves and stops seeing it.
     Folding that segment leaves marker 2's pose and covariance as keeping the segment does
     (within 2 % of a sigma, and of the covariance); dropping it loses a's views of marker 2: its
-    covariance is then what b's views alone give, clearly larger."""
+    covariance is then what b's views alone give, clearly larger. Markers relinearise at the
+    cameras' threshold here: the default's slack (~0.1 sigma) would otherwise hide the fold's own."""
     results = {}
     for keep in (True, False):
-        cell = Cell(Estimator(config(), keep_history=keep), seed=3)
+        cell = Cell(Estimator(config(relinearize_threshold_markers=0.001), keep_history=keep), seed=3)
         cell.run(2.0)
         cell.seen["a"] = [0, 1, 3]
         cell.move_a(1)
