@@ -199,8 +199,8 @@ def run(quick: bool) -> dict[str, float]:
     for binning in ("pcl", "pcl17"):
         cfg = RecognitionConfig(descriptor=DescriptorConfig(binning=binning), workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
         recognisers[binning] = Recognizer(database_from_scenario(base, cfg.descriptor), cfg)
-    baseline = PpfBaseline.of(recognisers["pcl"])
     ppf_times: list[float] = []
+    later: list[tuple[Scenario, object, dict[str, str]]] = []  # (layout, frame, classes) for the baseline's pass
     rng = np.random.default_rng(7)
     rows: list[tuple[str, str, str, float, float, float]] = []  # binning, object, class, adds/d, mssd/d, pos err
     times: dict[str, list[float]] = {b: [] for b in recognisers}
@@ -237,14 +237,19 @@ def run(quick: bool) -> dict[str, float]:
                     else:
                         e = (np.inf, np.inf, np.inf)
                     rows.append((binning, obj.id, classes[obj.id], *e))
-            t0 = time.perf_counter()
-            poses = baseline(depth_to_cloud(frame.depth_mm, frame.info.K), frame.world_T_camera)
-            ppf_times.append(time.perf_counter() - t0)
-            for obj in s.objects:
-                if obj.id in classes:
-                    gt = invert_pose(frame.world_T_camera) @ obj.world_T_object(0.0)
-                    ok = obj.id in poses and adds(shapes[obj.id], poses[obj.id], gt) < 0.1 * shapes[obj.id].diameter_m
-                    rows.append(("ppf", obj.id, classes[obj.id], 0.0 if ok else np.inf, np.inf, np.inf))
+            later.append((s, frame, classes))
+    # The baseline in a pass of its own: run between our frames, its large temporary arrays made
+    # ours ~1.8x slower (185 against 104 ms p50, same frames).
+    baseline = PpfBaseline.of(recognisers["pcl"])
+    for s, frame, classes in later:
+        t0 = time.perf_counter()
+        poses = baseline(depth_to_cloud(frame.depth_mm, frame.info.K), frame.world_T_camera)
+        ppf_times.append(time.perf_counter() - t0)
+        for obj in s.objects:
+            if obj.id in classes:
+                gt = invert_pose(frame.world_T_camera) @ obj.world_T_object(0.0)
+                ok = obj.id in poses and adds(shapes[obj.id], poses[obj.id], gt) < 0.1 * shapes[obj.id].diameter_m
+                rows.append(("ppf", obj.id, classes[obj.id], 0.0 if ok else np.inf, np.inf, np.inf))
     out: dict[str, float] = real_scenes()
     out["false_positives_per_frame_sim"] = false_detections / len(times["pcl"])
     out["frame_ms_p50"] = 1000 * float(np.median(times["pcl"]))
