@@ -8,9 +8,10 @@ bumped: 2-5 cm and 0.5-2 deg from where it was installed; its pool moves with it
 observation left-multiplied by the bump, so its noise stays what it was in the marker's frame).
 The daemon's own path: every 10 Hz tick, each camera's 3 new frames go in as one block
 (``Estimator.add_frames``), then one ``update``, then the ``estimate`` the daemon publishes
-(poses and covariances). Figures: update, estimate and tick (ingest + update) latency, factors in the graph (largest seen), resident memory growth after the first simulated
-minute, observations consumed per wall-clock second, how many updates did solver work, and each
-camera's position error against truth just before the last move.
+(poses and covariances). Figures: update, estimate and tick (ingest + update) latency, factors in
+the graph (largest seen), resident memory growth after the first simulated minute, observations
+consumed per wall-clock second, how many updates did solver work, and each camera's position
+error against truth just before the last move.
 
 The last/first-hour latency ratio is measured twice. Sequentially (``_sequential``): the run's
 last hour against its first, minutes or hours of wall time apart, so it also measures how the

@@ -47,7 +47,7 @@ import open3d as o3d  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
 from cellsight.model_build import database_from_scenario  # noqa: E402
-from drivers.sim.render import SimCell, object_mesh  # noqa: E402
+from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
 from recognition import ppf  # noqa: E402
 from recognition.align import model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
@@ -200,7 +200,7 @@ def run(quick: bool) -> dict[str, float]:
         cfg = RecognitionConfig(descriptor=DescriptorConfig(binning=binning), workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
         recognisers[binning] = Recognizer(database_from_scenario(base, cfg.descriptor), cfg)
     ppf_times: list[float] = []
-    later: list[tuple[Scenario, object, dict[str, str]]] = []  # (layout, frame, classes) for the baseline's pass
+    later: list[tuple[Scenario, SimFrame, dict[str, str]]] = []  # (layout, frame, classes) for the baseline's pass
     rng = np.random.default_rng(7)
     rows: list[tuple[str, str, str, float, float, float]] = []  # binning, object, class, adds/d, mssd/d, pos err
     times: dict[str, list[float]] = {b: [] for b in recognisers}
@@ -238,8 +238,8 @@ def run(quick: bool) -> dict[str, float]:
                         e = (np.inf, np.inf, np.inf)
                     rows.append((binning, obj.id, classes[obj.id], *e))
             later.append((s, frame, classes))
-    # The baseline in a pass of its own: run between our frames, its large temporary arrays made
-    # ours ~1.8x slower (185 against 104 ms p50, same frames).
+    # The baseline in a pass of its own over the same frames, so that nothing it leaves behind
+    # (large temporary arrays) is in our timings.
     baseline = PpfBaseline.of(recognisers["pcl"])
     for s, frame, classes in later:
         t0 = time.perf_counter()

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import OrderedDict
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Generic, TypeVar
@@ -735,13 +735,13 @@ class Estimator:
         new_values = gtsam.Values(values)
         self._place_new(new_values)
         due = [(k, p) for k, p in self.pairs.items() if p.dirty] if refresh_all else self._due_pairs(now_ns)
-        rebuild, rebuilt_keys = [], []
-        for (cam, marker_id), pair in due:
-            ck, mk = self._camera_key(cam), marker_symbol(marker_id)
+        rebuild, rebuilt_keys = [], []  # (camera key, marker key, pair) for _pair_factors; each pair's own key
+        for key, pair in due:
+            ck, mk = self._camera_key(key[0]), marker_symbol(key[1])
             if self._has(ck, new_values) and self._has(mk, new_values):
                 rebuild.append((ck, mk, pair))
-                rebuilt_keys.append(((cam, marker_id), pair))
-        for (key, _), (_, _, pair), factor in zip(rebuilt_keys, rebuild, self._pair_factors(rebuild)):
+                rebuilt_keys.append(key)
+        for key, (_, _, pair), factor in zip(rebuilt_keys, rebuild, self._pair_factors(rebuild)):
             slotted.append((graph.size(), pair))
             graph.add(factor)
             if pair.slot is not None:
@@ -883,7 +883,7 @@ class Estimator:
         """Current poses and states. ``now_ns`` decides staleness (same clock as the stamps)."""
         stale_ns = int(self.config.stale_after_s * 1e9)
         cams: dict[str, CameraEstimate] = {}
-        in_graph: dict[str, int] = {}  # camera id -> its variable, for those posed by the graph
+        posed: dict[str, int] = {}  # camera id -> its variable, for those posed by the graph
         for cid, track in self.tracks.items():
             key = self._camera_key((cid, track.segment)) if (cid, track.segment) in self.camera_index else None
             pose = None
@@ -894,7 +894,7 @@ class Estimator:
             elif key is not None and key in self.in_graph:
                 state = CameraState.LOCALIZED
                 pose = PoseEstimate(self._pose(key), None)  # its covariance below, with the markers'
-                in_graph[cid] = key
+                posed[cid] = key
             else:
                 state = CameraState.UNANCHORED
             if now_ns - track.last_stamp_ns > stale_ns:
@@ -902,8 +902,8 @@ class Estimator:
             cams[cid] = CameraEstimate(cid, state, track.segment, track.last_stamp_ns, track.markers_seen, pose)
         marker_keys = [key for key in sorted(self.in_graph) if gtsam.Symbol(key).chr() == ord("m")]
         if with_covariance:
-            covs = self._covariances(list(in_graph.values()) + marker_keys)
-            for cid, key in in_graph.items():
+            covs = self._covariances(list(posed.values()) + marker_keys)
+            for cid, key in posed.items():
                 cams[cid] = replace(cams[cid], pose=PoseEstimate(cams[cid].pose.T, covs[key]))
         else:
             covs = {}

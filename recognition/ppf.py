@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.geometry import rotation_angle
+from schemas.geometry import rotation_angles, rotation_between
 
 #: Quantisation: distance in this share of the model diameter, angles in this many bins over pi.
 DISTANCE_STEP = 0.05
@@ -55,20 +55,10 @@ def _sample(points: np.ndarray, normals: np.ndarray, step_m: float) -> tuple[np.
 
 
 def _to_x(p: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Transforms (N, 4, 4) taking each point p (N, 3) to the origin and its unit normal n to +x."""
-    x = np.array([1.0, 0.0, 0.0])
-    axis = np.cross(n, x)
-    s = np.linalg.norm(axis, axis=1)
-    c = n @ x
-    angle = np.arctan2(s, c)
-    axis = np.where(s[:, None] > 1e-9, axis / np.maximum(s, 1e-12)[:, None], np.array([0.0, 0.0, 1.0]))
-    K = np.zeros((len(n), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
-    R = np.eye(3) + np.sin(angle)[:, None, None] * K + (1 - np.cos(angle))[:, None, None] * (K @ K)
+    """Transforms (N, 4, 4) taking each point p (N, 3) to the origin and its normal n to +x."""
     T = np.tile(np.eye(4), (len(n), 1, 1))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = -np.einsum("nij,nj->ni", R, p)
+    T[:, :3, :3] = rotation_between(n, np.array([1.0, 0.0, 0.0]))
+    T[:, :3, 3] = -np.einsum("nij,nj->ni", T[:, :3, :3], p)
     return T
 
 
@@ -148,10 +138,10 @@ def _cluster(poses: np.ndarray, votes: np.ndarray, dist_m: float, angle_rad: flo
     heads: list[int] = []
     total: list[float] = []
     for k in np.argsort(-votes, kind="stable"):
-        for h, head in enumerate(heads):
-            if np.linalg.norm(poses[k, :3, 3] - poses[head, :3, 3]) <= dist_m and rotation_angle(poses[k, :3, :3], poses[head, :3, :3]) <= angle_rad:
-                total[h] += votes[k]
-                break
+        H = poses[heads]  # (h, 4, 4), compared all at once
+        near = (np.linalg.norm(H[:, :3, 3] - poses[k, :3, 3], axis=1) <= dist_m) & (rotation_angles(H[:, :3, :3], poses[k, :3, :3]) <= angle_rad)
+        if near.any():
+            total[int(np.argmax(near))] += votes[k]  # the first head it is near, as heads were made
         else:
             heads.append(int(k))
             total.append(float(votes[k]))
