@@ -38,6 +38,7 @@ class FrameSource(Protocol):
 
 def observations_to_msg(camera_id: str, stamp_ns: int, info: codec.CameraInfo, detections: list[MarkerDetection], dictionary: str) -> m.MarkerObservations:
     msg = m.MarkerObservations(camera_id=camera_id, stamp_ns=int(stamp_ns), image_width=info.width, image_height=info.height)
+    outs = []
     for d in detections:
         o = msg.markers.add(
             marker_id=d.marker_id,
@@ -49,8 +50,8 @@ def observations_to_msg(camera_id: str, stamp_ns: int, info: codec.CameraInfo, d
             ambiguous=d.ambiguous,
         )
         o.corners_px.extend(d.corners_px.astype(np.float32).ravel().tolist())
-        codec.pose_to_msg(d.candidate_a, o.candidate_a)
-        codec.pose_to_msg(d.candidate_b, o.candidate_b)
-        codec.pose_to_msg(d.camera_T_marker, o.camera_T_marker)
+        outs += [o.candidate_a, o.candidate_b, o.camera_T_marker]
         o.covariance.extend(codec.covariance_to_list(d.covariance))
+    if detections:
+        codec.poses_to_msgs(np.stack([T for d in detections for T in (d.candidate_a, d.candidate_b, d.camera_T_marker)]), outs)
     return msg

@@ -27,7 +27,7 @@ import numpy as np
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
 from schemas.codec import CameraInfo
-from schemas.geometry import make_pose, rotation_between
+from schemas.geometry import make_pose
 
 # Kinect v1: depth noise sigma_z = K z^2 (Khoshelham & Elberink 2012) plus 1/8 px disparity
 # quantisation over a 7.5 cm baseline; and a bias floor per fitted plane.
@@ -119,7 +119,58 @@ class PlaneFit:
 
 
 def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrink: float = 0.8) -> PlaneFit | None:
-    """Plane through the depth pixels inside the (shrunken) marker quad, fitted in inverse depth.
+    """One quad's plane; see ``fit_planes``."""
+    return fit_planes(depth_mm, [corners], info, shrink)[0]
+
+
+def _quad_pixels(depth_mm: np.ndarray, corners: np.ndarray, shrink: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Columns, rows (int) and depths (m) of the measured pixels inside the shrunken quad."""
+    centre = corners.mean(0)
+    quad = (centre + shrink * (corners - centre)).astype(np.int32)
+    x0, y0 = np.maximum(quad.min(0), 0)
+    x1, y1 = np.minimum(quad.max(0) + 1, [depth_mm.shape[1], depth_mm.shape[0]])
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(mask, quad - [x0, y0], 1)
+    z = depth_mm[y0:y1, x0:x1]
+    v, u = np.nonzero((mask > 0) & (z > 0))
+    return u + x0, v + y0, z[v, u].astype(np.float64) * 1e-3
+
+
+def _segment_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray, seg: np.ndarray, keep: np.ndarray, m: int) -> np.ndarray:
+    """Least-squares w = a x + b y + c over the kept samples of each of ``m`` segments: (m, 3).
+
+    Normal equations on centred coordinates, all segments at once (a quad spans a few hundredths
+    in x and y, so centring keeps the 2x2 system well conditioned).
+    """
+    k = keep.astype(np.float64)
+    n = np.maximum(np.bincount(seg, k, m), 1.0)
+    mx, my, mw = (np.bincount(seg, k * q, m) / n for q in (x, y, w))
+    xc, yc, wc = x - mx[seg], y - my[seg], w - mw[seg]
+    sxx, syy, sxy = (np.bincount(seg, k * p, m) for p in (xc * xc, yc * yc, xc * yc))
+    sxw, syw = (np.bincount(seg, k * p, m) for p in (xc * wc, yc * wc))
+    det = sxx * syy - sxy * sxy
+    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    a = (syy * sxw - sxy * syw) / det
+    b = (sxx * syw - sxy * sxw) / det
+    return np.stack([a, b, mw - a * mx - b * my], axis=1)
+
+
+def _segment_medians(r: np.ndarray, bounds: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Median of r over the kept samples of each segment [bounds[i], bounds[i + 1]) (0 where none is kept)."""
+    out = np.zeros(len(bounds) - 1)
+    for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        kept = r[a:b][keep[a:b]]
+        if len(kept):  # np.median's own overhead is most of its cost on a quad's thousand pixels
+            lo, hi = (len(kept) - 1) // 2, len(kept) // 2
+            part = np.partition(kept, (lo, hi))
+            out[i] = 0.5 * (part[lo] + part[hi])
+    return out
+
+
+def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo, shrink: float = 0.8) -> list[PlaneFit | None]:
+    """Planes through the depth pixels inside each (shrunken) marker quad, fitted in inverse depth.
 
     A plane n.X = d seen through normalised image coordinates (x, y) has inverse depth
     1/z = (n / d) . (x, y, 1): linear in the pixel. The Kinect measures disparity f b / z with
@@ -128,42 +179,56 @@ def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrin
     along the rays, and ranges came out up to 3 mm long at 4 m. Two trimming passes drop flying
     pixels at the quad's edge; the cut never goes below the sensor's own noise, or a near-frontal
     quad whose pixels mostly share one quantisation level would keep only those.
+
+    All quads of a frame are fitted together (numpy over the concatenated pixels, one segment per
+    quad): per-quad Python calls cost more than the arithmetic. None where a quad has fewer than 12
+    usable pixels or its plane does not face the camera.
     """
-    centre = corners.mean(0)
-    quad = (centre + shrink * (corners - centre)).astype(np.int32)
-    x0, y0 = np.maximum(quad.min(0), 0)
-    x1, y1 = np.minimum(quad.max(0) + 1, [depth_mm.shape[1], depth_mm.shape[0]])
-    if x1 - x0 < 3 or y1 - y0 < 3:
-        return None
-    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    cv2.fillConvexPoly(mask, quad - [x0, y0], 1)
-    z = depth_mm[y0:y1, x0:x1].astype(np.float64) * 1e-3
-    sel = (mask > 0) & (z > 0)
-    if sel.sum() < 12:
-        return None
-    v, u = np.nonzero(sel)
-    A = np.column_stack([((u + x0) - info.K[0, 2]) / info.K[0, 0], ((v + y0) - info.K[1, 2]) / info.K[1, 1], np.ones(len(u))])
-    w = 1.0 / z[sel]
+    m = len(corners)
+    if m == 0:
+        return []
+    parts = [_quad_pixels(depth_mm, np.asarray(c, np.float64), shrink) for c in corners]
+    counts = np.array([len(p[2]) for p in parts])
+    if counts.max() < 12:
+        return [None] * m
+    seg = np.repeat(np.arange(m), counts)
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    u, v, z = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    x, y = (u - info.K[0, 2]) / info.K[0, 0], (v - info.K[1, 2]) / info.K[1, 1]
+    w = 1.0 / np.maximum(z, 1e-9)
     f = 0.5 * (info.K[0, 0] + info.K[1, 1])
     noise_w = kinect_sigma_z(1.0, f)  # the sensor's 1/z sigma (1/m), the same at every range
+    enough = counts >= 12
     keep = np.ones(len(w), bool)
     for _ in range(2):
-        p = np.linalg.lstsq(A[keep], w[keep], rcond=None)[0]
-        res = w - A @ p
-        keep = np.abs(res) < 3.0 * max(1.4826 * float(np.median(np.abs(res[keep]))), noise_w)
-        if keep.sum() < 12:
-            return None
-    p = np.linalg.lstsq(A[keep], w[keep], rcond=None)[0]
-    if p[2] <= 0:
-        return None  # the plane does not face the camera: no sensible fit
-    norm = float(np.linalg.norm(p))
-    pts = A[keep] / w[keep, None]
-    _, s, _ = np.linalg.svd(pts - pts.mean(0), full_matrices=False)
+        p = _segment_lines(x, y, w, seg, keep, m)
+        res = np.abs(w - (p[seg, 0] * x + p[seg, 1] * y + p[seg, 2]))
+        cut = 3.0 * np.maximum(1.4826 * _segment_medians(res, bounds, keep), noise_w)
+        keep = res < cut[seg]  # every pixel judged again against the refitted plane
+        enough &= np.bincount(seg, keep, m) >= 12
+    p = _segment_lines(x, y, w, seg, keep, m)
+    k = keep.astype(np.float64)
+    n = np.maximum(np.bincount(seg, k, m), 1.0)
+    norm = np.linalg.norm(p, axis=1)
     # Residuals as distances from the plane (m), as a metric fit would report them: a pixel off by
     # dw in 1/z is off by dz = dw z^2 along its ray (x, y, 1), and by dz |n . (x, y, 1)| from the plane.
-    off = (w[keep] - A[keep] @ p) / w[keep] ** 2 * (A[keep] @ p) / norm
-    rms = float(np.sqrt(np.mean(off**2)))
-    return PlaneFit(-p / norm, -1.0 / norm, int(keep.sum()), rms, float(s[0] / math.sqrt(keep.sum()) * 2 * math.sqrt(3)))
+    fitted = p[seg, 0] * x + p[seg, 1] * y + p[seg, 2]
+    off = (w - fitted) / w**2 * fitted / norm[seg]
+    rms = np.sqrt(np.bincount(seg, k * off**2, m) / n)
+    # Extent: the largest spread of the kept points (m), from each quad's 3x3 scatter.
+    pts = np.stack([x, y, np.ones_like(x)], axis=1) / w[:, None]
+    mean = np.stack([np.bincount(seg, k * pts[:, i], m) for i in range(3)], axis=1) / n[:, None]
+    d = pts - mean[seg]
+    scatter = np.einsum("ni,nj->nij", d * k[:, None], d).reshape(len(d), 9)
+    scatter = np.stack([np.bincount(seg, scatter[:, i], m) for i in range(9)], axis=1).reshape(m, 3, 3)
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(scatter)[:, -1], 0.0) / n)
+    out: list[PlaneFit | None] = []
+    for i in range(m):
+        if not enough[i] or p[i, 2] <= 0:  # too few pixels, or the plane does not face the camera
+            out.append(None)
+            continue
+        out.append(PlaneFit(-p[i] / norm[i], -1.0 / norm[i], int(n[i]), float(rms[i]), float(spread[i] * 2 * math.sqrt(3))))
+    return out
 
 
 @dataclass(frozen=True)
@@ -361,14 +426,16 @@ class MarkerDetector:
         if depth_mm is not None and depth_mm.shape[:2] != image.shape[:2]:
             raise DriverError(f"depth {depth_mm.shape[1]}x{depth_mm.shape[0]} does not match the image {image.shape[1]}x{image.shape[0]}")
         ids, corners = self.find(image)
+        use_depth = depth_mm is not None and self.config.use_depth
+        planes = fit_planes(depth_mm, corners, info) if use_depth else [None] * len(corners)
         out = []
-        for marker_id, c in zip(ids, corners):
-            det = self._pose(int(marker_id), c, info, depth_mm if self.config.use_depth else None)
+        for marker_id, c, plane in zip(ids, corners, planes):
+            det = self._pose(int(marker_id), c, info, plane)
             if det is not None:
                 out.append(det)
         return out
 
-    def _pose(self, marker_id: int, corners: np.ndarray, info: CameraInfo, depth_mm: np.ndarray | None) -> MarkerDetection | None:
+    def _pose(self, marker_id: int, corners: np.ndarray, info: CameraInfo, plane: PlaneFit | None) -> MarkerDetection | None:
         side = self.config.side_for(marker_id)
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
             marker_object_points(side), corners, info.K, info.D, flags=cv2.SOLVEPNP_IPPE_SQUARE
@@ -381,7 +448,6 @@ class MarkerDetector:
         if len(sols) == 1:
             sols.append(sols[0])
         (Ta, ea), (Tb, eb) = sols[0], sols[1]
-        plane = fit_plane(depth_mm, corners, info) if depth_mm is not None else None
         f = 0.5 * (info.K[0, 0] + info.K[1, 1])
         if plane is not None and plane.rms_m > 2.0 * kinect_sigma_z(-plane.d, f) + 0.003:
             plane = None  # rougher than sensor noise: occluded, or straddling a depth edge
@@ -403,8 +469,10 @@ class MarkerDetector:
         _, plane_tilt = plane_sigmas(z, f, plane)
         # Rotate the face normal toward the plane's by the inverse-variance weight of the plane.
         weight = pnp.tilt**2 / (pnp.tilt**2 + plane_tilt**2)
-        full = rotation_between(chosen[:3, 2], plane.normal)
-        rvec = cv2.Rodrigues(full)[0] * weight
+        a, b = chosen[:3, 2], plane.normal
+        axis = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+        sin = float(np.linalg.norm(axis))  # under 90 deg: the chosen solution is the one nearer the plane's normal
+        rvec = axis * (weight * math.atan2(sin, float(a @ b)) / sin) if sin > 1e-12 else np.zeros(3)
         R = cv2.Rodrigues(rvec)[0] @ chosen[:3, :3]
         # Range: intersect the ray through the marker centre's image with the plane.
         uv = _diagonal_intersection(corners)

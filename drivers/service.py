@@ -84,9 +84,10 @@ class DriverService:
 
     def _publish_truth(self, stamp_ns: int) -> None:
         t_s = self.source.t_s  # scenario time of the frame just published
-        cams, markers, objects = self.source.truth(t_s)
+        with_map = t_s - self._last_truth >= TRUTH_PERIOD_S
+        cams, markers, objects = self.source.truth(t_s, with_map)
         self._truth_pubs["cameras"].put(codec.poses_to_msg(stamp_ns, cams))
-        if t_s - self._last_truth >= TRUTH_PERIOD_S:
+        if with_map:
             self._truth_pubs["markers"].put(codec.poses_to_msg(stamp_ns, markers))
             self._truth_pubs["objects"].put(codec.poses_to_msg(stamp_ns, objects))
             self._last_truth = t_s

@@ -19,7 +19,7 @@ from google.protobuf.message import Message
 
 from schemas import messages as m
 from schemas.errors import DecodeError
-from schemas.geometry import make_pose, matrices_from_quats, matrix_from_quat, quat_from_matrix
+from schemas.geometry import make_pose, matrices_from_quats, matrix_from_quat, quats_from_matrices
 
 Msg = TypeVar("Msg", bound=Message)
 _EYE3, _LAST_ROW = np.eye(3), np.array([0.0, 0.0, 0.0, 1.0])
@@ -33,23 +33,42 @@ def check_pose(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarr
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise DecodeError(f"{what}: expected a 4x4 array, got shape {T.shape}")
+    return check_poses(T[None], what, tol)[0]
+
+
+def check_poses(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndarray:
+    """Return ``T`` (N, 4, 4) as float64 if every pose is a finite rigid transform, else raise ``DecodeError``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise DecodeError(f"{what}: expected (N, 4, 4) poses, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise DecodeError(f"{what}: contains NaN or inf")
-    R = T[:3, :3]
+    R = T[:, :3, :3]
     # Plain max-abs checks: np.allclose costs more than the rest of a pose's conversion.
-    if np.abs(R.T @ R - _EYE3).max() > tol or np.linalg.det(R) < 0 or np.abs(T[3] - _LAST_ROW).max() > tol:
+    orthonormal = np.abs(np.einsum("nji,njk->nik", R, R) - _EYE3).max(axis=(1, 2)) <= tol
+    if not (orthonormal.all() and (np.linalg.det(R) > 0).all() and np.abs(T[:, 3] - _LAST_ROW).max(initial=0.0) <= tol):
         raise DecodeError(f"{what}: not a rigid transform (rotation not orthonormal or bad last row)")
     return T
 
 
 def pose_to_msg(T: np.ndarray, out: m.Pose | None = None) -> m.Pose:
     """Fill (or create) a ``Pose`` message from a 4x4 ``parent_T_child``."""
-    T = check_pose(T, tol=1e-5)
     msg = out if out is not None else m.Pose()
-    q = quat_from_matrix(T[:3, :3])
-    msg.x, msg.y, msg.z = (float(v) for v in T[:3, 3])
-    msg.qx, msg.qy, msg.qz, msg.qw = (float(v) for v in q)
+    _fill_poses(check_pose(T, tol=1e-5)[None], [msg])
     return msg
+
+
+def poses_to_msgs(T: np.ndarray, outs: Sequence[m.Pose]) -> None:
+    """Fill each ``Pose`` message of ``outs`` from the matching pose of ``T`` (N, 4, 4), all checked
+    and converted together (a frame's markers: per-pose numpy calls cost more than the maths)."""
+    _fill_poses(check_poses(T, tol=1e-5), outs)
+
+
+def _fill_poses(T: np.ndarray, outs: Sequence[m.Pose]) -> None:
+    q = quats_from_matrices(T[:, :3, :3])
+    for msg, t, qi in zip(outs, T[:, :3, 3].tolist(), q.tolist()):
+        msg.x, msg.y, msg.z = t
+        msg.qx, msg.qy, msg.qz, msg.qw = qi
 
 
 def foxglove_pose(T: np.ndarray, out) -> None:
@@ -91,7 +110,7 @@ def check_covariance(cov: np.ndarray, what: str = "covariance") -> np.ndarray:
 
 def covariance_to_list(cov: np.ndarray) -> list[float]:
     """Row-major 36 floats of a 6x6 covariance (ROS order expected)."""
-    return [float(v) for v in np.asarray(cov, dtype=np.float64).reshape(36)]
+    return np.asarray(cov, dtype=np.float64).reshape(36).tolist()
 
 
 # ---------------------------------------------------------------- images
@@ -277,11 +296,13 @@ class StampedPose:
 
 def poses_to_msg(stamp_ns: int, poses: Iterable[StampedPose]) -> m.PosesWithCovariance:
     msg = m.PosesWithCovariance(stamp_ns=int(stamp_ns))
+    poses = list(poses)
     for p in poses:
         item = msg.poses.add(parent_frame_id=p.parent, child_frame_id=p.child, stamp_ns=int(p.stamp_ns))
-        pose_to_msg(p.T, item.pose)
         if p.covariance is not None:
             item.covariance.extend(covariance_to_list(p.covariance))
+    if poses:
+        poses_to_msgs(np.stack([p.T for p in poses]), [item.pose for item in msg.poses])
     return msg
 
 

@@ -20,23 +20,36 @@ ROS_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method)."""
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix."""
+    return quats_from_matrices(np.asarray(R, dtype=np.float64)[None])[0]
+
+
+def quats_from_matrices(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (N, 4) as (x, y, z, w), w >= 0, of rotation matrices (N, 3, 3) (Shepperd's method).
+
+    Each quaternion comes from the largest of w, x, y, z (the trace when positive, else the
+    largest diagonal entry), so no division is by a small number.
+    """
     R = np.asarray(R, dtype=np.float64)
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = np.empty(4)
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    d0, d1, d2 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    a01, a10, a02, a20, a12, a21 = R[:, 0, 1], R[:, 1, 0], R[:, 0, 2], R[:, 2, 0], R[:, 1, 2], R[:, 2, 1]
+    trace = d0 + d1 + d2
+    big = np.where(trace > 0, 3, np.argmax(np.stack([d0, d1, d2], axis=1), axis=1))
+    s = 2.0 * np.sqrt(np.maximum(1.0 + np.stack([d0 - d1 - d2, d1 - d0 - d2, d2 - d0 - d1, trace], axis=1), 1e-300))
+    s = np.take_along_axis(s, big[:, None], axis=1)[:, 0]
+    # Row k: the quaternion computed from component k (x, y, z, w) being the largest.
+    cand = np.stack(
+        [
+            np.stack([0.25 * s, (a01 + a10) / s, (a02 + a20) / s, (a21 - a12) / s], -1),
+            np.stack([(a01 + a10) / s, 0.25 * s, (a12 + a21) / s, (a02 - a20) / s], -1),
+            np.stack([(a02 + a20) / s, (a12 + a21) / s, 0.25 * s, (a10 - a01) / s], -1),
+            np.stack([(a21 - a12) / s, (a02 - a20) / s, (a10 - a01) / s, 0.25 * s], -1),
+        ],
+        axis=1,
+    )
+    q = cand[np.arange(len(R)), big]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(q[:, 3:] < 0, -q, q)
 
 
 def matrices_from_quats(q: np.ndarray) -> np.ndarray:

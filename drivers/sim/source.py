@@ -52,11 +52,14 @@ class SimSource:
         self.index += 1
         return Frame(self.camera.id, self.epoch_ns + int(round(self.t_s * 1e9)), f.rgb, f.depth_mm, f.info)
 
-    def truth(self, t_s: float) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
-        """(cameras, markers, objects) world poses at scenario time ``t_s``; stamps on the same clock."""
+    def truth(self, t_s: float, with_map: bool = True) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
+        """(cameras, markers, objects) world poses at scenario time ``t_s``; stamps on the same clock.
+        Without ``with_map`` only the camera (markers and objects empty: they cost most)."""
         stamp = self.epoch_ns + int(round(t_s * 1e9))
         s = self.scenario
         cams = [StampedPose("world", self.camera.id, stamp, self.camera.world_T_camera(t_s))]
+        if not with_map:
+            return cams, [], []
         markers = [StampedPose("world", keys.marker_frame(mk.id), stamp, s.world_T_marker(mk, t_s)) for mk in s.markers]
         objects = [StampedPose("world", keys.object_frame(o.id), stamp, o.world_T_object(t_s)) for o in s.objects]
         return cams, markers, objects
