@@ -112,7 +112,7 @@ class EstimatorConfig(BaseModel):
     bump_frames: int = Field(default=2, ge=1, description="consecutive frames above the threshold before a camera counts as moved")
     settle_frames: int = Field(default=5, ge=1, description="consecutive still frames before a moved camera gets a new segment")
     fold_after_s: float = Field(
-        default=2.0, ge=0, description="a camera segment that ended is marginalised into a marker factor this long after the next began"
+        default=2.0, ge=0, description="a camera segment that ended is folded into the camera's history when the next enters the graph, or at the latest this long after it began"
     )
     anchor_check_m: float = Field(default=0.05, gt=0, description="anchor disagreement that flags a moved anchor")
     state_file: Path | None = Field(default=None, description="where the daemon persists its map")

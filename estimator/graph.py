@@ -14,13 +14,17 @@ A camera whose marker positions jump (bumped, tilted) leaves the graph while it 
 back as a new segment once it is still again. Markers on objects are posed per frame through the
 cameras' current poses and never enter the map.
 
-Bounded history: a segment that ended is marginalised out (``_fold``). Its pair factors and the
-camera's previous history factor are linearised at the current estimate, the segment's pose is
-eliminated (Schur complement), and what remains, a Gaussian on the markers it saw, replaces them
-as one ``LinearContainerFactor`` per camera. The markers keep every bit of information the
-segment gave them (to first order: the history's Jacobian stays that of its linearisation point,
-as in any fixed-lag smoother); the graph holds live segments x markers, however often cameras
-move. ``keep_history=True`` (the offline solve, which reports every segment) keeps them instead.
+Young segments: a camera that moved comes back as a new segment, held out of the graph while
+its pair means still move (``_young_segments``): its pose is resected against the mapped markers
+(``estimator/resect.py``) and it enters once its pairs have settled, in one update.
+
+Bounded history: when that new segment enters, the segment the camera left is folded
+(``_fold``): its pose variable stays as the camera's history, its pair factors stay fixed at their
+final means, and the camera's previous history factors move onto it through the estimated
+relative pose (fused per marker where both saw it); the previous history's variable goes. Per
+camera the graph holds its live segment and one history star, however often it moved: sparse, so
+iSAM2's Bayes tree stays shallow (a marginal on the star's markers would be one dense clique of
+all of them). ``keep_history=True`` (the offline solve, which reports every segment) keeps them.
 """
 
 from __future__ import annotations
@@ -39,8 +43,9 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
 from estimator.observation import Observation, ObservationRows, observations_of
+from estimator.resect import resect
 from schemas.geometry import (
-    ROS_TO_GTSAM, cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, rotation_angle,
+    cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, rotation_angle,
 )
 
 log = logging.getLogger(__name__)
@@ -56,6 +61,8 @@ MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (s
 #: a 64-camera ring one costs 0.1-3 ms after an update (iSAM2 recomputes the Bayes tree's shortcuts
 #: to the root), all 1,064 up to 300 ms, and a settled variable's covariance barely changes.
 COVARIANCES_PER_ESTIMATE = 8
+MIN_RESECT_MARKERS = 3  # mapped markers a held segment needs for its pose (see Estimator._young_segments)
+HOLD_MAX_NS = 2_000_000_000  # a segment whose pairs do not settle (markers seen now and then) enters anyway
 #: How often the anchors are checked against their observations (ns): ~15 ms at 64 cameras.
 ANCHOR_CHECK_NS = 1_000_000_000
 RELINEARIZE_SKIP = 10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
@@ -383,12 +390,33 @@ class Counters:
 
 
 @dataclass
-class History:
-    """The marginalised past of one camera: a linear factor on the markers its ended segments saw."""
+class HistoryFactor:
+    """One fixed factor of a camera's history: camera_T_marker (4x4) and its covariance (6x6, ROS
+    order, marker frame)."""
 
-    factor: gtsam.LinearContainerFactor
+    mean: np.ndarray
+    covariance: np.ndarray
     slot: int | None = None  # iSAM2 factor index once in the graph
+
+
+@dataclass
+class History:
+    """The folded past of one camera: fixed factors from the pose of its last ended segment
+    (gtsam ``key``) to every marker its ended segments saw, by marker id."""
+
+    key: int
+    factors: dict[int, HistoryFactor]
     segments: int = 0  # segments folded into it
+
+
+def fuse_measurements(a: HistoryFactor, b: HistoryFactor) -> HistoryFactor:
+    """Information-weighted mean of two camera_T_marker measurements of one marker (one
+    Gauss-Newton step on SE(3) from ``a``; covariances in the marker frame, where a pose's left
+    composition leaves them unchanged)."""
+    info_a, info_b = np.linalg.inv(cov_ros_to_gtsam(a.covariance)), np.linalg.inv(cov_ros_to_gtsam(b.covariance))
+    cov = np.linalg.inv(info_a + info_b)
+    d = gtsam.Pose3.Logmap(gtsam.Pose3(a.mean).between(gtsam.Pose3(b.mean)))
+    return HistoryFactor(gtsam.Pose3(a.mean).compose(gtsam.Pose3.Expmap(cov @ info_b @ d)).matrix(), cov_gtsam_to_ros(cov))
 
 
 class Estimator:
@@ -418,6 +446,8 @@ class Estimator:
         self._young: dict[tuple[CameraKey, int], Pair] = {}
         self._settled: OrderedDict[tuple[CameraKey, int], Pair] = OrderedDict()
         self._unplaced: set[tuple[CameraKey, int]] = set()  # pairs whose camera or marker may not be in the graph yet
+        self._segment_pairs: dict[CameraKey, dict[int, Pair]] = {}  # the pairs of each segment, by marker id
+        self._held: set[CameraKey] = set()  # young segments kept out of the graph (``_young_segments``)
         self.camera_index: dict[CameraKey, int] = {}
         self._next_camera = 0  # camera_index values are never reused: folded segments leave it
         self.history: dict[str, History] = {}  # camera id -> its folded segments (bounded history)
@@ -491,7 +521,7 @@ class Estimator:
         for obs in static:
             pair = self.pairs.get((seg, obs.marker_id))
             if pair is None:
-                pair = self.pairs[(seg, obs.marker_id)] = Pair()
+                pair = self.pairs[(seg, obs.marker_id)] = self._segment_pairs.setdefault(seg, {})[obs.marker_id] = Pair()
                 self._unplaced.add((seg, obs.marker_id))
             if pair.add(obs):
                 self.counters.observations += 1
@@ -661,30 +691,34 @@ class Estimator:
         means = pair_means(sums, n)
         covs = sums[:, 21:].reshape(-1, 6, 6) / (n * np.minimum(n, self.config.max_fused))[:, None, None]
         covs[:, [3, 4, 5], [3, 4, 5]] += self.rotation_floor_rad**2
-        covs_gtsam = covs[:, ROS_TO_GTSAM][:, :, ROS_TO_GTSAM]
         factors = []
-        for (ck, mk, pair), T, cov, cov_g in zip(items, means, covs, covs_gtsam):
+        for (ck, mk, pair), T, cov in zip(items, means, covs):
             pair.holds(T, cov, self.config.max_fused)
-            noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_g))
-            factors.append(gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(T), noise))
+            factors.append(self._fixed_factor(ck, mk, T, cov))
         return factors
 
-    def ended_segments(self, now_ns: int) -> list[CameraKey]:
-        """Segments a camera left (it moved and settled again) at least ``fold_after_s`` ago: by
-        then the graph has re-converged around the camera's new pose, the point their
-        marginal is linearised at for good."""
+    def ended_segments(self, now_ns: int, entering: set[CameraKey] | frozenset = frozenset()) -> list[CameraKey]:
+        """Segments a camera left (it moved and settled again) at least ``fold_after_s`` ago, or
+        whose camera's new segment enters the graph now (``entering``, see ``_young_segments``):
+        either way the graph has converged without the new pose, the point their marginal is
+        linearised at for good."""
         after = int(self.config.fold_after_s * 1e9)
         return [cam for cam in self.camera_index
-                if cam[1] < self.tracks[cam[0]].segment and now_ns - self.tracks[cam[0]].segment_start_ns >= after]  # fmt: skip
+                if cam[1] < self.tracks[cam[0]].segment
+                and (now_ns - self.tracks[cam[0]].segment_start_ns >= after or (cam[0], self.tracks[cam[0]].segment) in entering)]  # fmt: skip
 
-    def _fold(self, cam: CameraKey, graph: gtsam.NonlinearFactorGraph, remove: list[int]) -> History | None:
-        """Marginalise an ended segment into its camera's history factor (see the module docstring).
+    def _fold(self, cam: CameraKey, graph: gtsam.NonlinearFactorGraph, remove: list[int], slotted: list) -> None:
+        """Fold an ended segment into its camera's history (see the module docstring).
 
-        Adds the new history factor to ``graph`` and the slots it replaces to ``remove``; the
-        segment's pairs and index entry go. Returns the history to give a slot, or None if the
-        segment never reached the graph (it had no path to an anchor: nothing to keep)."""
+        The segment's pose stays as the history's variable and its pair factors become fixed
+        factors at their final means (rebuilt where a pair had observations since its last
+        refresh; the others stay in their slots). The camera's previous history factors move onto
+        it through the current estimate of the relative pose, fused where both saw a marker; the
+        previous history's variable leaves with its last factor. New factors go into ``graph``
+        (their owners into ``slotted``), replaced slots into ``remove``.
+        """
         ck = self._camera_key(cam)
-        pairs = [(mk, p) for (c, mk), p in self.pairs.items() if c == cam]
+        pairs = list(self._segment_pairs.pop(cam, {}).items())
         for mk, _ in pairs:
             del self.pairs[(cam, mk)]
             self._young.pop((cam, mk), None)
@@ -692,29 +726,47 @@ class Estimator:
             self._unplaced.discard((cam, mk))
         del self.camera_index[cam]
         if ck not in self.in_graph:
-            return None
-        sub = gtsam.NonlinearFactorGraph()
+            return  # never reached the graph (no path to an anchor): nothing to keep
+        # Pairs with observations since their factor was built get their final mean (one batched
+        # build); the other factors stay in their slots.
+        final = [(mk, p) for mk, p in pairs if p.n > 0 and marker_symbol(mk) in self.in_graph and (p.dirty or p.slot is None)]
+        built = dict(zip([mk for mk, _ in final], self._pair_factors([(ck, marker_symbol(mk), p) for mk, p in final])))
+        factors: dict[int, HistoryFactor] = {}
         for mk, pair in pairs:
-            if pair.slot is not None:
-                remove.append(pair.slot)
-            if pair.n > 0 and marker_symbol(mk) in self.in_graph:
-                sub.add(self._pair_factor(ck, marker_symbol(mk), pair))
+            if mk in built:
+                factors[mk] = HistoryFactor(pair.factor_mean, pair.factor_cov)
+            elif pair.slot is not None and pair.factor_mean is not None:
+                factors[mk] = HistoryFactor(pair.factor_mean, pair.factor_cov, pair.slot)
+            if pair.slot is not None and (mk not in factors or mk in built):
+                remove.append(pair.slot)  # replaced, or restarted since built with nothing new: stale
         old = self.history.get(cam[0])
-        if old is not None and old.slot is not None:
-            sub.add(old.factor)
-            remove.append(old.slot)
-        self.in_graph.discard(ck)  # iSAM2 drops a variable whose factors are all removed
-        if sub.size() == 0:
-            return None
-        _, rest = sub.linearize(self.values).eliminatePartialSequential(gtsam.Ordering([ck]))
-        marginal = gtsam.HessianFactor(rest)
-        point = gtsam.Values()
-        for key in marginal.keys():
-            point.insert(key, self.values.atPose3(key))
-        history = History(gtsam.LinearContainerFactor(marginal, point), segments=(old.segments if old else 0) + 1)
-        self.history[cam[0]] = history
-        graph.add(history.factor)
-        return history
+        if old is not None and old.key in self.in_graph:
+            here_T_old = invert_pose(self._pose(ck)) @ self._pose(old.key)
+            for mk, f in old.factors.items():
+                if f.slot is not None:
+                    remove.append(f.slot)
+                moved = HistoryFactor(here_T_old @ f.mean, f.covariance)
+                if mk in factors:
+                    if factors[mk].slot is not None:
+                        remove.append(factors[mk].slot)
+                    moved = fuse_measurements(factors[mk], moved)
+                built.pop(mk, None)  # the fused factor replaces it
+                factors[mk] = moved
+            self.in_graph.discard(old.key)  # iSAM2 drops a variable whose factors are all removed
+        if not factors:
+            self.in_graph.discard(ck)
+            self.history.pop(cam[0], None)
+            return
+        for mk, f in factors.items():
+            if f.slot is None:
+                slotted.append((graph.size(), f))
+                graph.add(built[mk] if mk in built else self._fixed_factor(ck, marker_symbol(mk), f.mean, f.covariance))
+        self.history[cam[0]] = History(ck, factors, (old.segments if old else 0) + 1)
+
+    def _fixed_factor(self, ck: int, mk: int, mean: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
+        """A robust between factor camera -> marker holding ``mean`` (4x4) with ``covariance`` (ROS order)."""
+        noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(covariance)))
+        return gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(mean), noise)
 
     def update(self, now_ns: int, refresh_all: bool = False) -> None:
         """Place new variables and refresh due pair factors in one iSAM2 update.
@@ -725,15 +777,16 @@ class Estimator:
         graph, values = self._pending_priors
         self._pending_priors = (gtsam.NonlinearFactorGraph(), gtsam.Values())
         remove: list[int] = []
-        slotted: list[tuple[int, Pair | History]] = []  # position in ``graph`` -> what gets that slot
+        slotted: list[tuple[int, Pair | HistoryFactor]] = []  # position in ``graph`` -> what gets that slot
+        self._held, entering = self._young_segments(now_ns)
         if not self.keep_history:
-            for cam in self.ended_segments(now_ns):
-                position = graph.size()
-                history = self._fold(cam, graph, remove)
-                if history is not None:
-                    slotted.append((position, history))
+            for cam in self.ended_segments(now_ns, set(entering)):
+                self._fold(cam, graph, remove, slotted)
         new_values = gtsam.Values(values)
-        self._place_new(new_values)
+        entering_keys = {self._camera_key(cam) for cam in entering}
+        for cam, T in entering.items():
+            new_values.insert(self._camera_key(cam), gtsam.Pose3(T))
+        self._place_new(new_values, self._held, entering)
         due = [(k, p) for k, p in self.pairs.items() if p.dirty] if refresh_all else self._due_pairs(now_ns)
         rebuild, rebuilt_keys = [], []  # (camera key, marker key, pair) for _pair_factors; each pair's own key
         for key, pair in due:
@@ -761,9 +814,12 @@ class Estimator:
         # Relinearisation is checked every RELINEARIZE_SKIP updates, and at once while anything is
         # young (new variables, factors of fewer than YOUNG_PAIR observations): a young estimate
         # still moves far from where it was linearised.
-        params.force_relinearize = new_values.size() > 0 or any(p.n < YOUNG_PAIR for _, _, p in rebuild)
+        # A segment entering from its resected pose with settled pairs is not young: its pose is
+        # already where the solve will put it.
+        fresh = [k for k in new_values.keys() if k not in entering_keys]
+        params.force_relinearize = bool(fresh) or any(p.n < YOUNG_PAIR for ck, _, p in rebuild if ck not in entering_keys)
         result = self.isam.update(graph, new_values, params)
-        if new_values.size() > 1:
+        if len(fresh) > 1:
             # New variables start from BFS guesses: let them settle like a batch solve. One alone (a
             # camera's new segment after a move) is placed from its own markers and converges with
             # its young factors' refreshes over the next updates.
@@ -782,6 +838,53 @@ class Estimator:
         """Record an update's wall and thread CPU time from perf_counter / thread_time starts (s)."""
         self.counters.last_update_ms = (time.perf_counter() - t0) * 1e3
         self.counters.last_update_cpu_ms = (time.thread_time() - c0) * 1e3
+
+    def _young_segments(self, now_ns: int) -> tuple[set[CameraKey], dict[CameraKey, np.ndarray]]:
+        """Current segments held out of iSAM2 while young, and those entering it now with their
+        resected poses (world_T_camera).
+
+        A camera that moved comes back as a new segment whose pair means still move with every
+        frame. In the graph, each of their refreshes re-eliminated the path to the root with a
+        forced relinearisation (15-27 ms an update for ~8 updates after every move at 64 cameras).
+        Held out instead, its pose is resected against the mapped markers (``estimate`` reports
+        that), and it enters once, when 3/4 of its pairs have YOUNG_PAIR observations (or after
+        HOLD_MAX_NS), from that pose. Online only: the offline solve has no latency to keep. A
+        segment that sees fewer than MIN_RESECT_MARKERS mapped markers takes the old path.
+        """
+        held: set[CameraKey] = set()
+        entering: dict[CameraKey, np.ndarray] = {}
+        if self.keep_history:
+            return held, entering
+        for cid, track in self.tracks.items():
+            cam = (cid, track.segment)
+            if track.moving or cam not in self._segment_pairs or self._camera_key(cam) in self.in_graph:
+                continue
+            mapped = self._mapped_pairs(cam)
+            if len(mapped) < MIN_RESECT_MARKERS:
+                continue
+            settled = sum(p.n >= YOUNG_PAIR for _, p in mapped)
+            if 4 * settled < 3 * len(mapped) and now_ns - track.segment_start_ns < HOLD_MAX_NS:
+                held.add(cam)
+            else:
+                entering[cam] = self._resect(mapped)[0]
+        return held, entering
+
+    def _mapped_pairs(self, cam: CameraKey) -> list[tuple[int, Pair]]:
+        """The segment's pairs with observations whose marker is in the graph."""
+        return [(mk, p) for mk, p in self._segment_pairs.get(cam, {}).items() if p.n > 0 and marker_symbol(mk) in self.in_graph]
+
+    def _resect(self, mapped: list[tuple[int, Pair]]) -> tuple[np.ndarray, np.ndarray]:
+        """world_T_camera and its covariance (ROS order) from a segment's pairs with mapped markers."""
+        keys = [marker_symbol(mk) for mk, _ in mapped]
+        for key in keys:
+            if key not in self._cov:
+                self._cov[key] = self._covariance(key)
+        return resect(
+            np.stack([self._pose(k) for k in keys]), np.stack([self._cov[k] for k in keys]),
+            np.stack([p.mean() for _, p in mapped]),
+            np.stack([p.factor_covariance(self.config.max_fused, self.rotation_floor_rad) for _, p in mapped]),
+            self.config.huber_k,
+        )  # fmt: skip
 
     def _young_again(self, key: tuple[CameraKey, int], pair: Pair) -> None:
         """Schedule a pair with fewer than YOUNG_PAIR observations (new or restarted) as young."""
@@ -841,8 +944,9 @@ class Estimator:
     def _has(self, key: int, new_values: gtsam.Values) -> bool:
         return key in self.in_graph or new_values.exists(key)
 
-    def _place_new(self, new_values: gtsam.Values) -> None:
-        """Initial values for cameras and markers that just got a path to an anchor."""
+    def _place_new(self, new_values: gtsam.Values, held: set[CameraKey], entering: dict[CameraKey, np.ndarray]) -> None:
+        """Initial values for cameras and markers that just got a path to an anchor; ``held``
+        segments wait, ``entering`` ones come with their poses (``_young_segments``)."""
         # Only pairs that appeared since everything they touch was placed are looked at (a pass
         # over every pair cost a large cell ~10 ms after each move).
         unplaced = [
@@ -850,12 +954,14 @@ class Estimator:
             if self._camera_key(cam) not in self.in_graph or marker_symbol(mk) not in self.in_graph
         ]  # fmt: skip
         self._unplaced = set(unplaced)  # kept until placed: a camera may reach an anchor only later
+        unplaced = [(cam, mk) for cam, mk in unplaced if cam not in held]
         if not unplaced:
             return
         # Only what touches an unplaced camera or marker can place it: the rest is not looked up.
         cams_needed = {cam for cam, _ in unplaced}
         means = {k: p.mean() for k, p in self.pairs.items() if k[0] in cams_needed and p.n > 0}
         placed_cams = {cam: self._pose(self._camera_key(cam)) for cam in cams_needed if self._camera_key(cam) in self.in_graph}
+        placed_cams |= {cam: T for cam, T in entering.items() if cam in cams_needed}
         placed_marks = {mk: self._pose(marker_symbol(mk)) for _, mk in means if marker_symbol(mk) in self.in_graph}
         cams, marks = place(self.anchors, means, placed_cams, placed_marks | self._pending_seed_poses(new_values))
         for cam, T in cams.items():
@@ -891,6 +997,9 @@ class Estimator:
                 state = CameraState.MOVING
                 T = self._track_pose(track)
                 pose = None if T is None else PoseEstimate(T, None)
+            elif (cid, track.segment) in self._held:
+                state = CameraState.LOCALIZED
+                pose = PoseEstimate(*self._resect(self._mapped_pairs((cid, track.segment))))
             elif key is not None and key in self.in_graph:
                 state = CameraState.LOCALIZED
                 pose = PoseEstimate(self._pose(key), None)  # its covariance below, with the markers'
