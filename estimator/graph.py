@@ -18,7 +18,7 @@ Young segments: a camera that moved comes back as a new segment, held out of the
 its pair means still move (``_young_segments``): its pose is resected against the mapped markers
 (``estimator/resect.py``) and it enters once its pairs have settled, in one update.
 
-Bounded history: when that new segment enters, the segment the camera left is folded
+Bounded history: once that new segment is in the graph, the segment the camera left is folded
 (``_fold``): its pose variable stays as the camera's history, its pair factors stay fixed at their
 final means, and the camera's previous history factors move onto it through the estimated
 relative pose (fused per marker where both saw it); the previous history's variable goes. Per
@@ -448,11 +448,12 @@ class Estimator:
         self._unplaced: set[tuple[CameraKey, int]] = set()  # pairs whose camera or marker may not be in the graph yet
         self._segment_pairs: dict[CameraKey, dict[int, Pair]] = {}  # the pairs of each segment, by marker id
         self._held: set[CameraKey] = set()  # young segments kept out of the graph (``_young_segments``)
+        self._resected: dict[CameraKey, np.ndarray] = {}  # their poses as the last estimate reported them
         self.camera_index: dict[CameraKey, int] = {}
         self._next_camera = 0  # camera_index values are never reused: folded segments leave it
         self.history: dict[str, History] = {}  # camera id -> its folded segments (bounded history)
         self.in_graph: set[int] = set()  # gtsam keys with values in iSAM2
-        self.values = gtsam.Values()
+        self._values: gtsam.Values | None = gtsam.Values()  # None: changed since, see ``values``
         self.counters = Counters()
         self.unknown_ids: set[int] = set()
         self._robust = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
@@ -697,15 +698,20 @@ class Estimator:
             factors.append(self._fixed_factor(ck, mk, T, cov))
         return factors
 
-    def ended_segments(self, now_ns: int, entering: set[CameraKey] | frozenset = frozenset()) -> list[CameraKey]:
-        """Segments a camera left (it moved and settled again) at least ``fold_after_s`` ago, or
-        whose camera's new segment enters the graph now (``entering``, see ``_young_segments``):
-        either way the graph has converged without the new pose, the point their marginal is
-        linearised at for good."""
+    def ended_segments(self, now_ns: int) -> list[CameraKey]:
+        """Segments a camera left (it moved and settled again) whose camera's new segment is in the
+        graph, or began at least ``fold_after_s`` ago. A fold needs no converged estimate (its
+        factors stay nonlinear); waiting for the new segment's entry puts the two in different
+        updates, so neither carries both costs."""
         after = int(self.config.fold_after_s * 1e9)
-        return [cam for cam in self.camera_index
-                if cam[1] < self.tracks[cam[0]].segment
-                and (now_ns - self.tracks[cam[0]].segment_start_ns >= after or (cam[0], self.tracks[cam[0]].segment) in entering)]  # fmt: skip
+        out = []
+        for cam in self.camera_index:
+            track = self.tracks[cam[0]]
+            if cam[1] < track.segment:
+                current = self.camera_index.get((cam[0], track.segment))
+                if now_ns - track.segment_start_ns >= after or (current is not None and camera_symbol(current) in self.in_graph):
+                    out.append(cam)
+        return out
 
     def _fold(self, cam: CameraKey, graph: gtsam.NonlinearFactorGraph, remove: list[int], slotted: list) -> None:
         """Fold an ended segment into its camera's history (see the module docstring).
@@ -780,7 +786,7 @@ class Estimator:
         slotted: list[tuple[int, Pair | HistoryFactor]] = []  # position in ``graph`` -> what gets that slot
         self._held, entering = self._young_segments(now_ns)
         if not self.keep_history:
-            for cam in self.ended_segments(now_ns, set(entering)):
+            for cam in self.ended_segments(now_ns):
                 self._fold(cam, graph, remove, slotted)
         new_values = gtsam.Values(values)
         entering_keys = {self._camera_key(cam) for cam in entering}
@@ -829,7 +835,7 @@ class Estimator:
             owner.slot = slots[position]
         for key in new_values.keys():
             self.in_graph.add(key)
-        self.values = self.isam.calculateEstimate()
+        self._values = None
         self.counters.updates += 1
         self.counters.factors_rebuilt += refreshed
         self._timed(t0, c0)
@@ -865,8 +871,10 @@ class Estimator:
             settled = sum(p.n >= YOUNG_PAIR for _, p in mapped)
             if 4 * settled < 3 * len(mapped) and now_ns - track.segment_start_ns < HOLD_MAX_NS:
                 held.add(cam)
-            else:
-                entering[cam] = self._resect(mapped)[0]
+            else:  # from the pose the last estimate reported, if any: an initial value needs no more
+                last = self._resected.get(cam)
+                entering[cam] = last if last is not None else self._resect(mapped)[0]
+        self._resected = {cam: T for cam, T in self._resected.items() if cam in held}
         return held, entering
 
     def _mapped_pairs(self, cam: CameraKey) -> list[tuple[int, Pair]]:
@@ -939,7 +947,15 @@ class Estimator:
         """Extra iSAM2 iterations without new factors (relinearise and re-solve)."""
         for _ in range(iterations):
             self.isam.update()
-        self.values = self.isam.calculateEstimate()
+        self._values = None
+
+    @property
+    def values(self) -> gtsam.Values:
+        """The current estimate of every variable, computed on first use after an update (an
+        update that needs none of it, most of them, skips the ~2 ms of a 1,000-marker cell)."""
+        if self._values is None:
+            self._values = self.isam.calculateEstimate()
+        return self._values
 
     def _has(self, key: int, new_values: gtsam.Values) -> bool:
         return key in self.in_graph or new_values.exists(key)
@@ -1000,6 +1016,7 @@ class Estimator:
             elif (cid, track.segment) in self._held:
                 state = CameraState.LOCALIZED
                 pose = PoseEstimate(*self._resect(self._mapped_pairs((cid, track.segment))))
+                self._resected[(cid, track.segment)] = pose.T
             elif key is not None and key in self.in_graph:
                 state = CameraState.LOCALIZED
                 pose = PoseEstimate(self._pose(key), None)  # its covariance below, with the markers'
