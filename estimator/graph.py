@@ -677,12 +677,9 @@ class Estimator:
             self._next_camera += 1
         return camera_symbol(self.camera_index[cam])
 
-    def _pair_factor(self, ck: int, mk: int, pair: Pair) -> gtsam.BetweenFactorPose3:
-        """The robust factor of a pair's current mean; remembers what it holds (``factor_*``)."""
-        return self._pair_factors([(ck, mk, pair)])[0]
-
     def _pair_factors(self, items: list[tuple[int, int, Pair]]) -> list[gtsam.BetweenFactorPose3]:
-        """``_pair_factor`` for many (camera key, marker key, pair) at once: the means' rotation
+        """The robust factors of pairs' current means, for many (camera key, marker key, pair) at once
+        (each pair remembers what its factor holds: ``Pair.holds``): the means' rotation
         projections and the covariances in one batch (per pair they were most of an update's cost
         in a large cell); only the gtsam objects are made one by one."""
         if not items:
