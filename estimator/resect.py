@@ -18,19 +18,16 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from schemas.geometry import ROS_TO_GTSAM, cov_gtsam_to_ros
+from schemas.geometry import ROS_TO_GTSAM, cov_gtsam_to_ros, skew
 
 ITERATIONS = 3
 
 
 def adjoints(T: np.ndarray) -> np.ndarray:
     """Adjoint maps (N, 6, 6) of poses T (N, 4, 4) in gtsam's tangent order (rotation, translation)."""
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    tx = np.zeros_like(R)
-    tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    tx[:, 1, 0], tx[:, 2, 0], tx[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
+    R = T[:, :3, :3]
     A = np.zeros((len(T), 6, 6))
-    A[:, :3, :3], A[:, 3:, :3], A[:, 3:, 3:] = R, tx @ R, R
+    A[:, :3, :3], A[:, 3:, :3], A[:, 3:, 3:] = R, skew(T[:, :3, 3]) @ R, R
     return A
 
 
