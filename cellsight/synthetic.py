@@ -108,10 +108,13 @@ def observations_msg(camera_id: str, stamp_ns: int, obs: list[Observation], side
     from schemas import messages as m
 
     msg = m.MarkerObservations(camera_id=camera_id, stamp_ns=stamp_ns, image_width=640, image_height=480)
+    items = []
     for o in obs:
         item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=side_m, depth_refined=True)
         item.corners_px.extend([0.0] * 8)
-        codec.pose_to_msg(o.camera_T_marker, item.camera_T_marker)
-        codec.pose_to_msg(o.alternative, item.candidate_b)
         item.covariance.extend(codec.covariance_to_list(o.covariance))
+        items.append(item)
+    if obs:
+        codec.poses_to_msgs(np.stack([o.camera_T_marker for o in obs]), [i.camera_T_marker for i in items])
+        codec.poses_to_msgs(np.stack([o.alternative for o in obs]), [i.candidate_b for i in items])
     return msg
