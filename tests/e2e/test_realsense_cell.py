@@ -19,7 +19,7 @@ from tests.conftest import free_port
 from tests.helpers import wait_until
 
 CELL = "rs"
-SECONDS = 6.0
+SECONDS = 4.0
 
 
 def test_two_realsense_cameras_localize_under_cellsight_run(tmp_path: Path) -> None:
