@@ -30,6 +30,8 @@ GRACE_S = 5.0
 #: Shutdown order (name prefixes): what derives data stops while its inputs still flow, so that its
 #: last word is not "every camera stale"; the recorder then has everything, and the router goes last.
 STOP_ORDER = ("estimator", "recognition", "driver/", "recorder", "router")
+#: The longest a stop can take (s): every stage uses its whole grace period, then SIGKILL.
+STOP_BOUND_S = GRACE_S * len(STOP_ORDER)
 MAX_BACKOFF_S = 8.0
 HEALTHY_AFTER_S = 30.0
 

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
 import time
 from pathlib import Path
 from typing import Callable, Iterator
@@ -11,6 +15,7 @@ from google.protobuf.message import Message
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from cellsight.launch import STOP_BOUND_S
 from schemas.geometry import pose_error
 
 
@@ -59,3 +64,28 @@ def ros_matrix(translation, rotation) -> np.ndarray:
 
     return codec.pose_from_msg(codec.m.Pose(x=translation.x, y=translation.y, z=translation.z,
                                             qx=rotation.x, qy=rotation.y, qz=rotation.z, qw=rotation.w))  # fmt: skip
+
+
+def stop_launcher(proc: subprocess.Popen, run_dir: Path, sig: int = signal.SIGTERM) -> None:
+    """Stop a ``cellsight run`` launcher as an operator would (``sig``), allowing it its own worst
+    case (``STOP_BOUND_S``) plus a margin for a loaded machine. If it is still running then, kill it
+    and every process it started (they run in sessions of their own), and fail naming them."""
+    proc.send_signal(sig)
+    try:
+        proc.wait(STOP_BOUND_S + 15.0)
+        return
+    except subprocess.TimeoutExpired:
+        pass
+    manifest = run_dir / "processes.json"
+    children = json.loads(manifest.read_text()) if manifest.exists() else []
+    alive = []
+    for child in children:
+        try:
+            os.killpg(child["pid"], signal.SIGKILL)
+            alive.append(child["name"])
+        except (ProcessLookupError, PermissionError, KeyError, TypeError):
+            pass
+    proc.kill()
+    _, err = proc.communicate()
+    raise AssertionError(f"the launcher did not stop within {STOP_BOUND_S + 15.0:.0f} s; killed it and {alive}; "
+                         f"it said: {(err or '')[-1500:]}")

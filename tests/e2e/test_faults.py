@@ -24,7 +24,7 @@ from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.log import ReadReport, read_log
 from tests.conftest import free_port
-from tests.helpers import wait_until
+from tests.helpers import stop_launcher, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -72,6 +72,7 @@ def cell(tmp_path: Path):
     proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(run_dir), "--record"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
     states: list[tuple[float, dict[str, int]]] = []
+    bus = None
     try:
         wait_until(lambda: (run_dir / "processes.json").exists(), 30, "the launcher to start the cell")
         bus = Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), "faults")
@@ -79,9 +80,9 @@ def cell(tmp_path: Path):
                       callback=lambda r: states.append((time.monotonic(), {c.camera_id: c.state for c in r.msg.cameras})))  # fmt: skip
         yield run_dir, states, proc, bus
     finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(30)
-        bus.close()
+        stop_launcher(proc, run_dir)
+        if bus is not None:
+            bus.close()
 
 
 def pid_of(run_dir: Path, name: str) -> int:

@@ -16,7 +16,7 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from tests.conftest import free_port
-from tests.helpers import wait_until
+from tests.helpers import stop_launcher, wait_until
 
 CELL = "rs"
 SECONDS = 4.0
@@ -48,7 +48,6 @@ def test_two_realsense_cameras_localize_under_cellsight_run(tmp_path: Path) -> N
             wait_until(lambda: states.get("cam1") == m.CameraState.LOCALIZED and states.get("cam2") == m.CameraState.LOCALIZED,
                        SECONDS + 15, f"both RealSense cameras localized (states: {states})")  # fmt: skip
     finally:
-        proc.terminate()
-        proc.communicate(timeout=30)
+        stop_launcher(proc, tmp_path / "run")
     manifest = (tmp_path / "run" / "processes.json").read_text()
     assert manifest.count('"realsense"') == 2, manifest  # the launcher started the RealSense driver for both

@@ -27,7 +27,7 @@ from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 from schemas.ros2 import stamp_ns
 from tests.conftest import ROOT
-from tests.helpers import ros2_subscriber, ros_matrix, wait_until
+from tests.helpers import ros2_subscriber, ros_matrix, stop_launcher, wait_until
 
 pytestmark = pytest.mark.slow
 EXAMPLE = ROOT / "examples" / "robot_objects.py"
@@ -49,8 +49,7 @@ def demo_cell(ros2_router: str, tmp_path_factory: pytest.TempPathFactory) -> Ite
     try:
         yield ros2_router
     finally:
-        cell.send_signal(signal.SIGINT)
-        cell.wait(timeout=30)
+        stop_launcher(cell, out / "run", signal.SIGINT)
 
 
 def test_robot_subscriber_prints_world_poses_of_the_demo_objects(demo_cell: str) -> None:
@@ -62,7 +61,7 @@ def test_robot_subscriber_prints_world_poses_of_the_demo_objects(demo_cell: str)
         deadline = time.monotonic() + 180  # the models are built first
         while time.monotonic() < deadline and {ln.split()[0] for ln in lines} < {"crate", "can", "tote"}:
             time.sleep(0.5)
-        time.sleep(10.0)  # a few more rounds: the first may use a camera pose still settling
+        time.sleep(6.0)  # a few more rounds (one a second): the first may use a camera pose still settling
     finally:
         robot.kill()
     seen = {}
