@@ -112,3 +112,14 @@ def ros2_router() -> Iterator[str]:
     process, connected to the first router it is given, so those tests share this one."""
     with loopback_router() as endpoint:
         yield endpoint
+
+
+@pytest.fixture(scope="session")
+def demo_models() -> dict:
+    """The demo cell's object models (object id -> ``ObjectModel``) with the default descriptor,
+    built once (several seconds): read-only, make a ``ModelDatabase`` of your own from them."""
+    from cellsight.model_build import database_from_scenario
+    from drivers.sim.scenario import load_scenario
+    from recognition.config import RecognitionConfig
+
+    return dict(database_from_scenario(load_scenario(), RecognitionConfig().descriptor).models)

@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 
-from cellsight.model_build import database_from_scenario
 from cellsight.scenario_config import demo_config
 from drivers.sim.render import SimCell, object_mesh
 from drivers.sim.scenario import load_scenario
+from recognition.models import ModelDatabase
 from recognition.pipeline import Detection
 from recognition.worker import RecognitionWorker, WorldDetection, fuse
 from schemas import codec, keys
@@ -46,9 +46,9 @@ def test_fuse_averages_agreeing_cameras_and_outvotes_the_rest() -> None:
 
 
 @pytest.fixture(scope="module")
-def demo_database():
+def demo_database(demo_models: dict):
     cfg = demo_config()
-    return cfg, database_from_scenario(load_scenario(), cfg.recognition.descriptor)
+    return cfg, ModelDatabase(cfg.recognition.descriptor, dict(demo_models))
 
 
 @pytest.mark.slow

@@ -5,10 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cellsight.model_build import database_from_scenario
-from drivers.sim.scenario import load_scenario
 from recognition import ppf
-from recognition.config import RecognitionConfig
 from schemas.geometry import rpy_matrix
 
 
@@ -17,17 +14,12 @@ def mean_closest_m(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=2).min(axis=1)).mean())
 
 
-@pytest.fixture(scope="module")
-def models() -> dict:
-    return database_from_scenario(load_scenario(), RecognitionConfig().descriptor).models
-
-
 @pytest.mark.parametrize("object_id", ["crate", "can"])
-def test_voting_recovers_the_pose_of_the_visible_half(models: dict, object_id: str) -> None:
+def test_voting_recovers_the_pose_of_the_visible_half(demo_models: dict, object_id: str) -> None:
     """The half of the model facing a camera at the origin, posed at a random rotation 1 m away, is
     the whole scene: the best cluster's pose puts the model within 5 % of its diameter (ADD-S; the
     votes are quantised at 5 % of the diameter and 12 deg), on the model's own points."""
-    model = models[object_id]
+    model = demo_models[object_id]
     rng = np.random.default_rng(3)
     T = np.eye(4)
     T[:3, :3] = rpy_matrix(*rng.uniform(-1.0, 1.0, 3))

@@ -10,12 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cellsight.model_build import database_from_scenario
-from drivers.sim.scenario import load_scenario
 from recognition.align import model_to_scene_rmse
 from recognition.cloud import depth_to_cloud, finite_points, read_cloud
 from recognition.config import RecognitionConfig
-from recognition.models import model_from_cloud
+from recognition.models import ModelDatabase, model_from_cloud
 from recognition.pipeline import Recognizer
 from recognition.verify import DepthView, Explained, verdict
 from schemas.geometry import make_pose
@@ -72,10 +70,10 @@ def test_a_pixel_explains_one_object() -> None:
 
 
 @pytest.fixture(scope="module")
-def recognizer() -> Recognizer:
+def recognizer(demo_models: dict) -> Recognizer:
     """The demo objects and PCL's milk carton, as ``cellsight model build --demo --cloud milk=...`` makes them."""
     cfg = RecognitionConfig()
-    db = database_from_scenario(load_scenario(), cfg.descriptor)
+    db = ModelDatabase(cfg.descriptor, dict(demo_models))
     db.add(model_from_cloud("milk", read_cloud(PCL / "milk.pcd"), cfg.descriptor))
     return Recognizer(db, cfg)
 
