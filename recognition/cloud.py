@@ -46,18 +46,36 @@ def depth_to_cloud(depth: np.ndarray, K: np.ndarray, depth_scale: float = 0.001)
     return cloud
 
 
-def camera_rays(K: np.ndarray, width: int, height: int, world_T_camera: np.ndarray) -> np.ndarray:
+def camera_rays(
+    K: np.ndarray, width: int, height: int, world_T_camera: np.ndarray, window: tuple[int, int, int, int] | None = None
+) -> np.ndarray:
     """Rays for Open3D's RaycastingScene, one per pixel, (H * W, 6) float32: origin, direction.
 
     Directions have z = 1 in the camera frame, so a hit's t is the pixel's depth; pixel (u, v) looks
     along ((u - cx) / fx, (v - cy) / fy, 1), the convention of depth_to_cloud and OpenCV (Open3D's
-    own create_rays_pinhole aims half a pixel off, at u + 0.5).
+    own create_rays_pinhole aims half a pixel off, at u + 0.5). ``window`` (u0, v0, u1, v1), end
+    exclusive: only those pixels' rays, row by row, ((v1 - v0) * (u1 - u0), 6).
     """
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    u0, v0, u1, v1 = window if window is not None else (0, 0, width, height)
+    u, v = np.meshgrid(np.arange(u0, u1, dtype=np.float64), np.arange(v0, v1, dtype=np.float64))
     dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1).reshape(-1, 3)
     dirs = dirs @ np.asarray(world_T_camera)[:3, :3].T
     origin = np.broadcast_to(np.asarray(world_T_camera)[:3, 3], dirs.shape)
     return np.hstack([origin, dirs]).astype(np.float32)
+
+
+def image_window(K: np.ndarray, width: int, height: int, camera_T_points: np.ndarray, margin_px: int = 2) -> tuple[int, int, int, int]:
+    """The pixels (u0, v0, u1, v1; end exclusive) that can see any of the points (N, 3) in the
+    camera frame, and so anything inside their convex hull (a bounding box's 8 corners): their
+    projections' box grown by ``margin_px``. The whole image when a point is not in front."""
+    p = np.asarray(camera_T_points, dtype=np.float64)
+    if len(p) == 0 or np.any(p[:, 2] <= 1e-6):
+        return 0, 0, width, height
+    u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]
+    v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+    u0, u1 = int(np.clip(np.floor(u.min()) - margin_px, 0, width)), int(np.clip(np.ceil(u.max()) + margin_px + 1, 0, width))
+    v0, v1 = int(np.clip(np.floor(v.min()) - margin_px, 0, height)), int(np.clip(np.ceil(v.max()) + margin_px + 1, 0, height))
+    return u0, v0, max(u1, u0), max(v1, v0)
 
 
 def finite_points(cloud: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 import open3d as o3d
 from pydantic import ValidationError
 
-from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, finite_points, voxel_downsample
+from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, finite_points, image_window, voxel_downsample
 from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
@@ -209,16 +209,23 @@ def model_from_mesh(
     camera = camera or CameraInfo.kinect_v1()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    centre = mesh.get_axis_aligned_bounding_box().get_center()
+    box = mesh.get_axis_aligned_bounding_box()
+    centre, corners = box.get_center(), np.asarray(box.get_box_points())
 
     def rendered():
         for direction in sphere_viewpoints(subdivisions):
             object_T_view = _object_T_view(centre, direction, distance_m)
             view_T_object = invert_pose(object_T_view)
-            rays = o3d.core.Tensor(camera_rays(camera.K, camera.width, camera.height, object_T_view))
-            t_hit = scene.cast_rays(rays)["t_hit"].numpy().reshape(camera.height, camera.width)
-            depth = np.where(np.isfinite(t_hit), t_hit, 0.0)
-            yield finite_points(depth_to_cloud(depth, camera.K, depth_scale=1.0)), view_T_object
+            # Only the pixels where the object's box projects (a few % of the image) can see it.
+            u0, v0, u1, v1 = image_window(camera.K, camera.width, camera.height, corners @ view_T_object[:3, :3].T + view_T_object[:3, 3])
+            if u1 <= u0 or v1 <= v0:
+                yield np.zeros((0, 3), np.float32), view_T_object
+                continue
+            rays = o3d.core.Tensor(camera_rays(camera.K, camera.width, camera.height, object_T_view, (u0, v0, u1, v1)))
+            t_hit = scene.cast_rays(rays)["t_hit"].numpy().reshape(v1 - v0, u1 - u0)
+            K = camera.K.copy()
+            K[:2, 2] -= (u0, v0)  # the window's own principal point
+            yield finite_points(depth_to_cloud(np.where(np.isfinite(t_hit), t_hit, 0.0), K, depth_scale=1.0)), view_T_object
 
     views = describe_views(rendered(), params, progress)
     area = mesh.get_surface_area()

@@ -11,13 +11,15 @@ import open3d as o3d
 import pytest
 
 from recognition.align import align_to_z, model_to_scene_rmse, roll_candidates, roll_histogram, rot_z
-from recognition.cloud import depth_to_cloud, estimate_normals, radius_neighbours, read_cloud, smallest_eigenpair
+from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, image_window, radius_neighbours, read_cloud, smallest_eigenpair
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.errors import CloudError, ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
 from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
+from schemas.codec import CameraInfo
+from schemas.geometry import invert_pose, look_at_matrix, make_pose
 from tests.helpers import assert_pose_close
 
 PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
@@ -207,6 +209,29 @@ def test_model_database_round_trips_and_refuses_damage(tmp_path: Path, milk: np.
 
 
 @pytest.mark.slow
+def test_rays_cast_only_in_the_objects_window_render_the_same_depth() -> None:
+    """Model views cast rays only where the object's bounding box projects: the depth image is the
+    full image's, pixel for pixel, from views near and far, and a box reaching behind the camera
+    falls back to the whole image."""
+    mesh = o3d.geometry.TriangleMesh.create_box(0.3, 0.2, 0.1)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    corners = np.asarray(mesh.get_axis_aligned_bounding_box().get_box_points())
+    info = CameraInfo.kinect_v1()
+    for eye in ([0.8, -0.6, 0.5], [0.15, 0.1, 0.9], [2.5, 1.0, -1.0]):
+        object_T_view = make_pose(look_at_matrix(np.array(eye), np.array([0.15, 0.1, 0.05]), np.array([0.0, 0.0, 1.0])), eye)
+        view_T_object = invert_pose(object_T_view)
+        full = scene.cast_rays(o3d.core.Tensor(camera_rays(info.K, info.width, info.height, object_T_view)))["t_hit"].numpy()
+        full = full.reshape(info.height, info.width)
+        u0, v0, u1, v1 = image_window(info.K, info.width, info.height, corners @ view_T_object[:3, :3].T + view_T_object[:3, 3])
+        assert (u1 - u0) * (v1 - v0) < info.width * info.height  # a window, not the image
+        part = scene.cast_rays(o3d.core.Tensor(camera_rays(info.K, info.width, info.height, object_T_view, (u0, v0, u1, v1))))
+        inside = np.full_like(full, np.inf)
+        inside[v0:v1, u0:u1] = part["t_hit"].numpy().reshape(v1 - v0, u1 - u0)
+        assert np.isfinite(full).sum() > 100 and np.array_equal(inside, full), eye
+    assert image_window(info.K, info.width, info.height, np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -0.1]])) == (0, 0, info.width, info.height)
+
+
 def test_a_mesh_gives_the_same_model_every_time() -> None:
     """Surface sampling is random: unseeded, two builds of one database would recognise differently."""
     box = o3d.geometry.TriangleMesh.create_box(0.2, 0.1, 0.05)
@@ -222,7 +247,6 @@ def test_a_model_from_surface_points_finds_the_demo_crate(tmp_path: Path) -> Non
     from cellsight.model_build import build_database
     from drivers.sim.render import SimCell, object_mesh
     from drivers.sim.scenario import load_scenario
-    from schemas.geometry import invert_pose
 
     scenario = load_scenario()
     crate = next(o for o in scenario.objects if o.id == "crate")
