@@ -62,8 +62,17 @@ def simulate(s: Scenario, seconds: float, seed: int) -> list[list]:
     return frames
 
 
-def online(s: Scenario, frames: list[list]) -> Estimator:
-    est = Estimator(estimator_config(s))
+def moving_objects_demo() -> Scenario:
+    """The demo cell with its cameras still and its objects as they are (the tote slides)."""
+    s = copy.deepcopy(load_scenario())
+    for c in s.cameras:
+        c.motion = []
+    return s
+
+
+def online(s: Scenario, frames: list[list], links: bool = True) -> Estimator:
+    cfg = estimator_config(s)
+    est = Estimator(cfg.model_copy(update={"links": cfg.links.model_copy(update={"online": links})}))
     for k, frame in enumerate(frames):
         for cid, stamp, obs in frame:
             est.add_frame(cid, stamp, obs)
@@ -272,10 +281,35 @@ def chains(seeds: list[int], seconds: float, hops: int = 4, per_group: int = 3, 
     return out
 
 
+def links_paired(seeds: list[int], seconds: float) -> dict[str, float]:
+    """Online with object-marker links against without, same frames (the demo's objects move):
+    per camera the RMS position error over seeds, and the worst camera's ratio."""
+    s = moving_objects_demo()
+    err: dict[str, dict[str, list[float]]] = {"links": {c.id: [] for c in s.cameras}, "plain": {c.id: [] for c in s.cameras}}
+    instants = []
+    for seed in seeds:
+        frames = simulate(s, seconds, seed)
+        for name, links in (("links", True), ("plain", False)):
+            est = online(s, frames, links)
+            e = est.estimate(frames[-1][0][1], with_covariance=False)
+            for c in s.cameras:
+                err[name][c.id].append(pose_error(e.cameras[c.id].pose.T, c.world_T_camera(seconds))[0])
+            if links:
+                instants.append(est.counters.links)
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
+    out = {"links_instants_per_run": float(np.mean(instants))}
+    for c in s.cameras:
+        out[f"links_{c.id}_pos_mm"] = rms(err["links"][c.id])
+        out[f"plain_{c.id}_pos_mm"] = rms(err["plain"][c.id])
+    out["links_over_plain_max"] = max(out[f"links_{c.id}_pos_mm"] / out[f"plain_{c.id}_pos_mm"] for c in s.cameras)
+    return out
+
+
 def run(quick: bool) -> dict[str, float]:
     seeds = [0, 1] if quick else [0, 1, 2, 3, 4]
     out = accuracy(seeds, 10.0)
     out["bump_recovery_s"] = float(np.median([bump_recovery(sd) for sd in seeds[:2]]))
+    out.update(links_paired(seeds, 10.0))
     chain_seeds = seeds if quick else list(range(10))
     out.update(chains(chain_seeds, 10.0, per_group=3, prefix="chain"))
     out.update(chains(chain_seeds, 10.0, per_group=2, prefix="chain_pairs"))

@@ -42,14 +42,19 @@ EPOCH_NS = 1_800_000_000_000_000_000
 UPDATE_NS = 100_000_000  # the daemon's 10 Hz
 
 
-def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> None:
-    """Render, detect and estimate online, frame by frame in capture order, into one log."""
+def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> dict[str, list[tuple[float, float]]]:
+    """Render, detect and estimate online, frame by frame in capture order, into one log. Beside
+    it, a second online estimator with object-marker links on (``[estimator.links] online``) is
+    fed the same frames: per camera, (without, with links) position errors (mm) at each update."""
     scenario = load_scenario().model_copy(update={"seed": seed})
     cfg = cell_config_of(scenario, base=CellConfig.model_validate({"cell": {"name": CELL}}))
     cell = SimCell(scenario)
     detector = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m,
                                            sides_m={mk.id: scenario.side_of(mk) for mk in scenario.markers}))  # fmt: skip
     online = Estimator(cfg.estimator)
+    linked = Estimator(cfg.estimator.model_copy(update={"links": cfg.estimator.links.model_copy(update={"online": True})}))
+    paired: dict[str, list[tuple[float, float]]] = {}
+    truth_now: dict[str, np.ndarray] = {}
     w = LogWriter(path, metadata={"config": cfg.to_toml()})
     next_update = EPOCH_NS
     for k in range(int(seconds * rate_hz)):
@@ -59,7 +64,10 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> None:
             f = cell.render(cam.id, t, k)
             msg = observations_to_msg(cam.id, stamp, f.info, detector.detect(f.rgb, f.info, f.depth_mm), scenario.dictionary)
             w.write(keys.markers(CELL, cam.id), msg, stamp)
-            online.add_frame(cam.id, stamp, observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg))))
+            obs = observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg)))
+            online.add_frame(cam.id, stamp, obs)
+            linked.add_frame(cam.id, stamp, obs)
+            truth_now[cam.id] = f.world_T_camera
             w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]), stamp)
         if k == 0:
             truth = [codec.StampedPose("world", keys.marker_frame(mk.id), stamp, scenario.world_T_marker(mk, 0.0)) for mk in scenario.markers if mk.object is None]
@@ -70,8 +78,15 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> None:
             cams = [codec.StampedPose("world", c.camera_id, stamp, c.pose.T, c.pose.covariance)
                     for c in est.cameras.values() if c.pose is not None and c.state is CameraState.LOCALIZED]  # fmt: skip
             w.write(keys.estimate_cameras(CELL), codec.poses_to_msg(stamp, cams), stamp)
+            linked.update(stamp)
+            with_links = linked.estimate(stamp, with_covariance=False)
+            for c in cams:
+                other = with_links.cameras.get(c.child)
+                if other is not None and other.pose is not None and other.state is CameraState.LOCALIZED:
+                    paired.setdefault(c.child, []).append((pose_error(c.T, truth_now[c.child])[0], pose_error(other.pose.T, truth_now[c.child])[0]))
             next_update += UPDATE_NS
     w.close()
+    return paired
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
@@ -81,10 +96,13 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     moving: list[int] = []
     per_segment: dict[str, list[tuple[float, float]]] = {}
     markers: list[float] = []
+    links: dict[str, list[tuple[float, float]]] = {}  # camera -> per run (without, with links) median mm
     for seed in range(1 if quick else seeds):
         with tempfile.TemporaryDirectory(prefix="offline-vs-online-") as d:
             log = Path(d) / "log.mcap"
-            write_log(log, seed, 12.0 if quick else 20.0, 15.0 if quick else 30.0)
+            for cam, rows in write_log(log, seed, 12.0 if quick else 20.0, 15.0 if quick else 30.0).items():
+                a = np.array(rows)
+                links.setdefault(cam, []).append((float(np.median(a[:, 0])), float(np.median(a[:, 1]))))
             resolved = run_resolve(log, Path(d) / "res", peek_config(log))
         figures = resolved.figures
         for seg, (off, on) in segment_errors(resolved).items():
@@ -118,6 +136,11 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     out["runs"] = float(len(markers))
     out["moving_frames_solved"] = float(sum(moving))
     out["markers_offline_mm_p50"] = float(np.mean(markers))
+    for cam, rows in sorted(links.items()):
+        a = np.array(rows)
+        out[f"{cam}_online_links_mm_p50"] = float(a[:, 1].mean())
+        out[f"{cam}_online_links_over_without"] = float(a[:, 1].mean() / a[:, 0].mean())
+    out["online_links_over_without_max"] = max(v for k, v in out.items() if k.endswith("_online_links_over_without"))
     return out
 
 

@@ -42,8 +42,10 @@ import numpy as np
 
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
+from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors
 from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.resect import resect
+from estimator.symbols import camera_symbol, marker_symbol
 from schemas.geometry import (
     cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, rotation_angle,
 )
@@ -74,24 +76,6 @@ class CameraState(Enum):
     UNANCHORED = 2
     MOVING = 3
     STALE = 4
-
-
-def camera_symbol(index: int) -> int:
-    return gtsam.symbol("c", index)
-
-
-def marker_symbol(marker_id: int) -> int:
-    return gtsam.symbol("m", marker_id)
-
-
-def keyframe_symbol(index: int) -> int:
-    """A moving camera's frame solved as a pose of its own (offline only, ``estimator.keyframes``)."""
-    return gtsam.symbol("k", index)
-
-
-def object_symbol(index: int) -> int:
-    """An object marker at one instant seen by several cameras (offline only, ``estimator.links``)."""
-    return gtsam.symbol("o", index)
 
 
 def project_rotation(M: np.ndarray) -> np.ndarray:
@@ -387,6 +371,7 @@ class Counters:
     last_update_ms: float = 0.0  # wall time of the last update() call, whether or not it had work
     last_update_cpu_ms: float = 0.0  # CPU time this thread spent in it: wall minus this is waiting (CPU, GIL)
     last_update_rebuilt: int = 0  # pair factors that call rebuilt
+    links: int = 0  # object-marker instants that entered the graph (``LiveLinks``)
 
 
 @dataclass
@@ -463,6 +448,8 @@ class Estimator:
         self._cov: dict[int, np.ndarray] = {}  # gtsam key -> covariance (ROS order), see _covariances
         self._cov_next = 0  # where the round of covariance refreshes goes on
         self._flagged: tuple[int, list[int]] = (-ANCHOR_CHECK_NS, [])  # (stamp ns, anchors flagged then)
+        online_links = config.links.enabled and config.links.online and not keep_history and self.object_markers
+        self.live_links = LiveLinks(config.links) if online_links else None
 
     def seed_map(self, markers: dict[int, tuple[np.ndarray, np.ndarray]], inflate: float = 4.0) -> None:
         """Start from a saved map: each static marker gets a prior (its saved covariance x ``inflate``).
@@ -497,6 +484,17 @@ class Estimator:
         Returns True if the frame joined the camera's current segment (False: ignored, or held
         back because the camera moves or may have moved).
         """
+        joined = self._add_frame(camera_id, stamp_ns, observations)
+        if joined and self.live_links is not None and self.live_links.gather.near_instant(np.array([stamp_ns]))[0]:
+            segment = self.tracks[camera_id].segment
+            for o in observations:
+                if o.marker_id in self.object_markers:
+                    alt = o.alternative if o.alternative is not None else o.camera_T_marker
+                    sighting = Sighting(camera_id, segment, stamp_ns, o.camera_T_marker.copy(), alt.copy(), o.covariance.copy())
+                    self.live_links.gather.add(o.marker_id, sighting)
+        return joined
+
+    def _add_frame(self, camera_id: str, stamp_ns: int, observations: list[Observation]) -> bool:
         track = self.tracks.setdefault(camera_id, CameraTrack(camera_id))
         if stamp_ns < track.last_stamp_ns:
             self.counters.rejected += len(observations)
@@ -558,8 +556,9 @@ class Estimator:
         if not fast:
             out = []
             for f, stamp in enumerate(stamps):
-                joined = self.add_frame(camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f)))
+                joined = self._add_frame(camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f)))
                 out.append(self.tracks[camera_id].segment if joined else None)
+            self._sight(camera_id, stamps, a, out)
             return out
         folded = fold_rows(expected, row_pair, len(pairs), sa) if pairs else None  # past the fast test, expected exists iff pairs do
         for j, pair in enumerate(pairs):
@@ -580,7 +579,14 @@ class Estimator:
         track.latest = {o.marker_id: o for o in latest}
         track.markers_seen = len(track.latest)
         track.last_positions = {o.marker_id: o for o in latest if o.marker_id not in self.object_markers}
-        return [track.segment] * len(stamps)
+        out = [track.segment] * len(stamps)
+        self._sight(camera_id, stamps, a, out)
+        return out
+
+    def _sight(self, camera_id: str, stamps: np.ndarray, a: ObservationRows, segments: list[int | None]) -> None:
+        """Object markers in frames that joined a segment (``segments``, per frame) near a link instant."""
+        if self.live_links is not None:
+            block_sightings(camera_id, stamps, a, segments, self.object_markers, self.live_links.gather)
 
     def _any_frame_moved(self, s: ObservationRows, expected: np.ndarray, frames: int) -> bool:
         """``_camera_is_still``'s residual test for many frames at once (static rows ``s``, their
@@ -721,6 +727,9 @@ class Estimator:
         (their owners into ``slotted``), replaced slots into ``remove``.
         """
         ck = self._camera_key(cam)
+        if self.live_links is not None:  # the ended segment's links go (its history keeps static pairs)
+            for key in self.live_links.drop(lambda i: all(f.segment != cam for f in i.factors), remove):
+                self.in_graph.discard(key)
         pairs = list(self._segment_pairs.pop(cam, {}).items())
         for mk, _ in pairs:
             del self.pairs[(cam, mk)]
@@ -786,6 +795,7 @@ class Estimator:
             for cam in self.ended_segments(now_ns):
                 self._fold(cam, graph, remove, slotted)
         new_values = gtsam.Values(values)
+        link_keys = self._link(now_ns, graph, new_values, remove, slotted) if self.live_links is not None else set()
         entering_keys = {self._camera_key(cam) for cam in entering}
         for cam, T in entering.items():
             new_values.insert(self._camera_key(cam), gtsam.Pose3(T))
@@ -819,7 +829,7 @@ class Estimator:
         # still moves far from where it was linearised.
         # A segment entering from its resected pose with settled pairs is not young: its pose is
         # already where the solve will put it.
-        fresh = [k for k in new_values.keys() if k not in entering_keys]
+        fresh = [k for k in new_values.keys() if k not in entering_keys and k not in link_keys]
         params.force_relinearize = bool(fresh) or any(p.n < YOUNG_PAIR for ck, _, p in rebuild if ck not in entering_keys)
         result = self.isam.update(graph, new_values, params)
         if len(fresh) > 1:
@@ -836,6 +846,33 @@ class Estimator:
         self.counters.updates += 1
         self.counters.factors_rebuilt += refreshed
         self._timed(t0, c0)
+
+    def _link(self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int], slotted: list) -> set[int]:
+        """Complete object-marker instants into the graph against the cameras' current estimates,
+        the oldest beyond ``max_live`` out (``LiveLinks``); returns the new instants' keys."""
+        links, added = self.live_links, set()
+        for mk, sightings in links.complete(now_ns):
+            current = [s for s in sightings if s.segment == self.tracks[s.camera_id].segment]
+            solved = [s for s in current if (s.camera_id, s.segment) in self.camera_index
+                      and self._camera_key((s.camera_id, s.segment)) in self.in_graph]  # fmt: skip
+            keys = [self._camera_key((s.camera_id, s.segment)) for s in solved]
+            repeats = [(links.repeats[(s.camera_id, mk)] + 1) / self.config.max_fused for s in solved]
+            key = links.new_key()
+            made = instant_factors(key, solved, keys, [self._pose(k) for k in keys], repeats, self._robust)
+            if made is None or not links.is_new_view(mk, made[0]):
+                continue
+            values.insert(key, gtsam.Pose3(made[0]))
+            owners = []
+            for s, factor in made[1]:
+                owners.append(LinkFactor((s.camera_id, s.segment)))
+                slotted.append((graph.size(), owners[-1]))
+                graph.add(factor)
+            links.enter(LiveInstant(key, mk, owners), made[0])
+            added.add(key)
+            self.counters.links += 1
+        for key in links.trim(remove):
+            self.in_graph.discard(key)
+        return added
 
     def _timed(self, t0: float, c0: float) -> None:
         """Record an update's wall and thread CPU time from perf_counter / thread_time starts (s)."""

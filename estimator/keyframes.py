@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 
 from estimator.config import KeyframeConfig
-from estimator.graph import keyframe_symbol, marker_symbol
+from estimator.symbols import keyframe_symbol, marker_symbol
 from schemas.geometry import cov_ros_to_gtsam, invert_pose, rotation_angles
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation

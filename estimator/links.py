@@ -1,4 +1,4 @@
-"""Offline: an object marker seen by two or more cameras at one instant, as a pose of its own.
+"""An object marker seen by two or more cameras at one instant, as a pose of its own.
 
 DESIGN's object-marker poses per time step. A marker on an object is never fused into the map (it
 does not stay put), but at one instant it is one pose that every camera seeing it observes: a link
@@ -13,21 +13,28 @@ one frame clock; free-running sensors land within a few ms of each other on a fe
 hundred, so they get fewer links.
 
 Memory stays bounded: past ``max_links`` instants every other one is dropped and the grid doubles.
+Offline (``add_links``) every instant joins the batch solve; online (``LiveLinks``) the daemon's
+graph holds the newest ``max_live`` of those that are a new view.
 """
 
 from __future__ import annotations
 
+from collections import Counter, deque
 from dataclasses import dataclass
+from typing import Callable
 
 import gtsam
 import numpy as np
 
 from estimator.config import LinkConfig
-from estimator.graph import object_symbol
+from estimator.observation import ObservationRows
+from estimator.symbols import object_symbol
 from estimator.keyframes import consensus
 from schemas.geometry import cov_ros_to_gtsam
 
 FREE_ROTATION_RAD = 0.5  # a link's rotation sigma: loose enough to carry no rotation, finite for the solver
+LINK_DELAY_NS = 500_000_000  # online, an instant is complete this long after its time (every camera's frame is in)
+NEW_VIEW_M = 0.02  # online, an instant enters only where its marker has moved this far since the last that did
 
 
 @dataclass(frozen=True)
@@ -85,6 +92,19 @@ class ObjectLinks:
         return [(mk, list(cams.values())) for (mk, _), cams in sorted(self.instants.items()) if len(cams) >= 2]
 
 
+def block_sightings(
+    camera_id: str, stamps: np.ndarray, a: ObservationRows, segments: list[int | None], object_markers: set[int], sink: ObjectLinks,
+) -> None:
+    """The object markers seen in a camera's frames (stamps (F,) ns, rows ``a``) that joined a
+    static segment (``segments``, per frame; None: none), near one of ``sink``'s instants."""
+    rows = np.flatnonzero(np.isin(a.ids, list(object_markers)))
+    rows = rows[sink.near_instant(stamps[a.frame[rows]])]
+    for j in rows.tolist():
+        seg = segments[int(a.frame[j])]
+        if seg is not None:  # copies: a view would keep the whole block's arrays alive
+            sink.add(int(a.ids[j]), Sighting(camera_id, seg, int(stamps[a.frame[j]]), a.poses[j].copy(), a.alternatives[j].copy(), a.covariances[j].copy()))
+
+
 def add_links(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, links: ObjectLinks, segment_keys: dict[tuple[str, int], int],
     max_fused: int, robust: gtsam.noiseModel.mEstimator.Base,
@@ -108,21 +128,122 @@ def add_links(
     added = 0
     for mk, sightings in groups:
         solved = [s for s in sightings if (s.camera_id, s.segment) in segment_keys]
-        if len(solved) < 2:
-            continue
-        wTc = [values.atPose3(segment_keys[(s.camera_id, s.segment)]).matrix() for s in solved]
-        agreed = consensus(np.stack([[T @ s.pose, T @ s.alternative] for T, s in zip(wTc, solved)]))
-        if agreed is None:
-            continue
-        world_T_marker, chosen = agreed
+        keys = [segment_keys[(s.camera_id, s.segment)] for s in solved]
         key = object_symbol(added)
-        values.insert(key, gtsam.Pose3(world_T_marker))
-        for i, k in chosen:
-            s = solved[i]
-            cov = np.zeros((6, 6))
-            cov[:3, :3] = s.covariance[:3, :3] * max(1.0, count[(s.camera_id, mk)] / max_fused)
-            cov[3:, 3:] = np.eye(3) * FREE_ROTATION_RAD**2
-            noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
-            graph.add(gtsam.BetweenFactorPose3(segment_keys[(s.camera_id, s.segment)], key, gtsam.Pose3((s.pose, s.alternative)[k]), noise))
+        made = instant_factors(key, solved, keys, [values.atPose3(k).matrix() for k in keys],
+                               [count[(s.camera_id, mk)] / max_fused for s in solved], robust)  # fmt: skip
+        if made is None:
+            continue
+        values.insert(key, gtsam.Pose3(made[0]))
+        for _, factor in made[1]:
+            graph.add(factor)
         added += 1
     return added
+
+
+def instant_factors(
+    key: int, sightings: list[Sighting], camera_keys: list[int], world_T_cameras: list[np.ndarray], repeats: list[float],
+    robust: gtsam.noiseModel.mEstimator.Base,
+) -> tuple[np.ndarray, list[tuple[Sighting, gtsam.BetweenFactorPose3]]] | None:
+    """One linked instant: where the sightings (each from the camera pose of the same index, with
+    its key) agree the marker is, world_T_marker (4, 4), and one factor per agreeing sighting onto
+    the instant's variable ``key``; None unless two or more agree. A sighting's position covariance
+    is multiplied by its ``repeats`` where above 1 (instants of one view count at most
+    ``max_fused`` frames together, see ``add_links``)."""
+    if len(sightings) < 2:
+        return None
+    agreed = consensus(np.stack([[T @ s.pose, T @ s.alternative] for T, s in zip(world_T_cameras, sightings)]))
+    if agreed is None:
+        return None
+    world_T_marker, chosen = agreed
+    factors = []
+    for i, k in chosen:
+        s = sightings[i]
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = s.covariance[:3, :3] * max(1.0, repeats[i])
+        cov[3:, 3:] = np.eye(3) * FREE_ROTATION_RAD**2
+        noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
+        factors.append((s, gtsam.BetweenFactorPose3(camera_keys[i], key, gtsam.Pose3((s.pose, s.alternative)[k]), noise)))
+    return world_T_marker, factors
+
+
+@dataclass
+class LinkFactor:
+    """A live instant's factor from one camera segment; ``slot``: its index in iSAM2 once added."""
+
+    segment: tuple[str, int]
+    slot: int | None = None
+
+
+@dataclass
+class LiveInstant:
+    key: int
+    marker_id: int
+    factors: list[LinkFactor]
+
+
+class LiveLinks:
+    """Online links (the daemon's graph): the same instants as offline, in a fixed lag.
+
+    An instant is complete ``LINK_DELAY_NS`` after its grid time (every camera's frame of it has
+    arrived); then, if two or more of its cameras' segments are in the graph and agree, it enters
+    iSAM2 as offline's do, against the cameras' current estimates. The newest ``max_live`` stay;
+    older ones leave (their factors removed: iSAM2 drops a variable with none), and a segment that
+    ends takes its instants with it (its history keeps static pairs only). So the graph holds at
+    most ``max_live`` extra variables, and what links give, a moving object's fresh views, counts
+    while it is recent. Repeats of one view are weighted as offline, over the live instants.
+    """
+
+    def __init__(self, config: LinkConfig) -> None:
+        self.gather = ObjectLinks(config)
+        self.max_live = config.max_live
+        self.live: deque[LiveInstant] = deque()
+        self.repeats: Counter[tuple[str, int]] = Counter()  # live instants per (camera id, marker)
+        self.last_position: dict[int, np.ndarray] = {}  # marker -> where the last instant that entered had it (world, m)
+        self._next_key = 0
+
+    def complete(self, now_ns: int) -> list[tuple[int, list[Sighting]]]:
+        """Take the instants at least LINK_DELAY_NS old out of the gathering: (marker, sightings)
+        of those two or more cameras saw."""
+        g = self.gather
+        if g.origin_ns is None:
+            return []
+        last = (now_ns - LINK_DELAY_NS - g.origin_ns) // g.gap_ns
+        done = sorted(k for k in g.instants if k[1] <= last)
+        out = [(k[0], list(g.instants[k].values())) for k in done if len(g.instants[k]) >= 2]
+        for k in done:
+            del g.instants[k]
+        return out
+
+    def new_key(self) -> int:
+        self._next_key += 1
+        return object_symbol(self._next_key - 1)
+
+    def is_new_view(self, marker_id: int, world_T_marker: np.ndarray) -> bool:
+        """Has the marker moved NEW_VIEW_M since its last instant that entered? A still object's
+        instants repeat one view: its noise averages over them, but a bias would not."""
+        last = self.last_position.get(marker_id)
+        return last is None or float(np.linalg.norm(world_T_marker[:3, 3] - last)) >= NEW_VIEW_M
+
+    def enter(self, instant: LiveInstant, world_T_marker: np.ndarray) -> None:
+        self.last_position[instant.marker_id] = world_T_marker[:3, 3].copy()
+        self.live.append(instant)
+        for f in instant.factors:
+            self.repeats[(f.segment[0], instant.marker_id)] += 1
+
+    def trim(self, remove: list[int]) -> list[int]:
+        """``drop`` the oldest instants beyond ``max_live`` that are in iSAM2 already."""
+        newest = {id(i) for i in list(self.live)[-self.max_live:]}
+        return self.drop(lambda i: id(i) in newest or any(f.slot is None for f in i.factors), remove)
+
+    def drop(self, keep: Callable[[LiveInstant], bool], remove: list[int]) -> list[int]:
+        """Drop the live instants ``keep`` refuses: their factors' slots go into ``remove``; returns their keys."""
+        dropped = [i for i in self.live if not keep(i)]
+        if dropped:
+            self.live = deque(i for i in self.live if keep(i))
+        for instant in dropped:
+            for f in instant.factors:
+                self.repeats[(f.segment[0], instant.marker_id)] -= 1
+                if f.slot is not None:
+                    remove.append(f.slot)
+        return [i.key for i in dropped]

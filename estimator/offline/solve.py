@@ -25,7 +25,7 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.graph import Estimator, camera_symbol, marker_symbol, through_camera
 from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes
-from estimator.links import ObjectLinks, Sighting, add_links
+from estimator.links import ObjectLinks, add_links, block_sightings
 from estimator.observation import ObservationRows
 from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam
 
@@ -131,7 +131,7 @@ def resolve(
         if config.keyframes.enabled:
             _moving_frames(block, segs, est.object_markers, moving, est.tracks[cam].segment)
         if config.links.enabled and est.object_markers:
-            _sightings(block, segs, est.object_markers, links)
+            block_sightings(cam, block.stamps, block.arrays, segs, est.object_markers, links)
         for stamp, seg in zip(block.stamps.tolist(), segs):
             if seg is None:
                 continue
@@ -218,18 +218,6 @@ def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: se
         later = next((g for g in segs[f + 1:] if g is not None), None)
         move = segment_now if later is None else later - 1
         sink.add(MovingFrame(block.camera_id, int(block.stamps[f]), a.ids[rows], a.poses[rows], a.alternatives[rows], a.covariances[rows], move))
-
-
-def _sightings(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: ObjectLinks) -> None:
-    """The object markers seen in the block's frames that joined a static segment."""
-    a = block.arrays
-    rows = np.flatnonzero(np.isin(a.ids, list(object_markers)))
-    rows = rows[sink.near_instant(block.stamps[a.frame[rows]])]
-    for j in rows.tolist():
-        seg = segs[int(a.frame[j])]
-        if seg is not None:  # copies: a view would keep the whole block's arrays alive
-            sighting = Sighting(block.camera_id, seg, int(block.stamps[a.frame[j]]), a.poses[j].copy(), a.alternatives[j].copy(), a.covariances[j].copy())
-            sink.add(int(a.ids[j]), sighting)
 
 
 def _object_rows(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]) -> None:
