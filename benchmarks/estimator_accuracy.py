@@ -9,6 +9,11 @@ Figures: camera errors after 10 s (median over static cameras and seeds), the ra
 paper's four relation cases, and the time a bumped camera (2 deg + 30 mm) needs to get back
 within 5 mm / 0.25 deg.
 
+Links (``links_*``): the demo's objects moving, online with object-marker links on against off on
+the same frames, per camera RMS position error. These frames carry no per-view bias, so the
+static pairs are far better than their weights claim and extra single-frame evidence can only
+cost here; ``benchmarks.offline_vs_online`` compares the two on rendered frames.
+
 Chains (``corridor``): marker groups along a wall 1.2 m apart, the first group the anchors, and
 cameras each seeing two neighbouring groups, so the k-th camera reaches the anchors through k - 1
 others (1 to 4 hops). Each camera's view of each marker carries a bias that averaging its frames
@@ -309,7 +314,7 @@ def run(quick: bool) -> dict[str, float]:
     seeds = [0, 1] if quick else [0, 1, 2, 3, 4]
     out = accuracy(seeds, 10.0)
     out["bump_recovery_s"] = float(np.median([bump_recovery(sd) for sd in seeds[:2]]))
-    out.update(links_paired(seeds, 10.0))
+    out.update(links_paired(seeds[:1] if quick else seeds, 10.0))
     chain_seeds = seeds if quick else list(range(10))
     out.update(chains(chain_seeds, 10.0, per_group=3, prefix="chain"))
     out.update(chains(chain_seeds, 10.0, per_group=2, prefix="chain_pairs"))
