@@ -53,7 +53,7 @@ from recognition import ppf  # noqa: E402
 from recognition.align import model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
 from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_cloud  # noqa: E402
 from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
-from recognition.models import ModelDatabase, model_from_cloud  # noqa: E402
+from recognition.models import model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from schemas.codec import make_pose  # noqa: E402
 from schemas.geometry import invert_pose
