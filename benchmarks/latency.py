@@ -14,6 +14,7 @@ whose p99 stays within 100 ms with under 1 % of frames dropped.
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -79,7 +80,7 @@ def driver_pids(parent: int) -> list[int]:
     return pids
 
 
-def trial(n_cams: int, seconds: float) -> Trial:
+def trial(n_cams: int, seconds: float, detector_params: Path | None = None) -> Trial:
     from tests.conftest import free_port
 
     port = free_port()
@@ -90,6 +91,8 @@ def trial(n_cams: int, seconds: float) -> Trial:
         (tmp_path / "base.toml").write_text(f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\n[recognition]\nenabled = false\n')
         cfg = cell_config_of(load_scenario(tmp_path / "scenario.toml"), tmp_path / "scenario.toml", load_config(tmp_path / "base.toml"))
         cameras = [c.model_copy(update={"prerender_frames": PRERENDER}) for c in cfg.cameras[:n_cams]]
+        if detector_params is not None:
+            cfg = cfg.model_copy(update={"markers": cfg.markers.model_copy(update={"detector_params": detector_params.resolve()})})
         (tmp_path / "cell.toml").write_text(cfg.model_copy(update={"cameras": cameras}).to_toml())
         proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(tmp_path / "run")],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
@@ -133,10 +136,10 @@ def trial(n_cams: int, seconds: float) -> Trial:
     return Trial(n_cams, t1 - t0, np.array(latency), frames, dropped, (cpu1 - cpu0) / (t1 - t0))
 
 
-def run(quick: bool) -> dict[str, float]:
+def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     seconds = 15.0 if quick else 30.0
     counts = [4] if quick else [2, 4, 6, 4 + len(EXTRA)]
-    trials = {n: trial(n, seconds) for n in counts}
+    trials = {n: trial(n, seconds, args.detector_params) for n in counts}
     four = trials[4]
     held = [n for n, t in trials.items() if t.p(99) <= TARGET_P99_MS and t.drop_rate < MAX_DROP]
     out = {
@@ -156,5 +159,9 @@ def run(quick: bool) -> dict[str, float]:
     return out
 
 
+def _args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--detector-params", type=Path, help="an OpenCV DetectorParameters YAML for every driver ([markers] detector_params)")
+
+
 if __name__ == "__main__":
-    main("latency", __doc__.splitlines()[0], run)
+    main("latency", __doc__.splitlines()[0], run, _args)
