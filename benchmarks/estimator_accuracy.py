@@ -75,7 +75,7 @@ def moving_objects_demo() -> Scenario:
     return s
 
 
-def online(s: Scenario, frames: list[list], links: bool = True) -> Estimator:
+def online(s: Scenario, frames: list[list], links: bool = False) -> Estimator:
     cfg = estimator_config(s)
     est = Estimator(cfg.model_copy(update={"links": cfg.links.model_copy(update={"online": links})}))
     for k, frame in enumerate(frames):
