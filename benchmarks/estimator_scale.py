@@ -255,6 +255,8 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
                 factors_max = max(factors_max, aged.est.factor_count())
             if k % 2000 == 0:
                 progress.update(task, completed=k)
+            if k and k % max(n_ticks // 20, 1) == 0 and not progress.console.is_terminal:  # a log file sees progress too
+                progress.console.log(f"{k / ticks_per_hour:.3g} of {hours:g} simulated hours, {time.perf_counter() - t_start:.0f} s")
         if not errors:
             errors = camera_errors_mm(aged.est, mover.truth, n_ticks * TICK_NS)
         wall = time.perf_counter() - t_start
