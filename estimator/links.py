@@ -232,15 +232,21 @@ class LiveLinks:
             self.repeats[(f.segment[0], instant.marker_id)] += 1
 
     def trim(self, remove: list[int]) -> list[int]:
-        """``drop`` the oldest instants beyond ``max_live`` that are in iSAM2 already."""
-        newest = {id(i) for i in list(self.live)[-self.max_live:]}
-        return self.drop(lambda i: id(i) in newest or any(f.slot is None for f in i.factors), remove)
+        """Drop the oldest instants beyond ``max_live`` (those in iSAM2 already: the newest have no
+        slots until their update ends); as ``drop``."""
+        dropped = []
+        while len(self.live) > self.max_live and all(f.slot is not None for f in self.live[0].factors):
+            dropped.append(self.live.popleft())
+        return self._forget(dropped, remove)
 
     def drop(self, keep: Callable[[LiveInstant], bool], remove: list[int]) -> list[int]:
         """Drop the live instants ``keep`` refuses: their factors' slots go into ``remove``; returns their keys."""
         dropped = [i for i in self.live if not keep(i)]
         if dropped:
             self.live = deque(i for i in self.live if keep(i))
+        return self._forget(dropped, remove)
+
+    def _forget(self, dropped: list[LiveInstant], remove: list[int]) -> list[int]:
         for instant in dropped:
             for f in instant.factors:
                 self.repeats[(f.segment[0], instant.marker_id)] -= 1

@@ -18,6 +18,7 @@ import numpy as np
 from estimator.config import LinkConfig
 from estimator.graph import Estimator
 from estimator.observation import Observation
+from estimator.symbols import camera_symbol
 from schemas.geometry import invert_pose, make_pose, rpy_matrix
 from tests.core.test_bounded_history import COV, RATE, SIGMA_M, SIGMA_RAD, cam_pose, config, frame
 
@@ -51,7 +52,7 @@ def run(
 
 def rotation_variance(est: Estimator, cid: str) -> float:
     """Trace of the marginal rotation covariance (rad^2) of camera ``cid``'s current segment."""
-    key = gtsam.symbol("c", est.camera_index[(cid, est.tracks[cid].segment)])
+    key = camera_symbol(est.camera_index[(cid, est.tracks[cid].segment)])
     return float(np.trace(est.isam.marginalCovariance(key)[:3, :3]))  # gtsam order: rotation first
 
 
