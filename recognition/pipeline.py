@@ -4,6 +4,9 @@ cloud -> range limit, voxel downsample, normals -> remove dominant planes -> Euc
 VFH per cluster -> nearest model views -> camera-roll alignment -> ICP -> accept on fitness,
 coverage and RMSE -> verify against the whole frame from the camera's viewpoint
 (``recognition.verify``). A marker on an object, when seen, names it and gives ICP its starting pose.
+Objects standing so close that they share a cluster (and hide parts of each other) are found a
+second way when the camera's pose is known: each is stood upright on the table at pieces of what
+no match explained, and only verification accepts it.
 """
 
 from __future__ import annotations
@@ -48,6 +51,20 @@ REFINE_POINTS = 500
 #: Screened starts closer than this are one start: refining both would repeat the same work.
 SAME_POSE_M = 0.01
 SAME_POSE_RAD = float(np.radians(10.0))
+#: More starts than this are ranked by overlap (one neighbour search for all) before any ICP.
+ICP_STARTS = 8
+#: Pieces of a cluster no match explained (``Recognizer._piece_centres``): seeds per object and cluster ...
+MAX_SEEDS = 4
+#: ... a piece tried for an object only if the cluster's rest holds this share of its model's points
+#: (a view shows about half of a surface, and verification wants 40 % of that) ...
+PIECE_SHARE = 0.1
+#: ... the yaws an object is stood on the support at ...
+YAW_STEP_DEG = 30
+#: ... and the fitness from which a piece's hypothesis goes on to verification, which judges it on
+#: the surface the camera should see (a partly hidden object's fitness over its facing side is low).
+PIECE_FITNESS = 0.2
+#: A removed plane is a support objects stand on if its normal is within this of world up.
+SUPPORT_COS = float(np.cos(np.radians(20.0)))
 
 
 @dataclass(frozen=True)
@@ -173,6 +190,8 @@ class Recognizer:
                 candidates.append((-1 - len(candidates), match[0]))
         part = 0
         cluster_of: dict[int, int] = {}  # part -> its cluster
+        # Pieces need a support to stand objects on, and verification to judge what they propose.
+        support = _support(scene.planes, up) if c.verify else None
         for k, idx in enumerate(clusters):
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
@@ -188,6 +207,19 @@ class Recognizer:
                 rest = rest[~explained]
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
+            if support is None or used[k]:
+                continue
+            # What no match explained may hold objects that stand so close that they merged into one
+            # cluster, hiding parts of each other: its descriptor is no object's. Each object is
+            # stood on the support at pieces spread over the rest, and verification judges it.
+            for oid, centres in self._piece_centres(scene.points, rest).items():
+                model = self.db.models[oid]
+                starts = np.concatenate([standing_starts(model.points, centre, support) for centre in centres])
+                match = self._score(model, scene, rest, starts, up, fitness_to_verify=PIECE_FITNESS)
+                if match is not None:
+                    candidates.append((part, match[0]))
+                    cluster_of[part] = k
+                    part += 1
         # Each object is in the scene once, and each part is one object: best matches first, so that
         # a part two objects fit goes to the one not found better elsewhere. A hypothesis the frame
         # contradicts never takes a part, and a pixel explains one object.
@@ -271,13 +303,15 @@ class Recognizer:
         starts: list[np.ndarray],
         up: np.ndarray | None,
         from_prior: bool = False,
+        fitness_to_verify: float | None = None,
     ) -> tuple[Detection, np.ndarray] | None:
         """Coarse ICP from each start onto the cluster, fine ICP from the best few; the best result if
         it passes the acceptance tests, with the mask of the cluster points it explains.
 
         up: world up in the camera frame (None: no upright test). Accepted: fitness, coverage and RMSE
         within bounds; or, for a cluster several objects share, a fitness of at least
-        min_fitness_shared with enough explained points to be a cluster itself.
+        min_fitness_shared (``fitness_to_verify``, when given) with enough explained points to be a
+        cluster itself.
         """
         c = self.config
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points[idx].astype(np.float64)))
@@ -287,8 +321,12 @@ class Recognizer:
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
         if up is not None:
             poses = _stand_up(poses, up, self._centre[model.object_id])
+        facings = facing_camera(sparse_points, sparse_normals, poses)
+        if len(poses) > ICP_STARTS:
+            keep = self._overlap_ranked(sparse_points, facings, poses, scene.points[idx])[:ICP_STARTS]
+            poses, facings = poses[keep], facings[keep]
         screened: list[IcpResult] = []
-        for start, facing in zip(poses, facing_camera(sparse_points, sparse_normals, poses)):
+        for start, facing in zip(poses, facings):
             res = icp_pass(sparse_points[facing], target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
                            max_shift_m=model.diameter_m)
             if res.fitness > 0 and _upright(res.camera_T_object, up):  # else a symmetric shape's mirror image
@@ -299,7 +337,9 @@ class Recognizer:
         # A start that explains under min_fitness of the model even at twice the final distance is
         # not refined: no refined start from that low has passed in the benchmark's frames.
         refined: list[np.ndarray] = []
-        for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= c.min_fitness]:
+        shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
+        floor = min(c.min_fitness, shared_fitness)
+        for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= floor]:
             if any(_same_pose(coarse.camera_T_object, done) for done in refined):
                 continue  # two starts that screened into one pose refine into one pose
             refined.append(coarse.camera_T_object)
@@ -314,7 +354,7 @@ class Recognizer:
         explained = self._explained(model.object_id, best.camera_T_object, scene.points[idx])
         coverage = float(explained.mean()) if len(explained) else 0.0
         whole = best.fitness >= c.min_fitness and coverage >= c.min_coverage
-        shared = best.fitness >= c.min_fitness_shared and explained.sum() >= c.cluster_min_points
+        shared = best.fitness >= shared_fitness and explained.sum() >= c.cluster_min_points
         ok = (whole or shared) and best.rmse_m <= c.max_rmse_m
         log.debug("%s: fitness %.2f coverage %.2f rmse %.4f -> %s", model.object_id, best.fitness, coverage,
                   best.rmse_m, "accepted" if ok else "rejected")
@@ -324,6 +364,39 @@ class Recognizer:
                         int(explained.sum()), from_prior)
         return det, explained
 
+    def _piece_centres(self, points: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Per object, the centroids (K, 3) of pieces of the points ``idx`` into ``points`` (N, 3): the
+        points within the object's radius of seeds spread over them (farthest-point sampling from
+        the one nearest their centroid, at most MAX_SEEDS, half a radius apart at least)."""
+        out: dict[str, np.ndarray] = {}
+        pts = points[idx]
+        for oid, mdl in self.db.models.items():
+            if len(idx) < max(self.config.cluster_min_points, PIECE_SHARE * len(mdl.points)):
+                continue
+            r = 0.5 * mdl.diameter_m
+            seeds = [int(np.argmin(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
+            dist = np.linalg.norm(pts - pts[seeds[0]], axis=1)
+            while len(seeds) < MAX_SEEDS and dist.max() > 0.5 * r:
+                seeds.append(int(np.argmax(dist)))
+                dist = np.minimum(dist, np.linalg.norm(pts - pts[seeds[-1]], axis=1))
+            pieces = [pts[np.linalg.norm(pts - pts[seed], axis=1) <= r] for seed in seeds]
+            centres = [p.mean(axis=0) for p in pieces if len(p) >= self.config.cluster_min_points]
+            if centres:
+                out[oid] = np.array(centres)
+        return out
+
+    def _overlap_ranked(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Start indices, best first, by the share of facing model points (N, 3; ``facing`` (S, N))
+        within the coarse ICP's distance of the target (M, 3) at each pose (S, 4, 4): one index for
+        all starts."""
+        r = 2.0 * self.config.icp_distance_m
+        index = nns.NearestNeighborSearch(o3d.core.Tensor(target.astype(np.float32)))
+        index.hybrid_index(r)
+        placed = np.einsum("sij,nj->sni", poses[:, :3, :3], points) + poses[:, None, :3, 3]
+        _, _, counts = index.hybrid_search(o3d.core.Tensor(placed.reshape(-1, 3).astype(np.float32)), r, 1)
+        hits = (counts.numpy().reshape(len(poses), -1) > 0) & facing
+        return np.argsort(-hits.sum(axis=1) / np.maximum(facing.sum(axis=1), 1), kind="stable")
+
     def _explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Mask (N,) of the cluster points (N, 3), camera frame, within icp_distance_m of the posed model."""
         object_T_camera = invert_pose(camera_T_object)
@@ -331,6 +404,44 @@ class Recognizer:
         _, _, counts = self._model_index[object_id].hybrid_search(
             o3d.core.Tensor(local), self.config.icp_distance_m, 1)
         return counts.numpy() > 0
+
+
+def _support(planes: np.ndarray, up: np.ndarray | None) -> np.ndarray | None:
+    """The first removed plane (a, b, c, d; normal towards the camera) that is level (normal within
+    20 deg of world up ``up``, camera frame), normalised; None without one or without ``up``."""
+    if up is None:
+        return None
+    for plane in planes:
+        n = np.linalg.norm(plane[:3])
+        if plane[:3] @ up >= SUPPORT_COS * n * np.linalg.norm(up):
+            return plane / n
+    return None
+
+
+def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """Poses (S, 4, 4), camera frame, of an object standing upright on the support plane (a, b, c, d;
+    unit normal towards the camera): its base's centre (the model's lowest points, object frame
+    (M, 3)) below ``near`` (3,) and half its smaller width further from the camera, at yaws
+    YAW_STEP_DEG apart."""
+    n, d = support[:3], support[3]
+    foot = near - (near @ n + d) * n  # onto the plane
+    away = foot - (foot @ n) * n  # the camera's viewing direction along the plane
+    if np.linalg.norm(away) < 1e-6:  # looking straight down: any direction along the plane
+        away = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    away /= np.linalg.norm(away)
+    plane_T_yaw0 = np.column_stack([away, np.cross(n, away), n])
+    lo, hi = model_points.min(axis=0), model_points.max(axis=0)
+    base = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    yaws = np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG))
+    c, s = np.cos(yaws), np.sin(yaws)
+    Rz = np.zeros((len(yaws), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    R = plane_T_yaw0 @ Rz
+    out = np.tile(np.eye(4), (2, len(yaws), 1, 1))
+    out[:, :, :3, :3] = R
+    for i, back in enumerate((0.0, 0.5 * min(hi[0] - lo[0], hi[1] - lo[1]))):
+        out[i, :, :3, 3] = foot + back * away - R @ base
+    return out.reshape(-1, 4, 4)
 
 
 def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
