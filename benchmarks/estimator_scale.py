@@ -211,19 +211,25 @@ SCAN = [(8, 16), (16, 32), (32, 64), (64, 128), (64, 250), (64, 500), (64, 1000)
 
 
 def scan(hours: float, move_every_s: float) -> dict[str, float]:
-    """``measure`` over ``SCAN``; the growth exponent of update p99 with cameras (log-log fit over
-    the two-markers-per-camera rows)."""
+    """``measure`` over ``SCAN``; the growth exponents of update p99 and p50 with cameras (log-log
+    fits over the two-markers-per-camera rows)."""
     out: dict[str, float] = {"simulated_hours_each": hours, "move_every_s": move_every_s}
-    p99 = {}
+    p99, p50 = {}, {}
     for n, mk in SCAN:
         r = measure(hours, move_every_s, n, mk)
-        p99[(n, mk)] = r["update_ms_p99"]
+        p99[(n, mk)], p50[(n, mk)] = r["update_ms_p99"], r["update_ms_p50"]
         for key in ("update_ms_p50", "update_ms_p99", "estimate_ms_p99", "observations_per_s", "rss_growth_mb", "factors_max", "solver_updates_last_hour"):
             out[f"{key}_{n}cams_{mk}markers"] = r[key]
-    series = [(n, p99[(n, mk)]) for n, mk in SCAN if mk == 2 * n]
-    out["growth_exponent_cameras"] = float(np.polyfit(np.log([n for n, _ in series]), np.log([v for _, v in series]), 1)[0])
+    cams = [(n, mk) for n, mk in SCAN if mk == 2 * n]
+    out["growth_exponent_cameras"] = growth_exponent([n for n, _ in cams], [p99[c] for c in cams])
+    out["growth_exponent_cameras_p50"] = growth_exponent([n for n, _ in cams], [p50[c] for c in cams])
     out["update_ms_p99_64cams"] = p99[(64, 1000)]
     return out
+
+
+def growth_exponent(sizes: list[int], values: list[float]) -> float:
+    """Slope of log(value) against log(size): value grows as size to this power."""
+    return float(np.polyfit(np.log(sizes), np.log(values), 1)[0])
 
 
 def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16) -> dict[str, float]:
