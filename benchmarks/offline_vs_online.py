@@ -42,18 +42,26 @@ EPOCH_NS = 1_800_000_000_000_000_000
 UPDATE_NS = 100_000_000  # the daemon's 10 Hz
 
 
-def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> dict[str, list[tuple[float, float]]]:
+#: Online estimators fed the same frames beside the daemon's default one: object-marker links
+#: (``[estimator.links] online``), moving frames (``[estimator.keyframes] online``), both.
+VARIANTS = {"links": ("links",), "keyframes": ("keyframes",), "links_keyframes": ("links", "keyframes")}
+
+
+def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[dict[str, dict[str, list[tuple[float, float]]]], dict[str, int]]:
     """Render, detect and estimate online, frame by frame in capture order, into one log. Beside
-    it, a second online estimator with object-marker links on (``[estimator.links] online``) is
-    fed the same frames: per camera, (without, with links) position errors (mm) at each update."""
+    it, an online estimator per ``VARIANTS`` is fed the same frames: per variant and camera,
+    (default, variant) position errors (mm) at each update; and what entered the variants' graphs
+    (object-marker instants and moving frames), so a ratio of 1 is not mistaken for no effect."""
     scenario = load_scenario().model_copy(update={"seed": seed})
     cfg = cell_config_of(scenario, base=CellConfig.model_validate({"cell": {"name": CELL}}))
     cell = SimCell(scenario)
     detector = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m,
                                            sides_m={mk.id: scenario.side_of(mk) for mk in scenario.markers}))  # fmt: skip
     online = Estimator(cfg.estimator)
-    linked = Estimator(cfg.estimator.model_copy(update={"links": cfg.estimator.links.model_copy(update={"online": True})}))
-    paired: dict[str, list[tuple[float, float]]] = {}
+    e = cfg.estimator
+    variants = {name: Estimator(e.model_copy(update={part: getattr(e, part).model_copy(update={"online": True}) for part in parts}))
+                for name, parts in VARIANTS.items()}  # fmt: skip
+    paired: dict[str, dict[str, list[tuple[float, float]]]] = {name: {} for name in VARIANTS}
     truth_now: dict[str, np.ndarray] = {}
     w = LogWriter(path, metadata={"config": cfg.to_toml()})
     next_update = EPOCH_NS
@@ -66,7 +74,8 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> dict[str
             w.write(keys.markers(CELL, cam.id), msg, stamp)
             obs = observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg)))
             online.add_frame(cam.id, stamp, obs)
-            linked.add_frame(cam.id, stamp, obs)
+            for v in variants.values():
+                v.add_frame(cam.id, stamp, obs)
             truth_now[cam.id] = f.world_T_camera
             w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]), stamp)
         if k == 0:
@@ -78,15 +87,18 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> dict[str
             cams = [codec.StampedPose("world", c.camera_id, stamp, c.pose.T, c.pose.covariance)
                     for c in est.cameras.values() if c.pose is not None and c.state is CameraState.LOCALIZED]  # fmt: skip
             w.write(keys.estimate_cameras(CELL), codec.poses_to_msg(stamp, cams), stamp)
-            linked.update(stamp)
-            with_links = linked.estimate(stamp, with_covariance=False)
-            for c in cams:
-                other = with_links.cameras.get(c.child)
-                if other is not None and other.pose is not None and other.state is CameraState.LOCALIZED:
-                    paired.setdefault(c.child, []).append((pose_error(c.T, truth_now[c.child])[0], pose_error(other.pose.T, truth_now[c.child])[0]))
+            for name, v in variants.items():
+                v.update(stamp)
+                theirs = v.estimate(stamp, with_covariance=False)
+                for c in cams:
+                    other = theirs.cameras.get(c.child)
+                    if other is not None and other.pose is not None and other.state is CameraState.LOCALIZED:
+                        paired[name].setdefault(c.child, []).append((pose_error(c.T, truth_now[c.child])[0], pose_error(other.pose.T, truth_now[c.child])[0]))
             next_update += UPDATE_NS
     w.close()
-    return paired
+    entered = {f"{name}_links_entered": v.counters.links for name, v in variants.items()}
+    entered |= {f"{name}_keyframes_entered": v.counters.keyframes for name, v in variants.items()}
+    return paired, entered
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
@@ -96,13 +108,17 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     moving: list[int] = []
     per_segment: dict[str, list[tuple[float, float]]] = {}
     markers: list[float] = []
-    links: dict[str, list[tuple[float, float]]] = {}  # camera -> per run (without, with links) median mm
+    variants: dict[str, dict[str, list[tuple[float, float]]]] = {name: {} for name in VARIANTS}  # camera -> per run (default, variant) median mm
     for seed in range(1 if quick else seeds):
         with tempfile.TemporaryDirectory(prefix="offline-vs-online-") as d:
             log = Path(d) / "log.mcap"
-            for cam, rows in write_log(log, seed, 12.0 if quick else 20.0, 15.0 if quick else 30.0).items():
-                a = np.array(rows)
-                links.setdefault(cam, []).append((float(np.median(a[:, 0])), float(np.median(a[:, 1]))))
+            errors, entered = write_log(log, seed, 12.0 if quick else 20.0, 15.0 if quick else 30.0)
+            for key, n in entered.items():
+                out[f"online_{key}"] = out.get(f"online_{key}", 0.0) + n
+            for name, cams in errors.items():
+                for cam, rows in cams.items():
+                    a = np.array(rows)
+                    variants[name].setdefault(cam, []).append((float(np.median(a[:, 0])), float(np.median(a[:, 1]))))
             resolved = run_resolve(log, Path(d) / "res", peek_config(log))
         figures = resolved.figures
         for seg, (off, on) in segment_errors(resolved).items():
@@ -136,11 +152,12 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     out["runs"] = float(len(markers))
     out["moving_frames_solved"] = float(sum(moving))
     out["markers_offline_mm_p50"] = float(np.mean(markers))
-    for cam, rows in sorted(links.items()):
-        a = np.array(rows)
-        out[f"{cam}_online_links_mm_p50"] = float(a[:, 1].mean())
-        out[f"{cam}_online_links_over_without"] = float(a[:, 1].mean() / a[:, 0].mean())
-    out["online_links_over_without_max"] = max(v for k, v in out.items() if k.endswith("_online_links_over_without"))
+    for name, cams in variants.items():
+        for cam, rows in sorted(cams.items()):
+            a = np.array(rows)
+            out[f"{cam}_online_{name}_mm_p50"] = float(a[:, 1].mean())
+            out[f"{cam}_online_{name}_over_without"] = float(a[:, 1].mean() / a[:, 0].mean())
+        out[f"online_{name}_over_without_max"] = max(out[f"{cam}_online_{name}_over_without"] for cam in cams)
     return out
 
 

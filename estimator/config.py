@@ -21,11 +21,17 @@ class AnchorConfig(BaseModel):
 
 
 class KeyframeConfig(BaseModel):
-    """Moving-camera frames in the offline solve (the daemon never adds them)."""
+    """Moving-camera frames as poses of their own: always in the offline solve, opt-in in the daemon."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     enabled: bool = Field(default=True, description="add moving cameras' frames as poses of their own to the offline solve")
+    online: bool = Field(
+        default=False,
+        description="the daemon adds a move's frames too, once the camera is still again and its new segment is in the graph "
+        "(measured: see docs/performance.md, online_keyframes_over_without_max)",
+    )
+    max_live: int = Field(default=60, ge=1, description="online: the newest this many moving frames stay in the graph, older ones leave it")
     min_gap_s: float = Field(default=0.1, gt=0, description="at most one frame per camera this often")
     max_frames: int = Field(default=2000, ge=1, description="past this, every other kept frame is dropped and the gap doubles")
     new_view_deg: float = Field(

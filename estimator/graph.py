@@ -42,6 +42,7 @@ import numpy as np
 
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
+from estimator.keyframes import LiveKeyframes, MovingFrame
 from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors
 from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.pairs import Pair, factors_current, fold_rows, pair_means
@@ -166,6 +167,7 @@ class Counters:
     last_update_cpu_ms: float = 0.0  # CPU time this thread spent in it: wall minus this is waiting (CPU, GIL)
     last_update_rebuilt: int = 0  # pair factors that call rebuilt
     links: int = 0  # object-marker instants that entered the graph (``LiveLinks``)
+    keyframes: int = 0  # moving frames that entered the graph (``LiveKeyframes``)
 
 
 @dataclass
@@ -196,6 +198,16 @@ def fuse_measurements(a: HistoryFactor, b: HistoryFactor) -> HistoryFactor:
     cov = np.linalg.inv(info_a + info_b)
     d = gtsam.Pose3.Logmap(gtsam.Pose3(a.mean).between(gtsam.Pose3(b.mean)))
     return HistoryFactor(gtsam.Pose3(a.mean).compose(gtsam.Pose3.Expmap(cov @ info_b @ d)).matrix(), cov_gtsam_to_ros(cov))
+
+
+def moving_frame(camera_id: str, stamp_ns: int, static: list[Observation], move: int) -> MovingFrame:
+    """A moving camera's frame of static-marker observations, as ``LiveKeyframes`` holds it."""
+    return MovingFrame(
+        camera_id, stamp_ns, np.array([o.marker_id for o in static], dtype=np.int64),
+        np.array([o.camera_T_marker for o in static]).reshape(-1, 4, 4),
+        np.array([o.alternative if o.alternative is not None else o.camera_T_marker for o in static]).reshape(-1, 4, 4),
+        np.array([o.covariance for o in static]).reshape(-1, 6, 6), move,
+    )  # fmt: skip
 
 
 class Estimator:
@@ -244,6 +256,7 @@ class Estimator:
         self._flagged: tuple[int, list[int]] = (-ANCHOR_CHECK_NS, [])  # (stamp ns, anchors flagged then)
         online_links = config.links.enabled and config.links.online and not keep_history and self.object_markers
         self.live_links = LiveLinks(config.links) if online_links else None
+        self.live_keyframes = LiveKeyframes(config.keyframes) if config.keyframes.online and not keep_history else None
 
     def seed_map(self, markers: dict[int, tuple[np.ndarray, np.ndarray]], inflate: float = 4.0) -> None:
         """Start from a saved map: each static marker gets a prior (its saved covariance x ``inflate``).
@@ -309,6 +322,8 @@ class Estimator:
                 static.append(obs)
         track.markers_seen = len(track.latest)
         if not self._camera_is_still(track, static):
+            if self.live_keyframes is not None and track.moving:
+                self.live_keyframes.hold(moving_frame(camera_id, stamp_ns, static, track.segment))
             return False
         seg = (camera_id, track.segment)
         for obs in static:
@@ -589,7 +604,9 @@ class Estimator:
             for cam in self.ended_segments(now_ns):
                 self._fold(cam, graph, remove, slotted)
         new_values = gtsam.Values(values)
-        link_keys = self._link(now_ns, graph, new_values, remove, slotted) if self.live_links is not None else set()
+        placed_keys = self._link(now_ns, graph, new_values, remove, slotted) if self.live_links is not None else set()
+        if self.live_keyframes is not None:
+            placed_keys |= self._keyframes(graph, new_values, remove, slotted)
         entering_keys = {self._camera_key(cam) for cam in entering}
         for cam, T in entering.items():
             new_values.insert(self._camera_key(cam), gtsam.Pose3(T))
@@ -623,7 +640,7 @@ class Estimator:
         # still moves far from where it was linearised.
         # A segment entering from its resected pose with settled pairs is not young: its pose is
         # already where the solve will put it.
-        fresh = [k for k in new_values.keys() if k not in entering_keys and k not in link_keys]
+        fresh = [k for k in new_values.keys() if k not in entering_keys and k not in placed_keys]
         params.force_relinearize = bool(fresh) or any(p.n < YOUNG_PAIR for ck, _, p in rebuild if ck not in entering_keys)
         result = self.isam.update(graph, new_values, params)
         if len(fresh) > 1:
@@ -665,6 +682,31 @@ class Estimator:
             added.add(key)
             self.counters.links += 1
         for key in links.trim(remove):
+            self.in_graph.discard(key)
+        return added
+
+    def _keyframes(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int], slotted: list) -> set[int]:
+        """A finished move's frames into the graph (``LiveKeyframes``), once its camera's new segment
+        is in it: placed against the current markers, new views against the camera's current and
+        folded poses; the oldest beyond ``max_live`` out. Returns the new frames' keys."""
+        live, added = self.live_keyframes, set()
+        for cid, frames in list(live.pending.items()):
+            track = self.tracks[cid]
+            current = self.camera_index.get((cid, track.segment))
+            if track.moving or track.suspect or current is None or camera_symbol(current) not in self.in_graph:
+                continue
+            del live.pending[cid]
+            seen = {int(mk) for f in frames for mk in f.ids if marker_symbol(int(mk)) in self.in_graph}
+            world_T_marker = {mk: self._pose(marker_symbol(mk)) for mk in seen}
+            own = [camera_symbol(current)] + ([self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else [])
+            before = len(live.live)
+            slotted += live.enter(graph, values, list(frames), world_T_marker, {cid: [self._pose(k) for k in own]},
+                                  self.rotation_floor_rad, self._robust)  # fmt: skip
+            entered = {kf.key for kf in list(live.live)[before:]}
+            log.info("%s: %d of its move's %d held frames entered the graph", cid, len(entered), len(frames))
+            added |= entered
+        self.counters.keyframes += len(added)
+        for key in live.trim(remove):
             self.in_graph.discard(key)
         return added
 

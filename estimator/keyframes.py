@@ -15,11 +15,15 @@ tilt leaves 3-4).
 
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
+
+Online (``LiveKeyframes``, opt-in) the daemon holds a moving camera's frames (the same gap) until
+it is still again and its new segment has entered the graph; then the move's frames join by the
+same rules, against the current estimates, and the newest ``max_live`` stay in the graph.
 """
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 import gtsam
@@ -121,12 +125,14 @@ def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) 
 def add_keyframes(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame], world_T_marker: dict[int, np.ndarray],
     segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float, robust: gtsam.noiseModel.mEstimator.Base, config: KeyframeConfig,
+    first_index: int = 0,
 ) -> list[tuple[int, MovingFrame, int]]:
     """Add each frame that ``place_frame`` can place and that is a new view (not its camera's
     segments' ``segment_poses`` nor the frame kept before it) to ``graph`` and ``values`` (in
     place): a pose ``k<i>`` and one robust factor per agreeing marker, its single-frame covariance
     plus the view's rotation floor. A move with fewer than ``config.min_frames`` such frames adds
-    none. Returns (key, frame, markers used) of the frames added."""
+    none. Keys count from ``first_index``. Returns (key, frame, markers used) of the frames added,
+    whose factors are the graph's last, in that order."""
     placed = []
     last: dict[str, np.ndarray] = {}
     for i, frame in enumerate(frames):
@@ -143,7 +149,7 @@ def add_keyframes(
     for i, frame, world_T_camera, kept, branches in placed:
         if per_move[(frame.camera_id, frame.move)] < config.min_frames:
             continue
-        key = keyframe_symbol(i)
+        key = keyframe_symbol(first_index + i)
         values.insert(key, gtsam.Pose3(world_T_camera))
         for j, T in zip(kept, branches):
             cov = frame.covariances[j].copy()
@@ -152,3 +158,62 @@ def add_keyframes(
             graph.add(gtsam.BetweenFactorPose3(key, marker_symbol(int(frame.ids[j])), gtsam.Pose3(T), noise))
         added.append((key, frame, len(kept)))
     return added
+
+
+@dataclass
+class KeyframeFactor:
+    """A live moving frame's factor; ``slot``: its index in iSAM2 once added."""
+
+    slot: int | None = None
+
+
+@dataclass
+class LiveKeyframe:
+    key: int
+    camera_id: str
+    stamp_ns: int
+    factors: list[KeyframeFactor]
+
+
+class LiveKeyframes:
+    """Online moving frames (the daemon's graph), in a fixed lag: see the module docstring."""
+
+    def __init__(self, config: KeyframeConfig) -> None:
+        self.config = config
+        self.gap_ns = int(config.min_gap_s * 1e9)
+        self.pending: dict[str, deque[MovingFrame]] = {}  # camera -> its newest frames while moving
+        self.live: deque[LiveKeyframe] = deque()
+        self.next_index = 0  # keys are never reused
+
+    def hold(self, frame: MovingFrame) -> None:
+        """Keep a moving camera's frame (two markers or more, one per ``min_gap_s``, the newest
+        ``max_live`` a camera) until its move ends."""
+        frames = self.pending.setdefault(frame.camera_id, deque(maxlen=self.config.max_live))
+        if len(frame.ids) >= 2 and (not frames or frame.stamp_ns - frames[-1].stamp_ns >= self.gap_ns):
+            frames.append(frame)
+
+    def enter(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame],
+              world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float,
+              robust: gtsam.noiseModel.mEstimator.Base) -> list[tuple[int, KeyframeFactor]]:
+        """``add_keyframes`` of a finished move's ``frames``; returns (position in ``graph``, owner)
+        of each new factor, for its slot."""
+        start = graph.size()
+        added = add_keyframes(graph, values, frames, world_T_marker, segment_poses, rotation_floor_rad, robust, self.config,
+                              first_index=self.next_index)  # fmt: skip
+        self.next_index += len(frames)
+        slotted = []
+        for key, frame, n in added:
+            owners = [KeyframeFactor() for _ in range(n)]
+            slotted += [(start + len(slotted) + j, f) for j, f in enumerate(owners)]
+            self.live.append(LiveKeyframe(key, frame.camera_id, frame.stamp_ns, owners))
+        return slotted
+
+    def trim(self, remove: list[int]) -> list[int]:
+        """Drop the oldest frames beyond ``max_live`` that are in iSAM2 (their factors' slots go
+        into ``remove``: iSAM2 drops a variable with none); returns their keys."""
+        dropped = []
+        while len(self.live) > self.config.max_live and all(f.slot is not None for f in self.live[0].factors):
+            frame = self.live.popleft()
+            remove.extend(f.slot for f in frame.factors)
+            dropped.append(frame.key)
+        return dropped

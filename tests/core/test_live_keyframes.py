@@ -1,0 +1,70 @@
+"""Online moving frames: a camera's frames while it moves join the daemon's graph as poses of their own.
+
+The wall cell of ``test_bounded_history`` (anchor 0 and markers 1-3 on the wall y = 2, cameras a
+and b): camera a pans 0.4 m along the wall in a second and a half, then stands still. Known
+answers: the move's frames enter once a's new segment is in the graph, each where a was at its
+stamp (within the cell's noise); they tighten the markers a saw on the way; the graph keeps at
+most ``max_live`` of them however often a pans.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from estimator.config import KeyframeConfig
+from estimator.graph import Estimator, marker_symbol
+from schemas.geometry import make_pose, rpy_matrix
+from tests.core.test_bounded_history import RATE, Cell, cam_pose, config
+
+PAN_S = 1.5
+
+
+def pan(cell: Cell, x0: float, x1: float) -> dict[int, np.ndarray]:
+    """Move camera a from x0 to x1 (turning 5 deg on the way and back) over PAN_S, then hold it
+    still for 2 s; returns its true pose at each frame stamp of the pan (ns -> world_T_camera)."""
+    truth = {}
+    frames = int(PAN_S * RATE)
+    for i in range(1, frames + 1):
+        s = i / frames
+        cell.poses["a"] = cam_pose(x0 + (x1 - x0) * s, make_pose(rpy_matrix(0.0, np.radians(5.0) * np.sin(np.pi * s), 0.0), [0.0, 0.0, 0.0]))
+        truth[cell.now()] = cell.poses["a"]
+        cell.run(1 / RATE)
+    cell.run(2.0)
+    return truth
+
+
+def test_a_pans_frames_enter_where_the_camera_was_and_tighten_the_markers() -> None:
+    results = {}
+    for online in (True, False):
+        cell = Cell(Estimator(config(keyframes=KeyframeConfig(online=online))), seed=4)
+        cell.run(2.0)
+        truth = pan(cell, 0.3, 0.7)
+        results[online] = (cell.est, truth)
+    est, truth = results[True]
+    plain = results[False][0]
+    assert plain.live_keyframes is None and plain.counters.keyframes == 0
+    # 45 frames of the pan, one kept per 0.1 s (min_gap_s): ~15, less those that are not new views.
+    assert KeyframeConfig().min_frames <= est.counters.keyframes <= PAN_S * 10 + 1
+    assert len(est.live_keyframes.live) == est.counters.keyframes
+    values = est.isam.calculateEstimate()
+    for kf in est.live_keyframes.live:
+        T, true = values.atPose3(kf.key).matrix(), truth[kf.stamp_ns]
+        d = T[:3, :3].T @ (T[:3, 3] - true[:3, 3])  # gtsam's pose covariance is in the body frame, rotation first
+        cov = est.isam.marginalCovariance(kf.key)[3:, 3:]
+        assert d @ np.linalg.solve(cov, d) <= 16.27, f"frame at {kf.stamp_ns} ns is {1e3 * d} mm off"  # 3 dof, 99.9 %
+    # The pan's views add information on the markers a saw (marker 3: seen by both, never an anchor).
+    ratio = {mk: np.trace(est.isam.marginalCovariance(marker_symbol(mk))[3:, 3:]) / np.trace(plain.isam.marginalCovariance(marker_symbol(mk))[3:, 3:])
+             for mk in (1, 2, 3)}  # fmt: skip
+    assert all(r < 0.95 for r in ratio.values()), ratio
+
+
+def test_pans_leave_at_most_max_live_frames_in_the_graph() -> None:
+    cell = Cell(Estimator(config(keyframes=KeyframeConfig(online=True, max_live=20))), seed=5)
+    cell.run(2.0)
+    for i in range(6):
+        pan(cell, 0.3 if i % 2 == 0 else 0.7, 0.7 if i % 2 == 0 else 0.3)
+    est = cell.est
+    assert est.counters.keyframes > 40 and len(est.live_keyframes.live) <= 20
+    held = [k for k in est.isam.calculateEstimate().keys() if gtsam.Symbol(k).chr() == ord("k")]
+    assert len(held) == len(est.live_keyframes.live), "a dropped frame's variable must leave iSAM2 with its factors"
