@@ -322,7 +322,7 @@ class Estimator:
                 static.append(obs)
         track.markers_seen = len(track.latest)
         if not self._camera_is_still(track, static):
-            if self.live_keyframes is not None and track.moving:
+            if self.live_keyframes is not None and track.moving and self.live_keyframes.due(camera_id, stamp_ns):
                 self.live_keyframes.hold(moving_frame(camera_id, stamp_ns, static, track.segment))
             return False
         seg = (camera_id, track.segment)
@@ -699,12 +699,11 @@ class Estimator:
             seen = {int(mk) for f in frames for mk in f.ids if marker_symbol(int(mk)) in self.in_graph}
             world_T_marker = {mk: self._pose(marker_symbol(mk)) for mk in seen}
             own = [camera_symbol(current)] + ([self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else [])
-            before = len(live.live)
-            slotted += live.enter(graph, values, list(frames), world_T_marker, {cid: [self._pose(k) for k in own]},
-                                  self.rotation_floor_rad, self._robust)  # fmt: skip
-            entered = {kf.key for kf in list(live.live)[before:]}
+            owners, entered = live.enter(graph, values, list(frames), world_T_marker, {cid: [self._pose(k) for k in own]},
+                                         self.rotation_floor_rad, self._robust)  # fmt: skip
+            slotted += owners
             log.info("%s: %d of its move's %d held frames entered the graph", cid, len(entered), len(frames))
-            added |= entered
+            added.update(entered)
         self.counters.keyframes += len(added)
         for key in live.trim(remove):
             self.in_graph.discard(key)

@@ -185,18 +185,23 @@ class LiveKeyframes:
         self.live: deque[LiveKeyframe] = deque()
         self.next_index = 0  # keys are never reused
 
+    def due(self, camera_id: str, stamp_ns: int) -> bool:
+        """Would a frame of this camera at ``stamp_ns`` be held (``min_gap_s`` since the last)?
+        Asked first, so the frames in between are never built."""
+        frames = self.pending.get(camera_id)
+        return not frames or stamp_ns - frames[-1].stamp_ns >= self.gap_ns
+
     def hold(self, frame: MovingFrame) -> None:
         """Keep a moving camera's frame (two markers or more, one per ``min_gap_s``, the newest
         ``max_live`` a camera) until its move ends."""
-        frames = self.pending.setdefault(frame.camera_id, deque(maxlen=self.config.max_live))
-        if len(frame.ids) >= 2 and (not frames or frame.stamp_ns - frames[-1].stamp_ns >= self.gap_ns):
-            frames.append(frame)
+        if len(frame.ids) >= 2 and self.due(frame.camera_id, frame.stamp_ns):
+            self.pending.setdefault(frame.camera_id, deque(maxlen=self.config.max_live)).append(frame)
 
     def enter(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame],
               world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float,
-              robust: gtsam.noiseModel.mEstimator.Base) -> list[tuple[int, KeyframeFactor]]:
+              robust: gtsam.noiseModel.mEstimator.Base) -> tuple[list[tuple[int, KeyframeFactor]], list[int]]:
         """``add_keyframes`` of a finished move's ``frames``; returns (position in ``graph``, owner)
-        of each new factor, for its slot."""
+        of each new factor, for its slot, and the new frames' keys."""
         start = graph.size()
         added = add_keyframes(graph, values, frames, world_T_marker, segment_poses, rotation_floor_rad, robust, self.config,
                               first_index=self.next_index)  # fmt: skip
@@ -206,7 +211,7 @@ class LiveKeyframes:
             owners = [KeyframeFactor() for _ in range(n)]
             slotted += [(start + len(slotted) + j, f) for j, f in enumerate(owners)]
             self.live.append(LiveKeyframe(key, frame.camera_id, frame.stamp_ns, owners))
-        return slotted
+        return slotted, [key for key, _, _ in added]
 
     def trim(self, remove: list[int]) -> list[int]:
         """Drop the oldest frames beyond ``max_live`` that are in iSAM2 (their factors' slots go

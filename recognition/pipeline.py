@@ -20,7 +20,7 @@ import open3d as o3d
 from open3d.core import nns
 
 from recognition.align import (
-    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
+    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z, views_to_scene,
 )
 from recognition.cloud import estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
@@ -432,12 +432,9 @@ def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndar
     plane_T_yaw0 = np.column_stack([away, np.cross(n, away), n])
     lo, hi = model_points.min(axis=0), model_points.max(axis=0)
     base = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    yaws = np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG))
-    c, s = np.cos(yaws), np.sin(yaws)
-    Rz = np.zeros((len(yaws), 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-    R = plane_T_yaw0 @ Rz
-    out = np.tile(np.eye(4), (2, len(yaws), 1, 1))
+    R = plane_T_yaw0 @ np.stack([rot_z(yaw) for yaw in np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG))])
+    n_yaws = len(R)
+    out = np.tile(np.eye(4), (2, n_yaws, 1, 1))
     out[:, :, :3, :3] = R
     for i, back in enumerate((0.0, 0.5 * min(hi[0] - lo[0], hi[1] - lo[1]))):
         out[i, :, :3, 3] = foot + back * away - R @ base
