@@ -122,6 +122,12 @@ class RecognitionConfig(BaseModel):
         "icp_distance_m behind it, i.e. inside the table (simulated true detections: 0 over 104; a crate posed into "
         "a tote and the table: 0.016, 0.02)",
     )
+    max_float_m: float = Field(
+        default=0.02, ge=0,
+        description="objects rest on a level support or on another object found under them: a detection whose lowest "
+        "point is more than this above both is rejected; applies once the camera's world pose is known (0: off; "
+        "simulated false detections: totes fitted over a crate's top, 3-4 cm up)",
+    )
     min_fitness_shared: float = Field(
         default=0.8, ge=0, le=1, description="fitness that accepts a match covering only part of a cluster (touching objects)"
     )

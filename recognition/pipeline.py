@@ -12,7 +12,7 @@ no match explained, and only verification accepts it.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -229,20 +229,33 @@ class Recognizer:
         cluster_found: dict[str, int | None] = {}  # object -> the cluster its part came from (None: a prior's)
         taken: set[int] = set()
         explained = Explained()
-        for (p, det), v in zip(candidates, verdicts):
-            if p in taken or det.object_id in found:
-                continue
-            if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support
-                                      and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
-                                      and v.penetration <= c.max_penetration and explained.admit(v)):  # fmt: skip
-                log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible pixels, "
-                          "%d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a support %.3f",
-                          det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations, v.clutter,
-                          v.outline_seen, v.outline, v.penetration)  # fmt: skip
-                continue
-            taken.add(p)
-            found[det.object_id] = det
-            cluster_found[det.object_id] = cluster_of.get(p)
+        # Objects rest on the support or on an object found under them (``_rests``): one that does
+        # not yet waits for another pass, in case what it stands on is found after it.
+        pending = list(zip(candidates, verdicts))
+        while pending:
+            waiting, before = [], len(found)
+            for (p, det), v in pending:
+                if p in taken or det.object_id in found:
+                    continue
+                if support is not None and c.max_float_m > 0 and not self._rests(det, found.values(), support):
+                    waiting.append(((p, det), v))
+                    continue
+                if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support
+                                          and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
+                                          and v.penetration <= c.max_penetration and explained.admit(v)):  # fmt: skip
+                    log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
+                              "pixels, %d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a "
+                              "support %.3f", det.object_id, v.fitness, v.support, v.inliers, v.visible, v.violations,
+                              v.clutter, v.outline_seen, v.outline, v.penetration)  # fmt: skip
+                    continue
+                taken.add(p)
+                found[det.object_id] = det
+                cluster_found[det.object_id] = cluster_of.get(p)
+            if len(found) == before:
+                for (_, det), _ in waiting:
+                    log.debug("%s rejected: it floats above the support with nothing found under it", det.object_id)
+                break
+            pending = waiting
         # A match explaining only part of its cluster was kept for touching objects: it stands only
         # if another object was found in the same cluster. Alone, it is a shape that fits a piece of
         # some larger unknown surface (a carton's faces on a person, on a cabinet).
@@ -396,6 +409,34 @@ class Recognizer:
         _, _, counts = index.hybrid_search(o3d.core.Tensor(placed.reshape(-1, 3).astype(np.float32)), r, 1)
         hits = (counts.numpy().reshape(len(poses), -1) > 0) & facing
         return np.argsort(-hits.sum(axis=1) / np.maximum(facing.sum(axis=1), 1), kind="stable")
+
+    def _rests(self, det: Detection, found: Iterable[Detection], support: np.ndarray) -> bool:
+        """Whether a detection's lowest point is within max_float_m of the support plane (a, b, c, d;
+        unit normal up, camera frame), or of the top of a found detection whose footprint it overlaps.
+
+        Nothing in a cell hovers: a pose that fits a surface with its base in the air has fitted the
+        wrong surface (a tote fitted over a smaller crate's top).
+        """
+        base, top, centre, radius = self._extent(det, support)
+        if base <= self.config.max_float_m:
+            return True
+        for other in found:
+            _, other_top, other_centre, other_radius = self._extent(other, support)
+            if abs(other_top - base) <= self.config.max_float_m and np.linalg.norm(centre - other_centre) < radius + other_radius:
+                return True
+        return False
+
+    def _extent(self, det: Detection, support: np.ndarray) -> tuple[float, float, np.ndarray, float]:
+        """A posed model's lowest and highest height above the support (m), its centre projected on
+        the support (3,) and its radius along it (m)."""
+        model = self.db.models[det.object_id]
+        T = det.camera_T_object
+        points = model.points @ T[:3, :3].T + T[:3, 3]
+        n, d = support[:3], support[3]
+        heights = points @ n + d
+        along = points - np.outer(heights, n)
+        centre = along.mean(axis=0)
+        return float(heights.min()), float(heights.max()), centre, float(np.linalg.norm(along - centre, axis=1).max())
 
     def _explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Mask (N,) of the cluster points (N, 3), camera frame, within icp_distance_m of the posed model."""

@@ -300,6 +300,45 @@ def test_objects_standing_together_are_found_in_their_merged_cluster() -> None:
         assert np.linalg.norm(det.camera_T_object[:3, 3] - truth[oid][:3, 3]) < 0.02, oid
 
 
+def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
+    """Nothing in a cell hovers. The tote stacked on the crate is found with it (it rests on the
+    found crate); the same tote pose with nothing found under it, 14 cm above the table, is
+    rejected; lowered onto the table it rests."""
+    from cellsight.model_build import database_from_scenario
+    from drivers.sim.render import SimCell
+    from drivers.sim.scenario import load_scenario
+    from recognition.pipeline import Detection, _support
+    from schemas.spec import PoseSpec
+
+    scenario = load_scenario()
+    where = {"crate": (0.0, 0.0, 0.75, 0.0), "can": (0.25, 0.2, 0.75, 0.0), "tote": (0.02, 0.01, 0.89, 20.0)}  # x, y, z (m), yaw (deg)
+    objects = [o.model_copy(update={"pose": PoseSpec(position=where[o.id][:3], rpy_deg=(0.0, 0.0, where[o.id][3])),
+                                    "motion": o.motion.model_copy(update={"kind": "static"})}) for o in scenario.objects]  # fmt: skip
+    scenario = scenario.model_copy(update={"objects": objects})
+    cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
+    recognizer = Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
+    frame = SimCell(scenario).render("cam4", 0.0, 0)  # sees the crate's sides under the tote
+    cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
+    truth = {o.id: invert_pose(frame.world_T_camera) @ o.world_T_object(0.0) for o in objects}
+    found = {d.object_id: d for d in recognizer.recognize(cloud, world_T_camera=frame.world_T_camera)}
+    assert set(found) == set(truth)
+    for oid, det in found.items():
+        assert np.linalg.norm(det.camera_T_object[:3, 3] - truth[oid][:3, 3]) < 0.02, oid
+    support = _support(recognizer.prepare(cloud, frame.world_T_camera).planes, frame.world_T_camera[2, :3])
+    assert support is not None
+
+    def posed(oid: str, world_T_object: np.ndarray) -> Detection:
+        return Detection(oid, invert_pose(frame.world_T_camera) @ world_T_object, 1.0, 1.0, 0.0, 1000)
+
+    world_T = {o.id: o.world_T_object(0.0) for o in objects}
+    tote_up, crate = posed("tote", world_T["tote"]), posed("crate", world_T["crate"])
+    assert recognizer._rests(tote_up, [crate], support)
+    assert not recognizer._rests(tote_up, [], support)
+    assert not recognizer._rests(tote_up, [posed("can", world_T["can"])], support)  # not under it
+    down = world_T["tote"] @ make_pose(t=(0.0, 0.0, -0.14))
+    assert recognizer._rests(posed("tote", down), [], support)
+
+
 def test_standing_starts_put_the_base_on_the_support_below_the_piece() -> None:
     """Every start stands the object upright on the plane (its +z the plane's normal, the centre of
     its lowest points on the plane), under the piece's centroid or half its width further from the
