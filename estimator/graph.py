@@ -48,7 +48,7 @@ from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.pairs import Pair, factors_current, fold_rows, pair_means
 from estimator.resect import resect
 from estimator.symbols import camera_symbol, marker_symbol
-from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq
+from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, pose_retract
 
 log = logging.getLogger(__name__)
 K = TypeVar("K")
@@ -190,14 +190,19 @@ class History:
     segments: int = 0  # segments folded into it
 
 
-def fuse_measurements(a: HistoryFactor, b: HistoryFactor) -> HistoryFactor:
-    """Information-weighted mean of two camera_T_marker measurements of one marker (one
-    Gauss-Newton step on SE(3) from ``a``; covariances in the marker frame, where a pose's left
-    composition leaves them unchanged)."""
-    info_a, info_b = np.linalg.inv(cov_ros_to_gtsam(a.covariance)), np.linalg.inv(cov_ros_to_gtsam(b.covariance))
+def fuse_measurements(a: list[HistoryFactor], b: list[HistoryFactor]) -> list[HistoryFactor]:
+    """Information-weighted means of pairs of camera_T_marker measurements, a[i] and b[i] of one
+    marker: one Gauss-Newton step from each ``a`` in its own frame (``pose_difference``: the
+    tangent its covariance is in, to first order; the two measurements differ by millimetres).
+    Covariances in the marker frame, where a pose's left composition leaves them unchanged. All
+    pairs in one batch: a fold fuses every marker its camera saw before and after a move."""
+    if not a:
+        return []
+    T_a, T_b = np.array([f.mean for f in a]), np.array([f.mean for f in b])
+    info_a, info_b = np.linalg.inv(np.array([f.covariance for f in a])), np.linalg.inv(np.array([f.covariance for f in b]))
     cov = np.linalg.inv(info_a + info_b)
-    d = gtsam.Pose3.Logmap(gtsam.Pose3(a.mean).between(gtsam.Pose3(b.mean)))
-    return HistoryFactor(gtsam.Pose3(a.mean).compose(gtsam.Pose3.Expmap(cov @ info_b @ d)).matrix(), cov_gtsam_to_ros(cov))
+    step = np.einsum("sij,sjk,sk->si", cov, info_b, pose_difference(T_a, T_b))
+    return [HistoryFactor(T, C) for T, C in zip(pose_retract(T_a, step), cov)]
 
 
 def moving_frame(camera_id: str, stamp_ns: int, static: list[Observation], move: int) -> MovingFrame:
@@ -563,16 +568,14 @@ class Estimator:
         old = self.history.get(cam[0])
         if old is not None and old.key in self.in_graph:
             here_T_old = invert_pose(self._pose(ck)) @ self._pose(old.key)
-            for mk, f in old.factors.items():
-                if f.slot is not None:
-                    remove.append(f.slot)
-                moved = HistoryFactor(here_T_old @ f.mean, f.covariance)
-                if mk in factors:
-                    if factors[mk].slot is not None:
-                        remove.append(factors[mk].slot)
-                    moved = fuse_measurements(factors[mk], moved)
-                built.pop(mk, None)  # the fused factor replaces it
-                factors[mk] = moved
+            moved = {mk: HistoryFactor(here_T_old @ f.mean, f.covariance) for mk, f in old.factors.items()}
+            remove.extend(f.slot for f in old.factors.values() if f.slot is not None)
+            both = [mk for mk in moved if mk in factors]
+            remove.extend(factors[mk].slot for mk in both if factors[mk].slot is not None)
+            moved.update(zip(both, fuse_measurements([factors[mk] for mk in both], [moved[mk] for mk in both])))
+            for mk in moved:
+                built.pop(mk, None)  # the moved or fused factor replaces it
+            factors.update(moved)
             self.in_graph.discard(old.key)  # iSAM2 drops a variable whose factors are all removed
         if not factors:
             self.in_graph.discard(ck)

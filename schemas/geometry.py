@@ -223,9 +223,11 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 
 
 def cov_ros_to_gtsam(cov: np.ndarray) -> np.ndarray:
-    """Reorder a 6x6 covariance from ROS (x y z rx ry rz) to gtsam Pose3 tangent (rx ry rz x y z)."""
-    cov = np.asarray(cov, dtype=np.float64).reshape(6, 6)
-    return cov[np.ix_(ROS_TO_GTSAM, ROS_TO_GTSAM)]
+    """Reorder 6x6 covariances (..., 6, 6) from ROS (x y z rx ry rz) to gtsam Pose3 tangent (rx ry rz x y z)."""
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.shape[-2:] != (6, 6):
+        cov = cov.reshape(6, 6)
+    return cov[..., ROS_TO_GTSAM, :][..., ROS_TO_GTSAM]
 
 
 def cov_gtsam_to_ros(cov: np.ndarray) -> np.ndarray:
@@ -255,3 +257,19 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     scale = np.where(s > 1e-300, angle / np.maximum(s, 1e-300), 1.0)
     t = (RaT @ (T_b[..., :3, 3] - T_a[..., :3, 3])[..., None])[..., 0]
     return np.concatenate([t, w * scale[..., None]], axis=-1)
+
+
+def pose_retract(T_a: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Poses (..., 4, 4) ``T_a`` moved by tangent vectors ``d`` (..., 6) in ROS order in a's own
+    frame, the inverse of ``pose_difference``: rotation R_a exp(d_rot), translation t_a + R_a d_t."""
+    w = np.asarray(d[..., 3:], dtype=np.float64)
+    angle = np.sqrt(np.einsum("...i,...i->...", w, w))[..., None, None]
+    K = skew(w)
+    small = angle < 1e-8  # series terms: sin(a)/a -> 1, (1 - cos(a))/a^2 -> 1/2
+    a = np.where(small, 1.0, angle)
+    R = np.eye(3) + np.where(small, 1.0, np.sin(a) / a) * K + np.where(small, 0.5, (1.0 - np.cos(a)) / a**2) * (K @ K)
+    out = np.array(T_a, dtype=np.float64, copy=True)
+    out[..., :3, :3] = T_a[..., :3, :3] @ R
+    out[..., :3, 3] = T_a[..., :3, 3] + (T_a[..., :3, :3] @ d[..., :3, None])[..., 0]
+    return out
+

@@ -163,3 +163,22 @@ def test_restart_from_the_persisted_map_after_many_moves() -> None:
     e = fresh.estimate(restarted.now())
     for cid in ("a", "b"):
         assert_pose_close(e.cameras[cid].pose.T, cell.poses[cid], 0.002, 0.2, f"{cid} after restart")
+
+
+def test_fused_measurement_is_the_information_weighted_mean() -> None:
+    """Two measurements of one camera_T_marker a step d apart: with equal covariances the fused one
+    lies half way (d / 2 from the first) with half the covariance; with the second a million
+    times less certain, it stays on the first."""
+    from estimator.graph import HistoryFactor, fuse_measurements
+    from schemas.geometry import pose_difference, pose_retract
+
+    rng = np.random.default_rng(4)
+    a = np.array([cam_pose(x) for x in rng.uniform(-1, 1, 5)])
+    d = np.concatenate([rng.normal(scale=0.003, size=(5, 3)), rng.normal(scale=0.005, size=(5, 3))], axis=1)
+    b = pose_retract(a, d)
+    even = fuse_measurements([HistoryFactor(T, COV) for T in a], [HistoryFactor(T, COV) for T in b])
+    np.testing.assert_allclose(pose_difference(a, np.array([f.mean for f in even])), d / 2, atol=1e-12)
+    np.testing.assert_allclose(np.array([f.covariance for f in even]), np.broadcast_to(COV / 2, (5, 6, 6)), rtol=1e-9)
+    lopsided = fuse_measurements([HistoryFactor(T, COV) for T in a], [HistoryFactor(T, 1e6 * COV) for T in b])
+    np.testing.assert_allclose(pose_difference(a, np.array([f.mean for f in lopsided])), d * 1e-6, atol=1e-12)
+    assert fuse_measurements([], []) == []

@@ -40,6 +40,27 @@ def test_pose_difference_is_gtsams_local_rotation_and_body_translation() -> None
         np.testing.assert_allclose(xi[:3], a[:3, :3].T @ (b[:3, 3] - a[:3, 3]), atol=1e-12)
 
 
+def test_pose_retract_undoes_pose_difference_and_matches_gtsams_rotation_expmap() -> None:
+    rng = np.random.default_rng(2)
+    a = np.array([random_pose(rng, rng.uniform(0, 3)) for _ in range(20)])
+    d = np.concatenate([rng.normal(scale=0.1, size=(20, 3)), rng.normal(scale=0.5, size=(20, 3))], axis=1)
+    d[0, 3:] = 1e-12  # the small-angle series
+    moved = geometry.pose_retract(a, d)
+    np.testing.assert_allclose(geometry.pose_difference(a, moved), d, atol=1e-9)
+    for T, x, m in zip(a, d, moved):
+        np.testing.assert_allclose(m[:3, :3], T[:3, :3] @ gtsam.Rot3.Expmap(x[3:]).matrix(), atol=1e-12)
+
+
+def test_cov_reorder_batches_and_is_its_own_inverse() -> None:
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(5, 6, 6))
+    one = np.array([geometry.cov_ros_to_gtsam(c) for c in A])
+    np.testing.assert_array_equal(geometry.cov_ros_to_gtsam(A), one)
+    np.testing.assert_array_equal(one[2][:3, :3], A[2][3:, 3:])  # rotation block first in gtsam's order
+    np.testing.assert_array_equal(geometry.cov_gtsam_to_ros(geometry.cov_ros_to_gtsam(A)), A)
+    np.testing.assert_array_equal(geometry.cov_ros_to_gtsam(A[0].ravel()), one[0])
+
+
 def test_mahalanobis_of_a_sigma_step_is_one_and_batches() -> None:
     cov = np.diag([4.0, 1.0, 9.0])
     d = np.array([[2.0, 0, 0], [0, 1.0, 0], [0, 0, 3.0]])
