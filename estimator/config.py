@@ -92,6 +92,13 @@ class EstimatorConfig(BaseModel):
         "checks, and relinearising them re-eliminated most of its Bayes tree (64 cameras, 1,000 markers: ~500 of "
         "1,064 variables every 10 updates); 0.005 (0.3 deg, 5 mm) left benchmarks.estimator_accuracy unchanged",
     )
+    reorder_fill: float = Field(
+        default=1.5, ge=0,
+        description="iSAM2 re-orders every variable in one batch once its Bayes tree's fill-in grows past this multiple "
+        "of the last batch's (0: never). An update orders only the variables it touches, so in a cell whose cameras "
+        "keep moving the tree degrades: 16 cameras and 250 markers after 25 moves, one refreshed factor cost 4.0 ms "
+        "(0.6 ms in a freshly ordered tree); with 1.5, update p99 15 -> 5.3 ms, a batch taking 5-10 ms",
+    )
     refresh_s: float = Field(default=1.0, gt=0, description="how often a fused pair factor is replaced")
     refresh_sigma: float = Field(
         default=0.05, ge=0,

@@ -168,6 +168,7 @@ class Counters:
     last_update_rebuilt: int = 0  # pair factors that call rebuilt
     links: int = 0  # object-marker instants that entered the graph (``LiveLinks``)
     keyframes: int = 0  # moving frames that entered the graph (``LiveKeyframes``)
+    reorders: int = 0  # updates in which iSAM2 re-ordered every variable (``reorder_fill``)
 
 
 @dataclass
@@ -229,6 +230,8 @@ class Estimator:
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = RELINEARIZE_SKIP
         params.findUnusedFactorSlots = True  # refreshed pair factors reuse their slots
+        params.enableAdaptiveReorder = config.reorder_fill > 0
+        params.adaptiveReorderThreshold = config.reorder_fill or 2.0
         self.isam = gtsam.ISAM2(params)
         self.anchors = {a.marker_id: a.world_T_marker.matrix() for a in config.anchors}
         self.object_markers = set(config.object_markers)
@@ -646,6 +649,7 @@ class Estimator:
         fresh = [k for k in new_values.keys() if k not in entering_keys and k not in placed_keys]
         params.force_relinearize = bool(fresh) or any(p.n < YOUNG_PAIR for ck, _, p in rebuild if ck not in entering_keys)
         result = self.isam.update(graph, new_values, params)
+        self.counters.reorders += int(result.getBatchReorderTriggered())
         if len(fresh) > 1:
             # New variables start from BFS guesses: let them settle like a batch solve. One alone (a
             # camera's new segment after a move) is placed from its own markers and converges with
