@@ -417,7 +417,7 @@ class Recognizer:
         Nothing in a cell hovers: a pose that fits a surface with its base in the air has fitted the
         wrong surface (a tote fitted over a smaller crate's top).
         """
-        base, top, centre, radius = self._extent(det, support)
+        base, _, centre, radius = self._extent(det, support)
         if base <= self.config.max_float_m:
             return True
         for other in found:
