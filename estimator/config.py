@@ -32,6 +32,11 @@ class KeyframeConfig(BaseModel):
         "(measured: see docs/performance.md, online_keyframes_over_without_max)",
     )
     max_live: int = Field(default=60, ge=1, description="online: the newest this many moving frames stay in the graph, older ones leave it")
+    lag_s: float = Field(
+        default=2.0, ge=0,
+        description="online: a camera still moving enters its held frames once they are this old, min_frames at a time (a "
+        "camera on an arm never stops; 0: only when its move ends)",
+    )
     min_gap_s: float = Field(default=0.1, gt=0, description="at most one frame per camera this often")
     max_frames: int = Field(default=2000, ge=1, description="past this, every other kept frame is dropped and the gap doubles")
     new_view_deg: float = Field(

@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Generic, TypeVar
@@ -612,7 +612,7 @@ class Estimator:
         new_values = gtsam.Values(values)
         placed_keys = self._link(now_ns, graph, new_values, remove, slotted) if self.live_links is not None else set()
         if self.live_keyframes is not None:
-            placed_keys |= self._keyframes(graph, new_values, remove, slotted)
+            placed_keys |= self._keyframes(now_ns, graph, new_values, remove, slotted)
         entering_keys = {self._camera_key(cam) for cam in entering}
         for cam, T in entering.items():
             new_values.insert(self._camera_key(cam), gtsam.Pose3(T))
@@ -692,20 +692,31 @@ class Estimator:
             self.in_graph.discard(key)
         return added
 
-    def _keyframes(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int], slotted: list) -> set[int]:
-        """A finished move's frames into the graph (``LiveKeyframes``), once its camera's new segment
-        is in it: placed against the current markers, new views against the camera's current and
-        folded poses; the oldest beyond ``max_live`` out. Returns the new frames' keys."""
+    def _keyframes(self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int],
+                   slotted: list) -> set[int]:  # fmt: skip
+        """A move's frames into the graph (``LiveKeyframes``): a finished move's once its camera's
+        new segment is in it, a camera still moving those ``lag_s`` old (``min_frames`` at least);
+        placed against the current markers, new views against the camera's current and folded
+        poses; the oldest beyond ``max_live`` out. Returns the new frames' keys."""
         live, added = self.live_keyframes, set()
+        lag_ns = int(live.config.lag_s * 1e9)
         for cid, frames in list(live.pending.items()):
             track = self.tracks[cid]
             current = self.camera_index.get((cid, track.segment))
-            if track.moving or track.suspect or current is None or camera_symbol(current) not in self.in_graph:
+            placed = current is not None and camera_symbol(current) in self.in_graph
+            if track.moving or track.suspect:
+                ripe = sum(1 for f in frames if now_ns - f.stamp_ns >= lag_ns)
+                if lag_ns == 0 or ripe < live.config.min_frames:
+                    continue
+                frames = deque(frames.popleft() for _ in range(ripe))  # the rest wait for their turn
+            elif placed:
+                del live.pending[cid]
+            else:
                 continue
-            del live.pending[cid]
             seen = {int(mk) for f in frames for mk in f.ids if marker_symbol(int(mk)) in self.in_graph}
             world_T_marker = {mk: self._pose(marker_symbol(mk)) for mk in seen}
-            own = [camera_symbol(current)] + ([self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else [])
+            own = ([camera_symbol(current)] if placed else []) + (
+                [self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else [])
             owners, entered = live.enter(graph, values, list(frames), world_T_marker, {cid: [self._pose(k) for k in own]},
                                          self.rotation_floor_rad, self._robust)  # fmt: skip
             slotted += owners

@@ -17,8 +17,9 @@ Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``m
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
 
 Online (``LiveKeyframes``, opt-in) the daemon holds a moving camera's frames (the same gap) until
-it is still again and its new segment has entered the graph; then the move's frames join by the
-same rules, against the current estimates, and the newest ``max_live`` stay in the graph.
+it is still again and its new segment has entered the graph, or until they are ``lag_s`` old for a
+camera that keeps moving; then they join by the same rules, against the current estimates, and
+the newest ``max_live`` stay in the graph.
 """
 
 from __future__ import annotations
@@ -184,6 +185,7 @@ class LiveKeyframes:
         self.pending: dict[str, deque[MovingFrame]] = {}  # camera -> its newest frames while moving
         self.live: deque[LiveKeyframe] = deque()
         self.next_index = 0  # keys are never reused
+        self._move_entered: dict[str, tuple[int, int]] = {}  # camera -> (its latest move, frames of it entered)
 
     def due(self, camera_id: str, stamp_ns: int) -> bool:
         """Would a frame of this camera at ``stamp_ns`` be held (``min_gap_s`` since the last)?
@@ -200,18 +202,32 @@ class LiveKeyframes:
     def enter(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame],
               world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float,
               robust: gtsam.noiseModel.mEstimator.Base) -> tuple[list[tuple[int, KeyframeFactor]], list[int]]:
-        """``add_keyframes`` of a finished move's ``frames``; returns (position in ``graph``, owner)
-        of each new factor, for its slot, and the new frames' keys."""
-        start = graph.size()
-        added = add_keyframes(graph, values, frames, world_T_marker, segment_poses, rotation_floor_rad, robust, self.config,
-                              first_index=self.next_index)  # fmt: skip
-        self.next_index += len(frames)
-        slotted = []
-        for key, frame, n in added:
-            owners = [KeyframeFactor() for _ in range(n)]
-            slotted += [(start + len(slotted) + j, f) for j, f in enumerate(owners)]
-            self.live.append(LiveKeyframe(key, frame.camera_id, frame.stamp_ns, owners))
-        return slotted, [key for key, _, _ in added]
+        """``add_keyframes`` of one camera's ``frames`` (a finished move's, or the older ones of a
+        move still going on), move by move; returns (position in ``graph``, owner) of each new
+        factor, for its slot, and the new frames' keys. A move that already gave ``min_frames``
+        has shown it is one: its later frames join however few (a camera on an arm passes turning
+        points where few frames are new views)."""
+        slotted, keys = [], []
+        for move in dict.fromkeys(f.move for f in frames):  # in order
+            group = [f for f in frames if f.move == move]
+            cid = group[0].camera_id
+            entered_move, entered = self._move_entered.get(cid, (-1, 0))
+            known = entered_move == move and entered >= self.config.min_frames
+            config = self.config.model_copy(update={"min_frames": 1}) if known else self.config
+            start = graph.size()
+            added = add_keyframes(graph, values, group, world_T_marker, segment_poses, rotation_floor_rad, robust, config,
+                                  first_index=self.next_index)  # fmt: skip
+            self.next_index += len(group)
+            if added:
+                self._move_entered[cid] = (move, (entered if entered_move == move else 0) + len(added))
+            position = start
+            for key, frame, n in added:
+                owners = [KeyframeFactor() for _ in range(n)]
+                slotted += [(position + j, f) for j, f in enumerate(owners)]
+                position += n
+                self.live.append(LiveKeyframe(key, frame.camera_id, frame.stamp_ns, owners))
+                keys.append(key)
+        return slotted, keys
 
     def trim(self, remove: list[int]) -> list[int]:
         """Drop the oldest frames beyond ``max_live`` that are in iSAM2 (their factors' slots go

@@ -68,3 +68,34 @@ def test_pans_leave_at_most_max_live_frames_in_the_graph() -> None:
     assert est.counters.keyframes > 40 and len(est.live_keyframes.live) <= 20
     held = [k for k in est.isam.calculateEstimate().keys() if gtsam.Symbol(k).chr() == ord("k")]
     assert len(held) == len(est.live_keyframes.live), "a dropped frame's variable must leave iSAM2 with its factors"
+
+
+def test_a_camera_that_never_stops_enters_its_frames_after_the_lag() -> None:
+    """Camera a slides to and fro along the wall at 0.3 m/s for 8 s without ever settling (a
+    camera on an arm): with ``lag_s`` its frames enter while it moves, each where a was at its stamp, and at
+    most ``max_live`` stay; with lag 0 none enter until it stops."""
+    entered = {}
+    for lag in (0.0, 1.0):
+        cell = Cell(Estimator(config(keyframes=KeyframeConfig(online=True, lag_s=lag, max_live=30))), seed=6)
+        cell.run(2.0)
+        truth = {}
+        for i in range(8 * RATE):
+            travel = 0.3 * (i + 1) / RATE % 1.2  # 0.6 m out and back
+            cell.poses["a"] = cam_pose(0.3 + min(travel, 1.2 - travel), make_pose(rpy_matrix(0.0, np.radians(3.0), 0.0), [0.0, 0.0, 0.0]))
+            truth[cell.now()] = cell.poses["a"]
+            cell.run(1 / RATE)
+        assert cell.est.tracks["a"].moving and cell.est.tracks["a"].segment == 0, "a must move all along for this test to mean anything"
+        entered[lag] = cell.est.counters.keyframes
+        if lag == 0.0:
+            continue
+        est = cell.est
+        assert len(est.live_keyframes.live) <= 30
+        values = est.isam.calculateEstimate()
+        for kf in est.live_keyframes.live:
+            T, true = values.atPose3(kf.key).matrix(), truth[kf.stamp_ns]
+            d = T[:3, :3].T @ (T[:3, 3] - true[:3, 3])
+            cov = est.isam.marginalCovariance(kf.key)[3:, 3:]
+            assert d @ np.linalg.solve(cov, d) <= 16.27, f"frame at {kf.stamp_ns} ns is {1e3 * d} mm off"  # 3 dof, 99.9 %
+    assert entered[0.0] == 0
+    # 8 s at one frame per 0.1 s (3 cm apart: new views), the last second still held: ~70
+    assert entered[1.0] >= 60, entered
