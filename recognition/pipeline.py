@@ -6,7 +6,8 @@ coverage and RMSE -> verify against the whole frame from the camera's viewpoint
 (``recognition.verify``). A marker on an object, when seen, names it and gives ICP its starting pose.
 Objects standing so close that they share a cluster (and hide parts of each other) are found a
 second way when the camera's pose is known: each is stood upright on the table at pieces of what
-no match explained, and only verification accepts it.
+no match explained, and only verification accepts it. With the pose known, nothing hovers: a
+detection must rest on the table or on an object found under it.
 """
 
 from __future__ import annotations
