@@ -418,26 +418,31 @@ class Recognizer:
         Nothing in a cell hovers: a pose that fits a surface with its base in the air has fitted the
         wrong surface (a tote fitted over a smaller crate's top).
         """
-        base, _, centre, radius = self._extent(det, support)
-        if base <= self.config.max_float_m:
-            return True
+        limit = self.config.max_float_m
+        base = self._heights(det, support).min()
+        if base <= limit:
+            return True  # the common case: one product of the model's points
+        centre, radius = self._footprint(det, support)
         for other in found:
-            _, other_top, other_centre, other_radius = self._extent(other, support)
-            if abs(other_top - base) <= self.config.max_float_m and np.linalg.norm(centre - other_centre) < radius + other_radius:
-                return True
+            if abs(self._heights(other, support).max() - base) <= limit:
+                other_centre, other_radius = self._footprint(other, support)
+                if np.linalg.norm(centre - other_centre) < radius + other_radius:
+                    return True
         return False
 
-    def _extent(self, det: Detection, support: np.ndarray) -> tuple[float, float, np.ndarray, float]:
-        """A posed model's lowest and highest height above the support (m), its centre projected on
-        the support (3,) and its radius along it (m)."""
-        model = self.db.models[det.object_id]
-        T = det.camera_T_object
-        points = model.points @ T[:3, :3].T + T[:3, 3]
-        n, d = support[:3], support[3]
-        heights = points @ n + d
-        along = points - np.outer(heights, n)
+    def _heights(self, det: Detection, support: np.ndarray) -> np.ndarray:
+        """Heights (M,) of the posed model's points above the support (a, b, c, d), m."""
+        T, n = det.camera_T_object, support[:3]
+        return self.db.models[det.object_id].points @ (T[:3, :3].T @ n) + (T[:3, 3] @ n + support[3])
+
+    def _footprint(self, det: Detection, support: np.ndarray) -> tuple[np.ndarray, float]:
+        """The posed model's centre projected on the support (3,), camera frame, and its radius
+        along the support (m)."""
+        T, n = det.camera_T_object, support[:3]
+        points = self.db.models[det.object_id].points @ T[:3, :3].T + T[:3, 3]
+        along = points - np.outer(points @ n, n)
         centre = along.mean(axis=0)
-        return float(heights.min()), float(heights.max()), centre, float(np.linalg.norm(along - centre, axis=1).max())
+        return centre, float(np.linalg.norm(along - centre, axis=1).max())
 
     def _explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Mask (N,) of the cluster points (N, 3), camera frame, within icp_distance_m of the posed model."""
