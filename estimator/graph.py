@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Generic, TypeVar
@@ -230,8 +230,9 @@ class Estimator:
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = RELINEARIZE_SKIP
         params.findUnusedFactorSlots = True  # refreshed pair factors reuse their slots
-        params.enableAdaptiveReorder = config.reorder_fill > 0
-        params.adaptiveReorderThreshold = config.reorder_fill or 2.0
+        if config.reorder_fill > 0:
+            params.enableAdaptiveReorder = True
+            params.adaptiveReorderThreshold = config.reorder_fill
         self.isam = gtsam.ISAM2(params)
         self.anchors = {a.marker_id: a.world_T_marker.matrix() for a in config.anchors}
         self.object_markers = set(config.object_markers)
@@ -708,7 +709,7 @@ class Estimator:
                 ripe = sum(1 for f in frames if now_ns - f.stamp_ns >= lag_ns)
                 if lag_ns == 0 or ripe < live.config.min_frames:
                     continue
-                frames = deque(frames.popleft() for _ in range(ripe))  # the rest wait for their turn
+                frames = [frames.popleft() for _ in range(ripe)]  # the oldest; the rest wait for their turn
             elif placed:
                 del live.pending[cid]
             else:

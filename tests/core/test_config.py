@@ -61,6 +61,12 @@ def test_two_orientations_for_one_pose_are_rejected() -> None:
         parse_config(data, environ={})
 
 
+def test_a_reorder_fill_that_would_reorder_every_update_is_rejected() -> None:
+    with pytest.raises(ConfigError, match="reorder_fill 0.5 would re-order"):
+        parse_config({"estimator": {"reorder_fill": 0.5}}, environ={})
+    assert parse_config({"estimator": {"reorder_fill": 0}}, environ={}).estimator.reorder_fill == 0
+
+
 def test_defaults_alone_are_valid() -> None:
     assert CellConfig().cell.name == "demo"
 
