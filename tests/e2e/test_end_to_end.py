@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from cellsight.evaluation import STATE_NAMES, load_run
 from tests.helpers import logged_messages
 
 pytestmark = pytest.mark.slow
@@ -44,9 +45,15 @@ def test_demo_cameras_localize_near_truth(demo_run: Path) -> None:
     summary = json.loads((demo_run / "summary.json").read_text())
     cams = {c["camera_id"]: c for c in summary["cameras"]}
     assert set(cams) == {"cam1", "cam2", "cam3", "cam4"}
+    run = load_run(demo_run / "log.mcap", "demo")
     for cid in ("cam3", "cam4"):
         c = cams[cid]
-        assert c["final_state"] == "localized", c
+        # Localised to the end, judged over the estimator's reports of the last 5 s rather than the
+        # very last one: on two shared cores a driver now and then sends nothing for 0.7 s (it is
+        # reported stale until its next frame), and that need not be the last report.
+        last_t = run.states[cid][-1][0]
+        last = [STATE_NAMES[s] for t, s in run.states[cid] if t >= last_t - 5_000_000_000]
+        assert set(last) <= {"localized", "stale"} and last.count("localized") >= 0.8 * len(last), (cid, last)
         assert c["position_error_mm_p50_last5s"] < 20.0 and c["rotation_error_deg_p50_last5s"] < 0.5, c
     assert summary["log_complete"]
     markers = summary["markers"]
