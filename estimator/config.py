@@ -105,7 +105,6 @@ class EstimatorConfig(BaseModel):
         "(0.6 ms in a freshly ordered tree); with 1.5, update p99 15 -> 5.3 ms, a batch taking 5-10 ms",
     )
     refresh_s: float = Field(default=1.0, gt=0, description="how often a fused pair factor is replaced")
-
     refresh_sigma: float = Field(
         default=0.05, ge=0,
         description="a settled pair's factor is rebuilt only when its mean moved this many of the factor's own sigmas "
