@@ -134,7 +134,7 @@ class EstimatorConfig(BaseModel):
         description="a camera's stamps and their arrival times disagreeing by more than this between two frames is a jump of "
         "that sensor's clock (an NTP step), which the daemon takes out; well above transport delay under load (~1 s)",
     )
-    bump_position_m: float = Field(default=0.01, gt=0, description="marker shift in the camera frame that signals a move")
+    bump_position_m: float = Field(default=0.01, gt=0, description="marker shift in the camera frame (the median marker's, or the camera's own in a rigid fit of them all) that signals a move")
     bump_frames: int = Field(default=2, ge=1, description="consecutive frames above the threshold before a camera counts as moved")
     settle_frames: int = Field(default=5, ge=1, description="consecutive still frames before a moved camera gets a new segment")
     fold_after_s: float = Field(

@@ -44,8 +44,9 @@ from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
 from estimator.keyframes import LiveKeyframes, MovingFrame
 from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors
+from estimator.motion import RIGID_CHI2, RigidScreen, rigid_motion
 from estimator.observation import Observation, ObservationRows, observations_of
-from estimator.pairs import Pair, factors_current, fold_rows, pair_means
+from estimator.pairs import YOUNG_PAIR, Pair, factors_current, fold_rows, pair_means
 from estimator.resect import resect
 from estimator.symbols import camera_symbol, marker_symbol
 from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, pose_retract
@@ -55,7 +56,6 @@ K = TypeVar("K")
 V = TypeVar("V")
 
 MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
-YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
 MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (see Estimator._due_pairs)
 #: Covariances recomputed per ``estimate`` beyond new variables' (the rest are the cached ones): in
 #: a 64-camera ring one costs 0.1-3 ms after an update (iSAM2 recomputes the Bayes tree's shortcuts
@@ -128,6 +128,7 @@ class CameraTrack:
     latest: dict[int, Observation] = field(default_factory=dict)  # newest frame's observations
     markers_seen: int = 0
     segment_start_ns: int = 0  # stamp of the current segment's first frame
+    screen: RigidScreen | None = None  # the batched path's rigid-motion screen for the current view
 
 
 @dataclass(frozen=True)
@@ -370,7 +371,7 @@ class Estimator:
         )  # fmt: skip
         expected = np.stack([p.mean() for p in pairs])[row_pair] if fast and pairs else None
         if expected is not None:
-            fast = not self._any_frame_moved(sa, expected, len(stamps))
+            fast = not self._any_frame_moved(sa, expected, len(stamps), track)
         if not fast:
             out = []
             for f, stamp in enumerate(stamps):
@@ -406,13 +407,20 @@ class Estimator:
         if self.live_links is not None:
             block_sightings(camera_id, stamps, a, segments, self.object_markers, self.live_links.gather)
 
-    def _any_frame_moved(self, s: ObservationRows, expected: np.ndarray, frames: int) -> bool:
+    def _any_frame_moved(self, s: ObservationRows, expected: np.ndarray, frames: int, track: CameraTrack) -> bool:
         """``_camera_is_still``'s residual test for many frames at once (static rows ``s``, their
-        pairs' means ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise?"""
+        pairs' means ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise, or
+        the block's last frame (a move persists) show a rigid motion of the camera?"""
         if len(s.ids) == 0:
             return False
         D = s.poses[:, :3, 3] - expected[:, :3, 3]
         shifts = np.linalg.norm(D, axis=1)
+        last = s.frame == s.frame.max()
+        p, R, covs = expected[last, :3, 3], expected[last, :3, :3], s.covariances[last, :3, :3]
+        if track.screen is None or not np.array_equal(track.screen.ids, s.ids[last]):
+            track.screen = RigidScreen.of(s.ids[last], p, R @ covs @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3))
+        if track.screen is not None and track.screen.chi2(D[last]) > RIGID_CHI2 and self._rigid_move(p, p + D[last], R, covs):
+            return True
         # A median above a threshold needs at least half of the frame's values above it: only
         # frames that pass this count can have moved, and only they get an exact median. The
         # shift alone rules most frames out before any covariance is solved.
@@ -430,6 +438,16 @@ class Estimator:
             if np.median(d2[rows]) > MOVE_CHI2 and np.median(shifts[rows]) > self.config.bump_position_m:
                 return True
         return False
+
+    def _rigid_move(self, p: np.ndarray, q: np.ndarray, R: np.ndarray, covs: np.ndarray) -> bool:
+        """Do one frame's marker positions ``q`` (N, 3) against their means ``p`` (N, 3), m, show one
+        rigid camera motion beyond noise and ``bump_position_m``? ``covs`` (N, 3, 3) are the
+        observations' position covariances in the frame whose rotations are ``R`` (N or 1, 3, 3)."""
+        motion = rigid_motion(p, q, R @ covs @ np.swapaxes(R, -1, -2) + 1e-8 * np.eye(3))
+        if motion is None or not motion.is_move(self.config.bump_position_m, float(np.median(np.linalg.norm(p, axis=1)))):
+            return False
+        log.debug("rigid motion %.1f mm %.2f deg (chi2 %.0f, %d markers)", 1e3 * motion.shift_m, math.degrees(motion.angle_rad), motion.chi2, motion.inliers)
+        return True
 
     def _camera_is_still(self, track: CameraTrack, static: list[Observation]) -> bool:
         """Residual test on marker positions in the camera frame (rotation flips cannot fool it).
@@ -454,11 +472,12 @@ class Estimator:
                 return False
             track.moving, track.suspect = False, 0
             track.segment += 1  # a new static segment: a fresh variable, placed from scratch
+            track.screen = None
             track.segment_start_ns = track.last_stamp_ns
             log.info("%s is still again: segment %d", track.camera_id, track.segment)
             return True
         track.last_positions = positions
-        deltas, covs = [], []
+        deltas, covs, before = [], [], []
         cam_key = self._camera_key((track.camera_id, track.segment))
         for obs in static:
             pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
@@ -475,17 +494,26 @@ class Estimator:
             else:
                 continue
             deltas.append(obs.camera_T_marker[:3, 3] - expected[:3, 3])
-            # Marker-frame covariance into the camera frame with the expected rotation: the
-            # observation's own may be a flip, which would point its long (depth) axis astray.
-            R = expected[:3, :3]
-            covs.append(young * R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3))
+            before.append(expected[:3, 3])
+            # The marker-frame covariance into the camera frame, with the observation's rotation
+            # and with the expected one: either may be a flip (a young mean can start on one), which
+            # points the long (depth) axis astray; the frame that explains the shift better is kept.
+            for R in (obs.camera_T_marker[:3, :3], expected[:3, :3]):
+                covs.append(young * R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3))
         d2: np.ndarray = np.zeros(0)
         shifts: np.ndarray = np.zeros(0)
         if deltas:  # one batched solve per frame instead of one per marker
             D = np.array(deltas)
-            d2 = mahalanobis_sq(D, np.array(covs) + 1e-8 * np.eye(3))
+            both = np.array(covs).reshape(len(D), 2, 3, 3) + 1e-8 * np.eye(3)
+            d2_both = mahalanobis_sq(D[:, None, :], both)
+            nearer = np.argmin(d2_both, axis=1)
+            d2 = d2_both[np.arange(len(D)), nearer]
+            covs = list(both[np.arange(len(D)), nearer])
             shifts = np.linalg.norm(D, axis=1)
         moved = len(d2) > 0 and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
+        if not moved and len(d2) > 0:
+            P = np.array(before)
+            moved = self._rigid_move(P, P + D, np.eye(3), np.array(covs))
         track.suspect = track.suspect + 1 if moved else 0
         if track.suspect >= self.config.bump_frames:
             track.moving, track.still = True, 0

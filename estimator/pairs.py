@@ -4,7 +4,9 @@ A pair keeps the sums of its observations' positions, rotations (chosen IPPE bra
 and covariances (``Pair.sums``, 57 numbers), so its mean and mean covariance cost O(1) to read and
 a batch of frames folds in with one matrix product (``fold_rows``). Each observation picks the
 IPPE branch nearer the pair's mean; one further than FLIP_GATE_RAD / POSITION_GATE_M is rejected,
-and a majority of rejections restarts the pair. The estimator (``estimator.graph``) turns a pair
+and a majority of rejections restarts the pair. A young pair's mean is itself uncertain (its first
+observation may be a flip): it keeps its observations' two rotations and re-decides their branches
+against its mean a few times (``RESEAT_AT``) before it settles. The estimator (``estimator.graph``) turns a pair
 into a factor: its mean, and its mean covariance over at most ``max_fused`` observations.
 """
 
@@ -18,6 +20,10 @@ import numpy as np
 from estimator.observation import Observation, ObservationRows
 from schemas.geometry import mahalanobis_sq, pose_difference, rotation_angle
 
+YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
+#: While young, a pair re-decides every observation's IPPE branch when its count reaches one of
+#: these (``Pair._reseat``); from YOUNG_PAIR on, each new one is judged against the settled mean.
+RESEAT_AT = (4, 8, 16, YOUNG_PAIR)
 FLIP_GATE_RAD = math.radians(15.0)  # a candidate further than this from the pair mean is a flip
 POSITION_GATE_M = 0.10  # and one further than this is an outlier (or a move, caught separately)
 TRACE_GATE = 1.0 + 2.0 * math.cos(FLIP_GATE_RAD)  # trace(R_mean^T R) above this: within the flip gate
@@ -62,6 +68,8 @@ class Pair:
     factor_n_eff: int = 0  # observations it counts as independent
     _cached: np.ndarray | None = field(default=None, repr=False)
     _cached_n: int = field(default=0, repr=False)
+    #: While young: each taken observation's rotations (front-end's choice, other branch), 3x3 each.
+    _young: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
 
     @property
     def pos_sum(self) -> np.ndarray:
@@ -127,7 +135,42 @@ class Pair:
         self.cov_sum[:] += cov
         self.primary_in_alt += int(primary_in_alt)
         self.dirty = True
+        if self.n <= YOUNG_PAIR:
+            R, R_other = T[:3, :3], (other if other is not None else T)[:3, :3]
+            self._young.append((R_other, R) if primary_in_alt else (R, R_other))
+            if self.n in RESEAT_AT:
+                self._reseat()
         self._swap_branches_if_flipped()
+
+    def _reseat(self) -> None:
+        """Re-decide every kept observation's branch against the mean, until the mean stops moving.
+
+        The running choice judges each observation against the mean of those before it; if the
+        first ones were flips, the mean starts between the branches and the flips it took stay in
+        the sums (a bias of the flip angle over n that the majority rule never sees). Each observation
+        goes to its branch nearer the mean, the mean is recomputed, repeated: the two branches are
+        mirror images, so this settles on one of them, cleanly, and the majority rule then picks it.
+        """
+        if len(self._young) != self.n:  # only a pair that kept every observation can re-decide them
+            return
+        A = np.array(self._young)  # (n, 2, 3, 3): front-end's choice, other branch
+        M = project_rotation(self.rot_sum)
+        pick: np.ndarray | None = None  # per observation: is its other branch the nearer one?
+        for _ in range(4):
+            tr = np.einsum("ij,nkij->nk", M, A)  # trace(M^T R) per branch: larger = nearer
+            new_pick = tr[:, 1] > tr[:, 0]
+            if pick is not None and np.array_equal(new_pick, pick):
+                break
+            pick = new_pick
+            M = project_rotation(np.where(pick[:, None, None], A[:, 1], A[:, 0]).sum(axis=0))
+        assert pick is not None
+        idx = np.arange(len(A))
+        self.rot_sum[:] = A[idx, pick.astype(int)].sum(axis=0)
+        self.alt_rot_sum[:] = A[idx, 1 - pick.astype(int)].sum(axis=0)
+        self.primary_in_alt = int(pick.sum())
+        self._cached = None
+        if self.n >= YOUNG_PAIR:
+            self._young = []  # settled: later observations are judged against its mean one by one
 
     def add(self, obs: Observation) -> bool:
         """Fold an observation in, choosing the IPPE branch consistent with the mean. False if rejected."""
