@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schemas.geometry import skew
+
 #: Chi-square with 6 dof at 1 - 1e-6: a still camera's frame passes it once in a million, and a
 #: move needs it on ``bump_frames`` consecutive frames.
 RIGID_CHI2 = 41.0
@@ -54,9 +56,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _normal_equations(p: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rigid fit's normal equations about no motion, x = (w, t): G (N, 6, 3) = J_i^T W_i with
     J_i = [-[p_i]x, I] (so that b = sum G_i r_i) and H (6, 6) = sum J_i^T W_i J_i."""
-    S = np.zeros((len(p), 3, 3))  # [p_i]x, so that S @ v = p_i x v
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+    S = skew(p)  # [p_i]x, so that S @ v = p_i x v
     G = np.concatenate([S @ W, W], axis=1)  # (-[p]x)^T = [p]x
     H = np.empty((6, 6))
     H[:3, :3] = -(G[:, :3] @ S).sum(axis=0)
