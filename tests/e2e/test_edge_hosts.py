@@ -171,25 +171,29 @@ def test_with_the_secure_profile_only_an_edge_router_of_the_cells_authority_join
     procs.append(echo)
     threading.Thread(target=_statuses, args=(echo, at_cell), daemon=True).start()
     # The rogue edge host: its router and a camera, all with certificates of the other authority.
-    rogue_procs = {
-        "rogue router": in_ns(edge, CLI + ["router", "--config", str(rogue.edge_router_config), "--listen", rogue_listen,
-                                           "--connect", secure_router], tmp_path / "rogue_router.log"),
-        "rogue driver": in_ns(edge, CLI + ["driver", "sim", "--camera", "cam2", "--cell-config", str(tmp_path / "rogue.toml")],
-                              tmp_path / "rogue_driver.log"),
-        "rogue echo": in_ns(edge, CLI + ["bus", "echo", "cellsight/net/*/status", "--json", "--config", str(rogue.role_configs["viewer"]),
-                                         "--connect", rogue_listen], stdout=subprocess.PIPE, text=True),
-    }  # fmt: skip
+    # The echo gives up at once if the router does not listen yet, and the simulated camera runs
+    # for only ~15 s: router first, then the echo, then the camera.
+    rogue_router_log = tmp_path / "rogue_router.log"
+    rogue_procs = {"rogue router": in_ns(edge, CLI + ["router", "--config", str(rogue.edge_router_config), "--listen", rogue_listen,
+                                                      "--connect", secure_router], rogue_router_log)}  # fmt: skip
     procs += rogue_procs.values()
+    wait_until(lambda: "router listening" in rogue_router_log.read_text(errors="replace"), 30.0, "the rogue router listening")
+    rogue_procs["rogue echo"] = in_ns(edge, CLI + ["bus", "echo", "cellsight/net/*/status", "--json", "--config", str(rogue.role_configs["viewer"]),
+                                                   "--connect", rogue_listen], stdout=subprocess.PIPE, text=True)  # fmt: skip
+    procs.append(rogue_procs["rogue echo"])
     at_rogue: dict[str, float] = {}
     rogue_echo_errors: list[str] = []
     threading.Thread(target=_statuses, args=(rogue_procs["rogue echo"], at_rogue, rogue_echo_errors), daemon=True).start()
+    rogue_procs["rogue driver"] = in_ns(edge, CLI + ["driver", "sim", "--camera", "cam2", "--cell-config", str(tmp_path / "rogue.toml")],
+                                        tmp_path / "rogue_driver.log")  # fmt: skip
+    procs.append(rogue_procs["rogue driver"])
     procs.append(in_ns(edge, CLI + ["run", str(tmp_path / "edge.toml"), "--out", str(tmp_path / "edge_run")], tmp_path / "edge.log"))
     try:
         wait_until(lambda: "cam1" in at_cell, 90.0, "the legitimate edge camera's status at the cell, over mutual TLS router to router")
         try:
             wait_until(lambda: "cam2" in at_rogue, 60.0, "the rogue camera running on its own router")
-        except AssertionError as e:  # intermittent in CI, cause unknown: say what ran
-            logs = [tmp_path / "rogue_router.log", tmp_path / "rogue_driver.log"]
+        except AssertionError as e:
+            logs = [rogue_router_log, tmp_path / "rogue_driver.log"]
             raise AssertionError(f"{e}\n{_what_ran(rogue_procs, logs)}\n--- rogue echo\n" + "\n".join(rogue_echo_errors)) from None
         time.sleep(5.0)  # several of its 1 Hz status messages, had the rogue router been let in
         assert "cam2" not in at_cell, "an edge router with another authority's certificate got its camera into the cell"
