@@ -477,7 +477,7 @@ class Estimator:
             log.info("%s is still again: segment %d", track.camera_id, track.segment)
             return True
         track.last_positions = positions
-        deltas, covs, before = [], [], []
+        deltas, before, rotations, obs_covs, scales, margins = [], [], [], [], [], []
         cam_key = self._camera_key((track.camera_id, track.segment))
         for obs in static:
             pair = self.pairs.get(((track.camera_id, track.segment), obs.marker_id))
@@ -495,25 +495,31 @@ class Estimator:
                 continue
             deltas.append(obs.camera_T_marker[:3, 3] - expected[:3, 3])
             before.append(expected[:3, 3])
+            rotations.append((obs.camera_T_marker[:3, :3], expected[:3, :3]))
+            obs_covs.append(obs.covariance[:3, :3])
+            scales.append(young)
+            margins.append(map_margin)
+        d2: np.ndarray = np.zeros(0)
+        shifts: np.ndarray = np.zeros(0)
+        if deltas:  # batched over the frame's markers
+            D = np.array(deltas)
             # The marker-frame covariance into the camera frame, with the observation's rotation
             # and with the expected one: either may be a flip (a young mean can start on one), which
             # points the long (depth) axis astray; the frame that explains the shift better is kept.
-            for R in (obs.camera_T_marker[:3, :3], expected[:3, :3]):
-                covs.append(young * R @ obs.covariance[:3, :3] @ R.T + map_margin * np.eye(3))
-        d2: np.ndarray = np.zeros(0)
-        shifts: np.ndarray = np.zeros(0)
-        if deltas:  # one batched solve per frame instead of one per marker
-            D = np.array(deltas)
-            both = np.array(covs).reshape(len(D), 2, 3, 3) + 1e-8 * np.eye(3)
+            R = np.array(rotations)  # (N, 2, 3, 3)
+            both = np.array(scales)[:, None, None, None] * (R @ np.array(obs_covs)[:, None] @ np.swapaxes(R, -1, -2))
+            both += (np.array(margins)[:, None, None, None] + 1e-8) * np.eye(3)
             d2_both = mahalanobis_sq(D[:, None, :], both)
             nearer = np.argmin(d2_both, axis=1)
             d2 = d2_both[np.arange(len(D)), nearer]
-            covs = list(both[np.arange(len(D)), nearer])
+            covs = both[np.arange(len(D)), nearer]
             shifts = np.linalg.norm(D, axis=1)
         moved = len(d2) > 0 and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
-        if not moved and len(d2) > 0:
+        # The rigid fit explains at most the frame's whole chi-square (a least-squares projection):
+        # below the move threshold in total, no fit can pass it.
+        if not moved and float(d2.sum()) > RIGID_CHI2:
             P = np.array(before)
-            moved = self._rigid_move(P, P + D, np.eye(3), np.array(covs))
+            moved = self._rigid_move(P, P + D, np.eye(3), covs)
         track.suspect = track.suspect + 1 if moved else 0
         if track.suspect >= self.config.bump_frames:
             track.moving, track.still = True, 0

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.observation import Observation, ObservationRows
-from schemas.geometry import mahalanobis_sq, pose_difference, rotation_angle
+from schemas.geometry import mahalanobis_sq, pose_difference
 
 YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
 #: While young, a pair re-decides every observation's IPPE branch when its count reaches one of
@@ -183,9 +183,14 @@ class Pair:
             return True
         mean = self.mean()
         first, swapped = (T, other), False
-        if other is not None and rotation_angle(mean[:3, :3], other[:3, :3]) < rotation_angle(mean[:3, :3], T[:3, :3]):
-            T, other, swapped = other, T, True
-        if rotation_angle(mean[:3, :3], T[:3, :3]) < FLIP_GATE_RAD and np.linalg.norm(T[:3, 3] - mean[:3, 3]) < POSITION_GATE_M:
+        # trace(M^T R) falls as the angle between M and R grows: comparing traces (one product each)
+        # decides nearer branch and flip gate exactly, without the angles themselves.
+        M = mean[:3, :3]
+        near = float(np.vdot(M, T[:3, :3]))
+        if other is not None and (near_other := float(np.vdot(M, other[:3, :3]))) > near:
+            T, other, swapped, near = other, T, True, near_other
+        d = T[:3, 3] - mean[:3, 3]
+        if near > TRACE_GATE and float(d @ d) < POSITION_GATE_M**2:
             self._take(T, other, cov, swapped)
             return True
         self.rejected += 1
