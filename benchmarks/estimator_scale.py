@@ -88,13 +88,12 @@ def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[Observ
     for cid, (T, seen) in cams.items():
         truth = [(m, invert_pose(T) @ markers[m]) for m in seen]
         covs = [covariance_model(Tm, 0.25, info, 0.5, PlaneFit(Tm[:3, 2], 0.0, 900, 0.0, 0.2)) for _, Tm in truth]
-        blocks = []
-        for _ in range(POOL):
-            poses = np.array([perturb(Tm, cov, rng) for _ in range(UPDATE_EVERY) for (_, Tm), cov in zip(truth, covs)])
-            ids = np.array([m for _ in range(UPDATE_EVERY) for m, _ in truth])
-            frame = np.repeat(np.arange(UPDATE_EVERY), len(truth))
-            blocks.append(ObservationRows(ids, poses, poses.copy(), np.array(covs * UPDATE_EVERY), np.zeros(len(ids), bool), frame))
-        pools[cid] = blocks
+        ids = np.array([m for _ in range(UPDATE_EVERY) for m, _ in truth])
+        frame = np.repeat(np.arange(UPDATE_EVERY), len(truth))
+        block_covs = np.array(covs * UPDATE_EVERY)
+        # (POOL, rows, 4, 4): every block's frames drawn at once, each row about its marker's truth
+        poses = perturb(np.broadcast_to(np.array([Tm for _, Tm in truth] * UPDATE_EVERY), (POOL, len(ids), 4, 4)), block_covs, rng)
+        pools[cid] = [ObservationRows(ids, P, P.copy(), block_covs, np.zeros(len(ids), bool), frame) for P in poses]
     return pools
 
 

@@ -19,7 +19,7 @@ from drivers.sim.scenario import Scenario, load_scenario
 from estimator.config import EstimatorConfig
 from estimator.observation import Observation
 from schemas.codec import CameraInfo
-from schemas.geometry import cov_ros_to_gtsam, invert_pose
+from schemas.geometry import invert_pose, pose_retract
 
 
 @dataclass(frozen=True)
@@ -60,8 +60,17 @@ def flip(cam_T_marker: np.ndarray) -> np.ndarray:
 
 
 def perturb(T: np.ndarray, cov_ros: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    xi = rng.multivariate_normal(np.zeros(6), cov_ros_to_gtsam(cov_ros))
-    return (gtsam.Pose3(T) * gtsam.Pose3.Expmap(xi)).matrix()
+    """Poses ``T`` (..., 4, 4) moved by draws of ``cov_ros`` (..., 6, 6, ROS order, in T's own frame).
+
+    Drawn as L z with L the Cholesky factor and z standard normal: unlike ``multivariate_normal``
+    (an SVD, whose basis for equal variances depends on the CPU's BLAS kernels), one seed gives the
+    same noise on every machine. A variance of zero (a rotation-only bias) gets a 3e-8 sigma.
+    """
+    cov = np.asarray(cov_ros, dtype=np.float64)
+    L = np.linalg.cholesky(cov + 1e-15 * np.eye(6))
+    T = np.asarray(T, dtype=np.float64)
+    z = rng.standard_normal(np.broadcast_shapes(T.shape[:-2], cov.shape[:-2]) + (6, 1))
+    return pose_retract(T, (L @ z)[..., 0])
 
 
 def frame_observations(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from cellsight.synthetic import perturb
 from estimator.resect import resect
 from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, look_at_matrix, make_pose, rpy_matrix
 from tests.helpers import assert_pose_close
@@ -23,12 +24,6 @@ def scene(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         for x, z in rng.uniform([-0.75, 0.3], [0.75, 1.7], size=(n, 2))
     ])  # fmt: skip
     return world_T_camera, markers
-
-
-def perturb(T: np.ndarray, cov_ros: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """T composed with a draw of cov (ROS order, body frame)."""
-    xi = rng.multivariate_normal(np.zeros(6), cov_ros_to_gtsam(cov_ros))
-    return T @ gtsam.Pose3.Expmap(xi).matrix()
 
 
 def test_exact_observations_give_the_camera_exactly() -> None:
