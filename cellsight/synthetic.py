@@ -4,7 +4,8 @@ Poses come from a scenario's ground truth; noise is drawn from the marker front-
 covariance model (depth-refined or PnP-only), so accuracy claims are about the estimator, not the
 renderer. Visibility: in the field of view, facing the camera, in range (no occlusion test).
 Flips: with probability ``flip_rate`` the chosen pose is the mirrored IPPE solution (the tilt
-reflected about the line of sight) and the true one is offered as the alternative.
+reflected about the line of sight), reported with its own covariance as the front-end does, and
+the true one is offered as the alternative.
 """
 
 from __future__ import annotations
@@ -96,6 +97,8 @@ def frame_observations(
         alt = flip(meas)
         if rng.random() < noise.flip_rate:
             meas, alt = alt, meas
+            # as the front-end gives it: the covariance of the pose it reports, in that pose's frame
+            cov = covariance_model(meas, side, info, noise.pixel_sigma, plane)
         out.append(Observation(camera_id, stamp_ns, mk.id, meas, cov, alt, False))
     return out
 

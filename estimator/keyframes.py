@@ -32,7 +32,7 @@ import numpy as np
 
 from estimator.config import KeyframeConfig
 from estimator.symbols import keyframe_symbol, marker_symbol
-from schemas.geometry import cov_ros_to_gtsam, invert_pose, rotation_angles
+from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_pose, rotation_angles
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
 AGREE_M = 0.05  # and this distance
@@ -74,9 +74,9 @@ class MovingFrames:
             self.gap_ns *= 2
 
 
-def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tuple[np.ndarray, list[int], list[np.ndarray]] | None:
-    """world_T_camera of a frame from the solved markers it sees, and the rows and branches that
-    agree with it; None unless two markers agree.
+def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tuple[np.ndarray, list[int], list[int]] | None:
+    """world_T_camera of a frame from the solved markers it sees, and the rows and branches (0: the
+    pose the front-end chose, 1: its alternative) that agree with it; None unless two markers agree.
 
     Each observation's two IPPE branches each imply a camera pose through its marker; the implied
     pose most others agree with is the frame's, and each marker keeps the branch nearer to it.
@@ -89,7 +89,7 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tu
     if agreed is None:
         return None
     best, chosen = agreed
-    return best, [rows[i] for i, _ in chosen], [(frame.poses[rows[i]], frame.alternatives[rows[i]])[k] for i, k in chosen]
+    return best, [rows[i] for i, _ in chosen], [k for _, k in chosen]
 
 
 def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] | None:
@@ -152,8 +152,10 @@ def add_keyframes(
             continue
         key = keyframe_symbol(first_index + i)
         values.insert(key, gtsam.Pose3(world_T_camera))
-        for j, T in zip(kept, branches):
-            cov = frame.covariances[j].copy()
+        for j, k in zip(kept, branches):
+            T, cov = frame.poses[j], frame.covariances[j].copy()
+            if k == 1:  # the other branch: its covariance was given in the chosen pose's frame
+                T, cov = frame.alternatives[j], covariance_in_frame(cov, frame.poses[j, :3, :3], frame.alternatives[j, :3, :3])
             cov[3:, 3:] += np.eye(3) * rotation_floor_rad**2
             noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
             graph.add(gtsam.BetweenFactorPose3(key, marker_symbol(int(frame.ids[j])), gtsam.Pose3(T), noise))

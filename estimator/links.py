@@ -30,7 +30,7 @@ from estimator.config import LinkConfig
 from estimator.observation import ObservationRows
 from estimator.symbols import object_symbol
 from estimator.keyframes import consensus
-from schemas.geometry import cov_ros_to_gtsam
+from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame
 
 FREE_ROTATION_RAD = 0.5  # a link's rotation sigma: loose enough to carry no rotation, finite for the solver
 LINK_DELAY_NS = 500_000_000  # online, an instant is complete this long after its time (every camera's frame is in)
@@ -159,8 +159,9 @@ def instant_factors(
     factors = []
     for i, k in chosen:
         s = sightings[i]
+        given = s.covariance if k == 0 else covariance_in_frame(s.covariance, s.pose[:3, :3], s.alternative[:3, :3])
         cov = np.zeros((6, 6))
-        cov[:3, :3] = s.covariance[:3, :3] * max(1.0, repeats[i])
+        cov[:3, :3] = given[:3, :3] * max(1.0, repeats[i])
         cov[3:, 3:] = np.eye(3) * FREE_ROTATION_RAD**2
         noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
         factors.append((s, gtsam.BetweenFactorPose3(camera_keys[i], key, gtsam.Pose3((s.pose, s.alternative)[k]), noise)))

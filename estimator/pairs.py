@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.observation import Observation, ObservationRows
-from schemas.geometry import mahalanobis_sq, pose_difference
+from schemas.geometry import covariance_in_frame, mahalanobis_sq, pose_difference
 
 YOUNG_PAIR = 30  # observations before a pair's mean settles: until then its factor refreshes 10x as often
 #: While young, a pair re-decides every observation's IPPE branch when its count reaches one of
@@ -68,8 +68,9 @@ class Pair:
     factor_n_eff: int = 0  # observations it counts as independent
     _cached: np.ndarray | None = field(default=None, repr=False)
     _cached_n: int = field(default=0, repr=False)
-    #: While young: each taken observation's rotations (front-end's choice, other branch), 3x3 each.
-    _young: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
+    #: While young: each taken observation's rotations (front-end's choice, other branch), 3x3 each,
+    #: and its covariance as the front-end gave it (in its choice's frame), 6x6.
+    _young: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list, repr=False)
 
     @property
     def pos_sum(self) -> np.ndarray:
@@ -128,16 +129,18 @@ class Pair:
         return self.cov_sum / self.n
 
     def _take(self, T: np.ndarray, other: np.ndarray | None, cov: np.ndarray, primary_in_alt: bool) -> None:
+        """Add pose T (4x4) with its other branch; ``cov`` (6x6) is in the frame of the front-end's
+        choice, which is ``other`` when ``primary_in_alt``: it is then turned into T's frame."""
+        R, R_other = T[:3, :3], (other if other is not None else T)[:3, :3]
         self.n += 1
         self.pos_sum[:] += T[:3, 3]
-        self.rot_sum[:] += T[:3, :3]
-        self.alt_rot_sum[:] += (other if other is not None else T)[:3, :3]
-        self.cov_sum[:] += cov
+        self.rot_sum[:] += R
+        self.alt_rot_sum[:] += R_other
+        self.cov_sum[:] += covariance_in_frame(cov, R_other, R) if primary_in_alt else cov
         self.primary_in_alt += int(primary_in_alt)
         self.dirty = True
         if self.n <= YOUNG_PAIR:
-            R, R_other = T[:3, :3], (other if other is not None else T)[:3, :3]
-            self._young.append((R_other, R) if primary_in_alt else (R, R_other))
+            self._young.append((R_other, R, cov) if primary_in_alt else (R, R_other, cov))
             if self.n in RESEAT_AT:
                 self._reseat()
         self._swap_branches_if_flipped()
@@ -153,7 +156,8 @@ class Pair:
         """
         if len(self._young) != self.n:  # only a pair that kept every observation can re-decide them
             return
-        A = np.array(self._young)  # (n, 2, 3, 3): front-end's choice, other branch
+        A = np.array([(R, R_other) for R, R_other, _ in self._young])  # (n, 2, 3, 3): front-end's choice, other branch
+        C = np.array([cov for _, _, cov in self._young])  # (n, 6, 6), in the choice's frame
         M = project_rotation(self.rot_sum)
         pick: np.ndarray | None = None  # per observation: is its other branch the nearer one?
         for _ in range(4):
@@ -167,6 +171,9 @@ class Pair:
         idx = np.arange(len(A))
         self.rot_sum[:] = A[idx, pick.astype(int)].sum(axis=0)
         self.alt_rot_sum[:] = A[idx, 1 - pick.astype(int)].sum(axis=0)
+        if pick.any():
+            C[pick] = covariance_in_frame(C[pick], A[pick, 0], A[pick, 1])
+        self.cov_sum[:] = C.sum(axis=0)
         self.primary_in_alt = int(pick.sum())
         self._cached = None
         if self.n >= YOUNG_PAIR:
@@ -264,10 +271,14 @@ def fold_rows(expected: np.ndarray, row_pair: np.ndarray, n_pairs: int, a: Obser
     chosen = np.where(swap[:, None, None], a.alternatives, a.poses)
     other = np.where(swap[:, None, None], a.poses, a.alternatives)
     ok = (np.maximum(tr_pose, tr_alt) > TRACE_GATE) & (np.linalg.norm(chosen[:, :3, 3] - expected[:, :3, 3], axis=1) < POSITION_GATE_M)
+    covs = a.covariances
+    if swap.any():  # given in the frame of the front-end's choice: into the taken branch's
+        covs = covs.copy()
+        covs[swap] = covariance_in_frame(covs[swap], a.poses[swap, :3, :3], a.alternatives[swap, :3, :3])
     n = len(row_pair)
     member = np.zeros((n_pairs, n))
     member[row_pair, np.arange(n)] = 1.0
     taken = member * ok
-    stats = np.concatenate([chosen[:, :3, 3], chosen[:, :3, :3].reshape(n, 9), other[:, :3, :3].reshape(n, 9), a.covariances.reshape(n, 36)], axis=1)
+    stats = np.concatenate([chosen[:, :3, 3], chosen[:, :3, :3].reshape(n, 9), other[:, :3, :3].reshape(n, 9), covs.reshape(n, 36)], axis=1)
     accepted = taken.sum(axis=1)
     return FoldedRows(taken @ stats, accepted, taken @ swap, member.sum(axis=1) - accepted)

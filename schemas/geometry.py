@@ -235,6 +235,18 @@ def cov_gtsam_to_ros(cov: np.ndarray) -> np.ndarray:
     return cov_ros_to_gtsam(cov)
 
 
+def covariance_in_frame(cov: np.ndarray, R_from: np.ndarray, R_to: np.ndarray) -> np.ndarray:
+    """Pose covariances (..., 6, 6, ROS order) of a pose whose rotation is ``R_from`` (..., 3, 3),
+    re-expressed in the frame of ``R_to`` at the same point: the same uncertainty in the camera
+    frame, body-frame perturbations turned by R_to^T R_from. For an IPPE observation whose other
+    branch is taken: the front-end gave its covariance in the frame of the pose it chose."""
+    Q = np.swapaxes(R_to, -1, -2) @ R_from
+    B = np.zeros(Q.shape[:-2] + (6, 6))
+    B[..., :3, :3] = Q
+    B[..., 3:, 3:] = Q
+    return B @ cov @ np.swapaxes(B, -1, -2)
+
+
 def position_sigma(cov: np.ndarray) -> float:
     """Largest standard deviation (m) of the position block of a 6x6 ROS-order pose covariance."""
     return math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(cov)[:3, :3]).max()), 0.0))

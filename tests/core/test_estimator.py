@@ -11,12 +11,15 @@ import gtsam
 import numpy as np
 import pytest
 
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations
+from cellsight.synthetic import NoiseSettings, estimator_config, flip, frame_observations
+from drivers.markers import covariance_model
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
 from estimator.graph import CameraState, Estimator, through_camera
-from estimator.observation import Observation
+from estimator.observation import Observation, ObservationRows
+from estimator.pairs import Pair, fold_rows
+from schemas.codec import CameraInfo
 from schemas.spec import PoseSpec
-from schemas.geometry import rotation_angle
+from schemas.geometry import make_pose, rotation_angle, rpy_matrix
 from tests.helpers import assert_pose_close
 
 RATE = 30.0
@@ -187,6 +190,39 @@ def test_flips_are_absorbed(seed: int) -> None:
         poses.append({cid: est.estimate(int(3e9)).cameras[cid].pose.T for cid in ("a", "b")})
     for cid in ("a", "b"):
         assert_pose_close(poses[1][cid], poses[0][cid], 0.003, 0.1, f"{cid} with flips against without")
+
+
+def test_a_flipped_observations_covariance_is_turned_to_the_branch_taken() -> None:
+    """Without depth a marker's position is loose along the ray (the covariance's long axis). A
+    front-end that reports the mirrored IPPE branch gives that pose's covariance in that pose's
+    frame (``drivers.markers``); a pair that takes the true branch back must turn the covariance
+    into it. Then its fused position covariance in the camera frame is the same whether 0 or 8 of
+    20 exact observations came flipped, one by one (flips first: the young pair re-decides them)
+    and batched. (Rotation blocks: the model's tilt axes differ between the branches; not compared.)"""
+    info = CameraInfo.kinect_v1()
+    T = make_pose(rpy_matrix(np.radians(-90.0 + 35.0), np.radians(20.0), 0.0), [0.4, -0.2, 2.5])  # 35 and 20 deg off the ray
+    F = flip(T)
+    assert rotation_angle(T[:3, :3], F[:3, :3]) > np.radians(30.0)
+    cov, cov_flipped = (covariance_model(P, SIDE_M, info, 0.5, None) for P in (T, F))
+    reports = [(F, T, cov_flipped) if k % 5 in (0, 2) else (T, F, cov) for k in range(20)]  # 8 flips, the first one of them
+
+    def camera_frame(C: np.ndarray) -> np.ndarray:
+        return T[:3, :3] @ C[:3, :3] @ T[:3, :3].T
+
+    plain = Pair()
+    for _ in range(20):
+        plain.add_pose(T, F, cov)
+    expected = camera_frame(plain.mean_covariance())
+    one_by_one = Pair()
+    for chosen, other, C in reports:
+        assert one_by_one.add_pose(chosen, other, C)
+    assert_pose_close(one_by_one.mean(exact=True), T, 1e-9, 1e-6, "the pair's mean")
+    rows = ObservationRows(np.zeros(20, int), np.stack([r[0] for r in reports]), np.stack([r[1] for r in reports]),
+                           np.stack([r[2] for r in reports]), np.zeros(20, bool), np.arange(20))  # fmt: skip
+    batched = fold_rows(np.tile(T, (20, 1, 1)), np.zeros(20, int), 1, rows)
+    for what, C in (("one by one", one_by_one.mean_covariance()), ("batched", batched.sums[0, 21:].reshape(6, 6) / 20)):
+        got = camera_frame(C)
+        assert np.abs(got - expected).max() <= 1e-9 * np.abs(expected).max(), f"{what}: {got} against {expected}"
 
 
 def test_unknown_marker_is_counted_not_used() -> None:

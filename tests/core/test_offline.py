@@ -91,13 +91,16 @@ def test_a_moving_frame_is_placed_by_the_markers_that_agree() -> None:
     s.markers.append(MarkerSpec(id=4, side_m=0.25, pose=PoseSpec(position=(0.3, 2.0, 1.6), normal=(0.0, -1.0, 0.0))))
     wTm = {mk.id: s.world_T_marker(mk, 0.0) for mk in s.markers}
     wTc = s.camera("b").world_T_camera(0.0)
-    placed = place_frame(_moving_frame(s, wTc, flipped={0, 2}, outlier=4), wTm)
+    frame = _moving_frame(s, wTc, flipped={0, 2}, outlier=4)
+    placed = place_frame(frame, wTm)
     assert placed is not None
     pose, kept, branches = placed
     assert_pose_close(pose, wTc, 1e-9, 1e-6)
     assert kept == [0, 1, 2, 3]
-    for j, T in zip(kept, branches):
+    for j, k in zip(kept, branches):
+        T = (frame.poses[j], frame.alternatives[j])[k]
         assert_pose_close(T, invert_pose(wTc) @ wTm[s.markers[j].id], 1e-9, 1e-6, f"marker {j}")
+    assert branches == [1, 0, 1, 0]  # the flips taken back
     one = _moving_frame(s, wTc, flipped=set())
     assert place_frame(MovingFrame("b", 1, one.ids[:1], one.poses[:1], one.alternatives[:1], one.covariances[:1]), wTm) is None
 
