@@ -6,7 +6,8 @@ coverage and RMSE -> verify against the whole frame from the camera's viewpoint
 (``recognition.verify``). A marker on an object, when seen, names it and gives ICP its starting pose.
 Objects standing so close that they share a cluster (and hide parts of each other) are found a
 second way when the camera's pose is known: each is stood upright on the table at pieces of what
-no match explained, and only verification accepts it. With the pose known, nothing hovers: a
+no match explained (and of the fragments a split of merged objects shed), and only verification
+accepts it. With the pose known, nothing hovers: a
 detection must rest on the table or on an object found under it.
 """
 
@@ -114,6 +115,8 @@ class Recognizer:
         self._views, self._owners = database.view_table()
         self._view_to_z = np.array([align_to_z(c) for c in self._views.centroid]).reshape(-1, 3, 3)
         self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
+        # The fewest points a piece may hold for the pieces path to try the smallest object on it.
+        self._smallest_piece = int(PIECE_SHARE * min((len(mdl.points) for mdl in database.models.values()), default=0))
         self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
         self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
         self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
@@ -172,8 +175,12 @@ class Recognizer:
         c = self.config
         clusters = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
                                       scene.graph)
-        clusters = split_oversized(scene.points, clusters, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
-                                   MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
+        clusters, shed = split_oversized(scene.points, clusters, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
+                                         MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
+        # What a split shed may hold a small object half hidden among larger ones: its visible
+        # fragments fall apart at the finer tolerance. No view matches them; the pieces path may.
+        fragments = len(clusters)
+        clusters += [idx for idx in shed if len(idx) >= max(c.cluster_min_points, self._smallest_piece)]
         # Candidates (part, detection): a part is a cluster, or what is left of one once a touching
         # object is explained away, or a prior's own hint.
         candidates: list[tuple[int, Detection]] = []
@@ -197,7 +204,7 @@ class Recognizer:
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
-            for _ in range(0 if used[k] else MAX_OBJECTS_PER_CLUSTER):
+            for _ in range(0 if used[k] or k >= fragments else MAX_OBJECTS_PER_CLUSTER):
                 matches = self._match_cluster(scene, rest, up)
                 if not matches:
                     break
@@ -219,7 +226,8 @@ class Recognizer:
                 match = self._score(model, scene, rest, starts, up, fitness_to_verify=PIECE_FITNESS)
                 if match is not None:
                     candidates.append((part, match[0]))
-                    cluster_of[part] = k
+                    # Fragments are no cluster: the rule for a match explaining part of one does not apply.
+                    cluster_of[part] = k if k < fragments else None
                     part += 1
         # Each object is in the scene once, and each part is one object: best matches first, so that
         # a part two objects fit goes to the one not found better elsewhere. A hypothesis the frame

@@ -149,16 +149,18 @@ def euclidean_clusters(
 def split_oversized(
     points: np.ndarray, clusters: list[np.ndarray], max_extent_m: float, tolerance_m: float, min_tolerance_m: float,
     min_points: int, graph: PointGraph | None = None,
-) -> list[np.ndarray]:
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Clusters larger than any object (2-98 % bounding-box diagonal over max_extent_m) re-clustered with a
     tighter tolerance, down to min_tolerance_m: objects standing close together merge at the
     tolerance a noisy far surface needs, and come apart at a smaller one. Largest first.
 
-    A split also sheds crumbs, pieces of one noisy surface under SPLIT_CRUMB of the cluster: they are
-    dropped, not made clusters of their own (too small to match, they cost a full match each).
-    graph: the points' pairs up to at least tolerance_m, when the caller has them.
+    A split also sheds crumbs, pieces under SPLIT_CRUMB of the cluster: not clusters of their own
+    (too small to match a whole view, they would cost a full match each). Returned apart, all the
+    crumbs of one split together: the fragments of a small object half hidden among larger ones
+    are among them. graph: the points' pairs up to at least tolerance_m, when the caller has them.
     """
     out: list[np.ndarray] = []
+    shed: list[np.ndarray] = []
     todo = [(c, tolerance_m) for c in clusters]
     while todo:
         idx, tol = todo.pop()
@@ -171,9 +173,11 @@ def split_oversized(
             continue
         sub = None if graph is None else graph.subgraph(idx, finer)
         parts = euclidean_clusters(pts, finer, 1, len(idx), sub)
-        real = [p for p in parts if len(p) >= max(min_points, SPLIT_CRUMB * len(idx))]
-        if not real:
+        big = np.array([len(p) >= max(min_points, SPLIT_CRUMB * len(idx)) for p in parts])
+        if not big.any():
             out.append(idx)  # shattered: a single noisy surface, not several objects
             continue
-        todo.extend((idx[p], finer) for p in real)  # one piece (without its crumbs) is tried finer still
-    return sorted(out, key=len, reverse=True)
+        todo.extend((idx[p], finer) for p, b in zip(parts, big) if b)  # one piece (without its crumbs) is tried finer still
+        if not big.all():
+            shed.append(idx[np.concatenate([p for p, b in zip(parts, big) if not b])])
+    return sorted(out, key=len, reverse=True), shed

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,7 @@ from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, ima
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.errors import CloudError, ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
-from recognition.pipeline import Recognizer
+from recognition.pipeline import Recognizer, SceneCloud
 from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
 from schemas.codec import CameraInfo
@@ -266,38 +267,90 @@ def test_a_model_from_surface_points_finds_the_demo_crate(tmp_path: Path) -> Non
     assert np.linalg.norm(found["crate"].camera_T_object[:3, 3] - truth[:3, 3]) < 0.02
 
 
-@pytest.mark.slow
-def test_objects_standing_together_are_found_in_their_merged_cluster() -> None:
-    """The demo objects 1-2 cm apart on the table: from cam3 they form one cluster (no descriptor of
-    it is any object's) and the crate is partly hidden. Each is stood on the table at pieces of the
-    cluster, verified, and found within 2 cm of where it stands."""
+@dataclass
+class Layout:
+    """The demo objects placed on the table and one camera's rendered frame of them."""
+
+    recognizer: Recognizer
+    config: RecognitionConfig
+    cloud: np.ndarray  # (H, W, 3) camera frame
+    world_T_camera: np.ndarray
+    truth: dict[str, np.ndarray]  # object -> camera_T_object
+    scene: SceneCloud
+
+    def surface_points(self, oid: str) -> np.ndarray:
+        """Indices of the prepared scene's points within 1 cm of the object's posed model."""
+        T = self.truth[oid]
+        surface = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.recognizer.db.models[oid].points @ T[:3, :3].T + T[:3, 3]))
+        scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.scene.points.astype(np.float64)))
+        return np.flatnonzero(np.asarray(scene.compute_point_cloud_distance(surface)) < 0.01)
+
+
+def demo_layout(where: dict[str, tuple[float, float, float]], camera: str, seed: int) -> Layout:
+    """The demo cell with each object at ``where`` (x, y in m on the table, yaw in deg), static,
+    rendered by ``camera`` with noise seed ``seed``; recognised with the benchmark's workspace."""
     from cellsight.model_build import database_from_scenario
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
     from schemas.spec import PoseSpec
 
     scenario = load_scenario()
-    where = {"crate": (0.0, 0.0, 0.0), "can": (0.19, 0.03, 0.0), "tote": (-0.05, 0.22, 90.0)}  # x, y (m), yaw (deg)
     objects = [o.model_copy(update={"pose": PoseSpec(position=(where[o.id][0], where[o.id][1], 0.75), rpy_deg=(0.0, 0.0, where[o.id][2])),
                                     "motion": o.motion.model_copy(update={"kind": "static"})}) for o in scenario.objects]  # fmt: skip
     scenario = scenario.model_copy(update={"objects": objects})
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     recognizer = Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
-    frame = SimCell(scenario).render("cam3", 0.0, 0)
+    frame = SimCell(scenario).render(camera, 0.0, seed)
     cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
     truth = {o.id: invert_pose(frame.world_T_camera) @ o.world_T_object(0.0) for o in objects}
-    scene = recognizer.prepare(cloud, frame.world_T_camera)
-    clusters = euclidean_clusters(scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, scene.graph)
-    owner = {}  # object -> the clusters holding points of its surface (within 1 cm of the posed model)
-    for oid, T in truth.items():
-        surface = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(recognizer.db.models[oid].points @ T[:3, :3].T + T[:3, 3]))
-        on = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64))).compute_point_cloud_distance(surface)) < 0.01
-        owner[oid] = {k for k, idx in enumerate(clusters) if on[idx].sum() >= cfg.cluster_min_points}
+    return Layout(recognizer, cfg, cloud, frame.world_T_camera, truth, recognizer.prepare(cloud, frame.world_T_camera))
+
+
+@pytest.mark.slow
+def test_objects_standing_together_are_found_in_their_merged_cluster() -> None:
+    """The demo objects 1-2 cm apart on the table: from cam3 they form one cluster (no descriptor of
+    it is any object's) and the crate is partly hidden. Each is stood on the table at pieces of the
+    cluster, verified, and found within 2 cm of where it stands."""
+    lay = demo_layout({"crate": (0.0, 0.0, 0.0), "can": (0.19, 0.03, 0.0), "tote": (-0.05, 0.22, 90.0)}, "cam3", 0)
+    cfg = lay.config
+    clusters = euclidean_clusters(lay.scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, lay.scene.graph)
+    owner = {}  # object -> the clusters holding points of its surface
+    for oid in lay.truth:
+        on = lay.surface_points(oid)
+        owner[oid] = {k for k, idx in enumerate(clusters) if np.isin(idx, on).sum() >= cfg.cluster_min_points}
     assert owner["crate"] == owner["can"] == owner["tote"] and len(owner["crate"]) == 1  # one cluster holds all three
-    found = {d.object_id: d for d in recognizer.recognize(cloud, world_T_camera=frame.world_T_camera)}
-    assert set(found) == set(truth)
+    found = {d.object_id: d for d in lay.recognizer.recognize(lay.cloud, world_T_camera=lay.world_T_camera)}
+    assert set(found) == set(lay.truth)
     for oid, det in found.items():
-        assert np.linalg.norm(det.camera_T_object[:3, 3] - truth[oid][:3, 3]) < 0.02, oid
+        assert np.linalg.norm(det.camera_T_object[:3, 3] - lay.truth[oid][:3, 3]) < 0.02, oid
+
+
+@pytest.mark.slow
+def test_a_small_object_half_hidden_among_larger_ones_is_found_in_what_the_split_shed() -> None:
+    """A layout of the recognition benchmark (seed 7, trial 3), seen by cam2: crate, tote and can
+    form one cluster, the can partly hidden. Split at a finer tolerance, crate and tote come apart
+    but the can's visible surface falls into fragments that are crumbs of the big cluster (under 5 %
+    of it each). Its fragments go to the pieces path together: the can is found, and every object
+    reported is where it stands within the benchmark's ADD-S bound (a tenth of its diameter; the
+    can is round, so its origin's offset says little)."""
+    from recognition.segment import split_oversized
+
+    lay = demo_layout({"crate": (0.2013, -0.0515, 235.47), "can": (-0.1948, 0.0672, 250.55), "tote": (-0.0471, -0.1146, 290.94)}, "cam2", 3)
+    cfg, scene = lay.config, lay.scene
+    on_can = lay.surface_points("can")
+    clusters = euclidean_clusters(scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, scene.graph)
+    parts, shed = split_oversized(scene.points, clusters, 1.2 * lay.recognizer._largest, cfg.cluster_tolerance_m, 1.5 * cfg.descriptor.voxel_m,
+                                  cfg.cluster_min_points, scene.graph)  # fmt: skip
+    assert len(on_can) >= cfg.cluster_min_points, "the can must be partly visible for this test"
+    assert max(np.isin(idx, on_can).sum() for idx in parts) < cfg.cluster_min_points, "no split part holds the can"
+    assert sum(np.isin(idx, on_can).sum() for idx in shed) >= 0.5 * len(on_can), "the split shed the can's surface"
+    found = {d.object_id: d for d in lay.recognizer.recognize(lay.cloud, world_T_camera=lay.world_T_camera)}
+    assert "can" in found
+    for oid, det in found.items():
+        model = lay.recognizer.db.models[oid]
+        posed = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points @ P[:3, :3].T + P[:3, 3])) for P in (det.camera_T_object, lay.truth[oid])]
+        adds = float(np.mean(np.asarray(posed[0].compute_point_cloud_distance(posed[1]))))
+        assert adds < 0.1 * model.diameter_m, f"{oid}: ADD-S {1e3 * adds:.1f} mm"
 
 
 def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
