@@ -65,6 +65,9 @@ YAW_STEP_DEG = 30
 #: ... and the fitness from which a piece's hypothesis goes on to verification, which judges it on
 #: the surface the camera should see (a partly hidden object's fitness over its facing side is low).
 PIECE_FITNESS = 0.2
+#: A part of a split cluster with fewer points than this share of the smallest model's is no whole
+#: object (a view shows about half a surface): it may be a fragment of one (``Recognizer._fragments``).
+SMALL_PART = 0.5
 #: A removed plane is a support objects stand on if its normal is within this of world up.
 SUPPORT_COS = float(np.cos(np.radians(20.0)))
 
@@ -116,7 +119,8 @@ class Recognizer:
         self._view_to_z = np.array([align_to_z(c) for c in self._views.centroid]).reshape(-1, 3, 3)
         self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
         # The fewest points a piece may hold for the pieces path to try the smallest object on it.
-        self._smallest_piece = int(PIECE_SHARE * min((len(mdl.points) for mdl in database.models.values()), default=0))
+        self._smallest_model = min((len(mdl.points) for mdl in database.models.values()), default=0)
+        self._smallest_piece = int(PIECE_SHARE * self._smallest_model)
         self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
         self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
         self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
@@ -173,14 +177,12 @@ class Recognizer:
         # World up in the camera frame, when known: the upright test needs it.
         up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
         c = self.config
-        clusters = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
-                                      scene.graph)
-        clusters, shed = split_oversized(scene.points, clusters, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
+        merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
+                                    scene.graph)
+        clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
                                          MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
-        # What a split shed may hold a small object half hidden among larger ones: its visible
-        # fragments fall apart at the finer tolerance. No view matches them; the pieces path may.
-        fragments = len(clusters)
-        clusters += [idx for idx in shed if len(idx) >= max(c.cluster_min_points, self._smallest_piece)]
+        first_fragment = len(clusters)  # clusters from here on are fragments: the pieces path only
+        clusters += self._fragments(merged, clusters, shed, len(scene.points))
         # Candidates (part, detection): a part is a cluster, or what is left of one once a touching
         # object is explained away, or a prior's own hint.
         candidates: list[tuple[int, Detection]] = []
@@ -204,7 +206,7 @@ class Recognizer:
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
-            for _ in range(0 if used[k] or k >= fragments else MAX_OBJECTS_PER_CLUSTER):
+            for _ in range(0 if used[k] or k >= first_fragment else MAX_OBJECTS_PER_CLUSTER):
                 matches = self._match_cluster(scene, rest, up)
                 if not matches:
                     break
@@ -227,7 +229,7 @@ class Recognizer:
                 if match is not None:
                     candidates.append((part, match[0]))
                     # Fragments are no cluster: the rule for a match explaining part of one does not apply.
-                    cluster_of[part] = k if k < fragments else None
+                    cluster_of[part] = k if k < first_fragment else None
                     part += 1
         # Each object is in the scene once, and each part is one object: best matches first, so that
         # a part two objects fit goes to the one not found better elsewhere. A hypothesis the frame
@@ -385,6 +387,25 @@ class Recognizer:
         det = Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m,
                         int(explained.sum()), from_prior)
         return det, explained
+
+    def _fragments(self, merged: list[np.ndarray], parts: list[np.ndarray], shed: list[np.ndarray], n_points: int) -> list[np.ndarray]:
+        """Where a small object half hidden among larger ones may be, when their cluster (one of
+        ``merged``) was split: its visible surface falls apart at the finer tolerance, into crumbs
+        the split shed (``shed``) and parts too small to be any whole object. Per shed set, those
+        crumbs with the small ``parts`` of the same merged cluster, if they hold enough points for
+        the pieces path to try the smallest object; no view matches fragments."""
+        if not shed:
+            return []
+        origin = np.full(n_points, -1)
+        for k, idx in enumerate(merged):
+            origin[idx] = k
+        small = [idx for idx in parts if len(idx) < SMALL_PART * self._smallest_model]
+        out = []
+        for crumbs in shed:
+            idx = np.concatenate([crumbs] + [p for p in small if origin[p[0]] == origin[crumbs[0]]])
+            if len(idx) >= max(self.config.cluster_min_points, self._smallest_piece):
+                out.append(idx)
+        return out
 
     def _piece_centres(self, points: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
         """Per object, the centroids (K, 3) of pieces of the points ``idx`` into ``points`` (N, 3): the
