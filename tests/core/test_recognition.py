@@ -326,24 +326,28 @@ def test_objects_standing_together_are_found_in_their_merged_cluster() -> None:
 
 
 @pytest.mark.slow
-def test_a_small_object_half_hidden_among_larger_ones_is_found_in_what_the_split_shed() -> None:
-    """A layout of the recognition benchmark (seed 7, trial 3), seen by cam2: crate, tote and can
-    form one cluster, the can partly hidden. Split at a finer tolerance, crate and tote come apart
-    but the can's visible surface falls into fragments that are crumbs of the big cluster (under 5 %
-    of it each). Its fragments go to the pieces path together: the can is found, and every object
+@pytest.mark.parametrize(("where", "camera", "seed"), [
+    ({"crate": (0.2013, -0.0515, 235.47), "can": (-0.1948, 0.0672, 250.55), "tote": (-0.0471, -0.1146, 290.94)}, "cam2", 3),
+    ({"crate": (-0.0457, -0.0281, 152.86), "can": (0.186, 0.0707, 340.82), "tote": (-0.038, 0.094, 43.88)}, "cam1", 9),
+])  # fmt: skip
+def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(where: dict, camera: str, seed: int) -> None:
+    """Two layouts of the recognition benchmark (seed 7, trials 3 and 9): crate, tote and can form
+    one cluster, the can partly hidden. Split at a finer tolerance, crate and tote come apart, but
+    the can's visible surface falls into fragments (crumbs of the big cluster, small parts): no
+    part holds half of it. Together they go to the pieces path: the can is found, and every object
     reported is where it stands within the benchmark's ADD-S bound (a tenth of its diameter; the
     can is round, so its origin's offset says little)."""
     from recognition.segment import split_oversized
 
-    lay = demo_layout({"crate": (0.2013, -0.0515, 235.47), "can": (-0.1948, 0.0672, 250.55), "tote": (-0.0471, -0.1146, 290.94)}, "cam2", 3)
+    lay = demo_layout(where, camera, seed)
     cfg, scene = lay.config, lay.scene
     on_can = lay.surface_points("can")
     clusters = euclidean_clusters(scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, scene.graph)
     parts, shed = split_oversized(scene.points, clusters, 1.2 * lay.recognizer._largest, cfg.cluster_tolerance_m, 1.5 * cfg.descriptor.voxel_m,
                                   cfg.cluster_min_points, scene.graph)  # fmt: skip
-    assert len(on_can) >= cfg.cluster_min_points, "the can must be partly visible for this test"
-    assert max(np.isin(idx, on_can).sum() for idx in parts) < cfg.cluster_min_points, "no split part holds the can"
-    assert sum(np.isin(idx, on_can).sum() for idx in shed) >= 0.5 * len(on_can), "the split shed the can's surface"
+    assert len(on_can) >= 100, "the can must be partly visible for this test"
+    assert max(np.isin(idx, on_can).sum() for idx in parts) < 0.5 * len(on_can), "a part holds most of the can"
+    assert sum(np.isin(idx, on_can).sum() for idx in shed) > 0, "the split shed none of the can"
     found = {d.object_id: d for d in lay.recognizer.recognize(lay.cloud, world_T_camera=lay.world_T_camera)}
     assert "can" in found
     for oid, det in found.items():
