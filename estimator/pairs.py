@@ -91,6 +91,9 @@ class Pair:
     def _swap_branches_if_flipped(self) -> None:
         """If most observations' own choice fell in the other branch, the pair started on a flip."""
         if self.n >= 3 and 2 * self.primary_in_alt > self.n:
+            # The covariances were added in the frame of the branch taken: into the other one's
+            # (every observation's branches sit within the flip gate of their means).
+            self.cov_sum[:] = covariance_in_frame(self.cov_sum, project_rotation(self.rot_sum), project_rotation(self.alt_rot_sum))
             self.sums[3:12], self.sums[12:21] = self.sums[12:21].copy(), self.sums[3:12].copy()
             self.primary_in_alt = self.n - self.primary_in_alt
             self._cached = None

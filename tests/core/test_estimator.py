@@ -198,7 +198,8 @@ def test_a_flipped_observations_covariance_is_turned_to_the_branch_taken() -> No
     frame (``drivers.markers``); a pair that takes the true branch back must turn the covariance
     into it. Then its fused position covariance in the camera frame is the same whether 0 or 8 of
     20 exact observations came flipped, one by one (flips first: the young pair re-decides them)
-    and batched. (Rotation blocks: the model's tilt axes differ between the branches; not compared.)"""
+    and batched, and in a pair that settled on the flip and swaps branches later. (Rotation
+    blocks: the model's tilt axes differ between the branches; not compared.)"""
     info = CameraInfo.kinect_v1()
     T = make_pose(rpy_matrix(np.radians(-90.0 + 35.0), np.radians(20.0), 0.0), [0.4, -0.2, 2.5])  # 35 and 20 deg off the ray
     F = flip(T)
@@ -220,7 +221,16 @@ def test_a_flipped_observations_covariance_is_turned_to_the_branch_taken() -> No
     rows = ObservationRows(np.zeros(20, int), np.stack([r[0] for r in reports]), np.stack([r[1] for r in reports]),
                            np.stack([r[2] for r in reports]), np.zeros(20, bool), np.arange(20))  # fmt: skip
     batched = fold_rows(np.tile(T, (20, 1, 1)), np.zeros(20, int), 1, rows)
-    for what, C in (("one by one", one_by_one.mean_covariance()), ("batched", batched.sums[0, 21:].reshape(6, 6) / 20)):
+    # A pair that settled on the flip (20 of its first 30 flipped) and swaps branches later, when
+    # most of its observations chose the other one: its sums turn with it.
+    settled = Pair()
+    for k in range(70):
+        settled.add_pose(*((F, T, cov_flipped) if k < 20 else (T, F, cov)))
+        if k == 29:
+            assert rotation_angle(settled.mean(exact=True)[:3, :3], F[:3, :3]) < 1e-6, "settled on the flip"
+    assert_pose_close(settled.mean(exact=True), T, 1e-9, 1e-6, "the settled pair's mean after the swap")
+    for what, C in (("one by one", one_by_one.mean_covariance()), ("batched", batched.sums[0, 21:].reshape(6, 6) / 20),
+                    ("swapped when settled", settled.mean_covariance())):  # fmt: skip
         got = camera_frame(C)
         assert np.abs(got - expected).max() <= 1e-9 * np.abs(expected).max(), f"{what}: {got} against {expected}"
 
