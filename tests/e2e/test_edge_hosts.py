@@ -59,7 +59,7 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
     })  # fmt: skip
     (tmp_path / "edge.toml").write_text(edge_cfg.to_toml())
     procs = [in_ns(cell, CLI + ["router", "--listen", CELL_ROUTER, "--no-shared-memory"], tmp_path / "cell_router.log")]
-    time.sleep(1.0)
+    wait_listening(tmp_path / "cell_router.log")
     procs.append(in_ns(cell, CLI + ["estimator", "--cell-config", str(tmp_path / "cell.toml")], tmp_path / "estimator.log"))
     echo = in_ns(cell, CLI + ["bus", "echo", "cellsight/net/estimate/status", "--json", "--cell-config", str(tmp_path / "cell.toml")],
                  tmp_path / "echo.log", stdout=subprocess.PIPE, text=True)  # fmt: skip
@@ -123,6 +123,11 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
         stop_all(procs)
 
 
+def wait_listening(log: Path) -> None:
+    """Until a ``cellsight router`` logs that it listens: a bus echo started before gives up at once."""
+    wait_until(lambda: log.exists() and "router listening" in log.read_text(errors="replace"), 30.0, f"{log.name}: router listening")
+
+
 def _statuses(echo: subprocess.Popen, seen: dict[str, float], other: list[str] | None = None) -> None:
     """Record, per camera, when its first status message came out of ``echo`` (a --json bus echo);
     the last lines that were not statuses (its errors) go to ``other``."""
@@ -164,7 +169,7 @@ def test_with_the_secure_profile_only_an_edge_router_of_the_cells_authority_join
     (tmp_path / "rogue.toml").write_text(rogue_cfg.to_toml())
 
     procs = [in_ns(cell, CLI + ["router", "--config", str(pki.router_config), "--no-shared-memory"], tmp_path / "cell_router.log")]
-    time.sleep(1.0)
+    wait_listening(tmp_path / "cell_router.log")
     at_cell: dict[str, float] = {}
     echo = in_ns(cell, CLI + ["bus", "echo", "cellsight/net/*/status", "--json", "--config", str(pki.role_configs["viewer"])],
                  tmp_path / "echo.log", stdout=subprocess.PIPE, text=True)  # fmt: skip
@@ -177,7 +182,7 @@ def test_with_the_secure_profile_only_an_edge_router_of_the_cells_authority_join
     rogue_procs = {"rogue router": in_ns(edge, CLI + ["router", "--config", str(rogue.edge_router_config), "--listen", rogue_listen,
                                                       "--connect", secure_router], rogue_router_log)}  # fmt: skip
     procs += rogue_procs.values()
-    wait_until(lambda: "router listening" in rogue_router_log.read_text(errors="replace"), 30.0, "the rogue router listening")
+    wait_listening(rogue_router_log)
     rogue_procs["rogue echo"] = in_ns(edge, CLI + ["bus", "echo", "cellsight/net/*/status", "--json", "--config", str(rogue.role_configs["viewer"]),
                                                    "--connect", rogue_listen], stdout=subprocess.PIPE, text=True)  # fmt: skip
     procs.append(rogue_procs["rogue echo"])
