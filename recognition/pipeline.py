@@ -118,8 +118,8 @@ class Recognizer:
         self._views, self._owners = database.view_table()
         self._view_to_z = np.array([align_to_z(c) for c in self._views.centroid]).reshape(-1, 3, 3)
         self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
-        # The fewest points a piece may hold for the pieces path to try the smallest object on it.
         self._smallest_model = min((len(mdl.points) for mdl in database.models.values()), default=0)
+        # The fewest points a piece may hold for the pieces path to try the smallest object on it.
         self._smallest_piece = int(PIECE_SHARE * self._smallest_model)
         self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
         self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
@@ -181,8 +181,11 @@ class Recognizer:
                                     scene.graph)
         clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
                                          MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
+        # Pieces need a support to stand objects on, and verification to judge what they propose.
+        support = _support(scene.planes, up) if c.verify else None
         first_fragment = len(clusters)  # clusters from here on are fragments: the pieces path only
-        clusters += self._fragments(merged, clusters, shed, len(scene.points))
+        if support is not None:
+            clusters += self._fragments(merged, clusters, shed, len(scene.points))
         # Candidates (part, detection): a part is a cluster, or what is left of one once a touching
         # object is explained away, or a prior's own hint.
         candidates: list[tuple[int, Detection]] = []
@@ -199,9 +202,7 @@ class Recognizer:
                 used[k] = match[0].coverage >= c.min_coverage
                 candidates.append((-1 - len(candidates), match[0]))
         part = 0
-        cluster_of: dict[int, int] = {}  # part -> its cluster
-        # Pieces need a support to stand objects on, and verification to judge what they propose.
-        support = _support(scene.planes, up) if c.verify else None
+        cluster_of: dict[int, int | None] = {}  # part -> its cluster (None: no cluster of its own)
         for k, idx in enumerate(clusters):
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
