@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from recognition.cloud import PointIndex
 from recognition.vfh import ROLL_BINS
 from schemas.geometry import rotation_between
 
@@ -144,20 +145,24 @@ def refine_icp(
     max_distance_m: float,
     iterations: int = 30,
     max_shift_m: float = np.inf,
+    index: PointIndex | None = None,
 ) -> IcpResult:
     """An ``icp_pass`` of the model points facing the camera at the start, at max_distance_m, then
     scored again with those facing it at the refined pose, so that the fitness counts the surface
-    the camera should actually see."""
+    the camera should actually see. index: the scene's points, when the caller has them indexed."""
     facing = facing_camera(model_points, model_normals, camera_T_object)[0]
     first = icp_pass(model_points[facing], scene, camera_T_object, max_distance_m, iterations, max_shift_m)
     if first.fitness == 0:
         return first
-    facing = facing_camera(model_points, model_normals, first.camera_T_object)[0]
+    T = first.camera_T_object
+    facing = facing_camera(model_points, model_normals, T)[0]
     if facing.sum() < 3:
-        return IcpResult(first.camera_T_object, 0.0, float("inf"))
-    ev = o3d.pipelines.registration.evaluate_registration(_cloud(model_points[facing]), scene, max_distance_m,
-                                                          first.camera_T_object)
-    return IcpResult(first.camera_T_object, float(ev.fitness), float(ev.inlier_rmse) if ev.fitness > 0 else float("inf"))
+        return IcpResult(T, 0.0, float("inf"))
+    index = PointIndex(np.asarray(scene.points)) if index is None else index
+    _, sq_dist = index.nearest(model_points[facing] @ T[:3, :3].T + T[:3, 3])
+    inliers = sq_dist[sq_dist <= max_distance_m**2].astype(np.float64)
+    fitness = len(inliers) / len(sq_dist)  # Open3D's evaluation: inliers over the points asked
+    return IcpResult(T, fitness, float(np.sqrt(inliers.mean())) if len(inliers) else float("inf"))
 
 
 def model_to_scene_rmse(model_points: np.ndarray, camera_T_object: np.ndarray, scene_points: np.ndarray) -> float:

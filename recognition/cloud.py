@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import open3d as o3d
 from open3d.core import nns
@@ -206,6 +207,39 @@ def radius_neighbours(points: np.ndarray, radius_m: float) -> Neighbours:
     search.fixed_radius_index(radius_m)
     idx, sq_dist, splits = search.fixed_radius_search(pts, radius_m, sort=False)
     return Neighbours(radius_m, idx.numpy().astype(np.int64), sq_dist.numpy(), splits.numpy().astype(np.int64))
+
+
+class PointIndex:
+    """Exact nearest neighbours among fixed points (N, 3), m: one k-d tree (OpenCV's FLANN, a single
+    tree searched with no limit on checks, so exact), built once and asked many times. Open3D's ICP
+    and its registration evaluation build a tree per call, which costs more than their searches."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
+        self._tree = cv2.flann_Index(self.points, {"algorithm": 4, "leaf_max_size": 10}) if len(self.points) else None
+        self._lo, self._hi = (self.points.min(axis=0), self.points.max(axis=0)) if len(self.points) else (None, None)
+
+    def nearest(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each query point's (M, 3) nearest point: its index (M,) int64 (-1 when there are no points)
+        and squared distance (M,) float32, m^2."""
+        q = np.ascontiguousarray(query, dtype=np.float32).reshape(-1, 3)
+        if self._tree is None or len(q) == 0:
+            return np.full(len(q), -1, np.int64), np.full(len(q), np.inf, np.float32)
+        idx, sq_dist = self._tree.knnSearch(q, 1, params={"checks": -1})
+        return idx[:, 0].astype(np.int64), sq_dist[:, 0]
+
+    def within(self, query: np.ndarray, radius_m: float) -> np.ndarray:
+        """Mask (M,) of the query points (M, 3) with a point within radius_m."""
+        q = np.ascontiguousarray(query, dtype=np.float32).reshape(-1, 3)
+        out = np.zeros(len(q), dtype=bool)
+        if self._tree is None:
+            return out
+        # Only points in the points' box grown by the radius can have one: an exact search for a
+        # far point's nearest costs the most.
+        r = np.float32(radius_m)
+        near = np.flatnonzero(np.all((q >= self._lo - r) & (q <= self._hi + r), axis=1))
+        out[near] = self.nearest(q[near])[1] <= r * r
+        return out
 
 
 def smallest_eigenpair(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

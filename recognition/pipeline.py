@@ -19,12 +19,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
-from open3d.core import nns
 
 from recognition.align import (
     IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z, views_to_scene,
 )
-from recognition.cloud import estimate_normals, radius_neighbours, voxel_downsample
+from recognition.cloud import PointIndex, estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.descriptor import describe
 from recognition.errors import ModelError
@@ -104,6 +103,24 @@ class SceneCloud:
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
 
 
+@dataclass(frozen=True)
+class Target:
+    """Scene points hypotheses are fitted to (a cluster, or what is left of one), camera frame:
+    ``points`` (N, 3), the same with normals for Open3D's ICP, and their index. Built once per part
+    for every object tried on it."""
+
+    points: np.ndarray
+    cloud: o3d.geometry.PointCloud
+    index: PointIndex
+
+    @classmethod
+    def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
+        points = scene.points[idx]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+        cloud.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
+        return cls(points, cloud, PointIndex(points))
+
+
 class Recognizer:
     """Recognise the objects of a model database in single camera-frame clouds."""
 
@@ -126,10 +143,7 @@ class Recognizer:
         self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
         # Each whole model's point index, built once: which cluster points a pose explains is asked
         # of every accepted hypothesis.
-        self._model_index: dict[str, nns.NearestNeighborSearch] = {}
-        for oid, mdl in database.models.items():
-            self._model_index[oid] = nns.NearestNeighborSearch(o3d.core.Tensor(mdl.points.astype(np.float32)))
-            self._model_index[oid].hybrid_index(config.icp_distance_m)
+        self._model_index = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
 
     def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
         """Finite points within range (and the workspace, when the camera pose is known), downsampled,
@@ -197,7 +211,7 @@ class Recognizer:
             k = _cluster_near(scene.points, clusters, prior.camera_T_object[:3, 3], model.diameter_m)
             if k is None:
                 continue
-            match = self._score(model, scene, clusters[k], [prior.camera_T_object], up, from_prior=True)
+            match = self._score(model, Target.of(scene, clusters[k]), [prior.camera_T_object], up, from_prior=True)
             if match is not None:
                 used[k] = match[0].coverage >= c.min_coverage
                 candidates.append((-1 - len(candidates), match[0]))
@@ -223,10 +237,12 @@ class Recognizer:
             # What no match explained may hold objects that stand so close that they merged into one
             # cluster, hiding parts of each other: its descriptor is no object's. Each object is
             # stood on the support at pieces spread over the rest, and verification judges it.
-            for oid, centres in self._piece_centres(scene.points, rest).items():
+            pieces = self._piece_centres(scene.points, rest)
+            target = Target.of(scene, rest) if pieces else None
+            for oid, centres in pieces.items():
                 model = self.db.models[oid]
                 starts = np.concatenate([standing_starts(model.points, centre, support) for centre in centres])
-                match = self._score(model, scene, rest, starts, up, fitness_to_verify=PIECE_FITNESS)
+                match = self._score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS)
                 if match is not None:
                     candidates.append((part, match[0]))
                     # Fragments are no cluster: the rule for a match explaining part of one does not apply.
@@ -312,10 +328,11 @@ class Recognizer:
                 rows.append(int(row))
                 rolls.append(roll)
         matches = []
+        target = Target.of(scene, idx)
         for oid, (rows, rolls) in chosen.items():
             camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
                                            np.array(rolls))
-            match = self._score(self.db.models[oid], scene, idx, camera_T_view @ self._views.view_T_object[rows], up)
+            match = self._score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], up)
             if match is not None:
                 matches.append(match)
         return sorted(matches, key=lambda m: _rank(m[0]), reverse=True)
@@ -323,8 +340,7 @@ class Recognizer:
     def _score(
         self,
         model: ObjectModel,
-        scene: SceneCloud,
-        idx: np.ndarray,
+        target: Target,
         starts: list[np.ndarray],
         up: np.ndarray | None,
         from_prior: bool = False,
@@ -339,8 +355,6 @@ class Recognizer:
         cluster itself.
         """
         c = self.config
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points[idx].astype(np.float64)))
-        target.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
         # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
         sparse_points, sparse_normals = self._sparse[model.object_id]
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
@@ -348,11 +362,11 @@ class Recognizer:
             poses = _stand_up(poses, up, self._centre[model.object_id])
         facings = facing_camera(sparse_points, sparse_normals, poses)
         if len(poses) > ICP_STARTS:
-            keep = self._overlap_ranked(sparse_points, facings, poses, scene.points[idx])[:ICP_STARTS]
+            keep = self._overlap_ranked(sparse_points, facings, poses, target.index)[:ICP_STARTS]
             poses, facings = poses[keep], facings[keep]
         screened: list[IcpResult] = []
         for start, facing in zip(poses, facings):
-            res = icp_pass(sparse_points[facing], target, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
+            res = icp_pass(sparse_points[facing], target.cloud, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
                            max_shift_m=model.diameter_m)
             if res.fitness > 0 and _upright(res.camera_T_object, up):  # else a symmetric shape's mirror image
                 screened.append(res)
@@ -368,15 +382,15 @@ class Recognizer:
             if any(_same_pose(coarse.camera_T_object, done) for done in refined):
                 continue  # two starts that screened into one pose refine into one pose
             refined.append(coarse.camera_T_object)
-            res = refine_icp(dense_points, dense_normals, target, coarse.camera_T_object, c.icp_distance_m,
-                             c.icp_iterations, max_shift_m=model.diameter_m)
+            res = refine_icp(dense_points, dense_normals, target.cloud, coarse.camera_T_object, c.icp_distance_m,
+                             c.icp_iterations, max_shift_m=model.diameter_m, index=target.index)
             if not _upright(res.camera_T_object, up):
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
                 best = res
         if best is None:
             return None
-        explained = self._explained(model.object_id, best.camera_T_object, scene.points[idx])
+        explained = self._explained(model.object_id, best.camera_T_object, target.points)
         coverage = float(explained.mean()) if len(explained) else 0.0
         whole = best.fitness >= c.min_fitness and coverage >= c.min_coverage
         shared = best.fitness >= shared_fitness and explained.sum() >= c.cluster_min_points
@@ -429,17 +443,12 @@ class Recognizer:
                 out[oid] = np.array(centres)
         return out
 
-    def _overlap_ranked(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: np.ndarray) -> np.ndarray:
+    def _overlap_ranked(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
         """Start indices, best first, by the share of facing model points (N, 3; ``facing`` (S, N))
-        within the coarse ICP's distance of the target (M, 3) at each pose (S, 4, 4): one index for
-        all starts."""
-        r = 2.0 * self.config.icp_distance_m
-        index = nns.NearestNeighborSearch(o3d.core.Tensor(target.astype(np.float32)))
-        index.hybrid_index(r)
-        placed = np.einsum("sij,nj->sni", poses[:, :3, :3], points) + poses[:, None, :3, 3]
-        _, _, counts = index.hybrid_search(o3d.core.Tensor(placed.reshape(-1, 3).astype(np.float32)), r, 1)
-        hits = (counts.numpy().reshape(len(poses), -1) > 0) & facing
-        return np.argsort(-hits.sum(axis=1) / np.maximum(facing.sum(axis=1), 1), kind="stable")
+        within the coarse ICP's distance of the target's points at each pose (S, 4, 4)."""
+        placed = (points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3])[facing]  # only facing ones count
+        hits = np.bincount(np.nonzero(facing)[0], target.within(placed, 2.0 * self.config.icp_distance_m), len(poses))
+        return np.argsort(-hits / np.maximum(facing.sum(axis=1), 1), kind="stable")
 
     def _rests(self, det: Detection, found: Iterable[Detection], support: np.ndarray) -> bool:
         """Whether a detection's lowest point is within max_float_m of the support plane (a, b, c, d;
@@ -477,10 +486,8 @@ class Recognizer:
     def _explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Mask (N,) of the cluster points (N, 3), camera frame, within icp_distance_m of the posed model."""
         object_T_camera = invert_pose(camera_T_object)
-        local = (points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]).astype(np.float32)
-        _, _, counts = self._model_index[object_id].hybrid_search(
-            o3d.core.Tensor(local), self.config.icp_distance_m, 1)
-        return counts.numpy() > 0
+        local = points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]
+        return self._model_index[object_id].within(local, self.config.icp_distance_m)
 
 
 def _support(planes: np.ndarray, up: np.ndarray | None) -> np.ndarray | None:

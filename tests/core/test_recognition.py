@@ -12,7 +12,9 @@ import open3d as o3d
 import pytest
 
 from recognition.align import align_to_z, model_to_scene_rmse, roll_candidates, roll_histogram, rot_z
-from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, image_window, radius_neighbours, read_cloud, smallest_eigenpair
+from recognition.cloud import (
+    PointIndex, camera_rays, depth_to_cloud, estimate_normals, image_window, radius_neighbours, read_cloud, smallest_eigenpair,
+)
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.errors import CloudError, ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
@@ -102,6 +104,23 @@ def test_components_of_a_path_in_scrambled_order() -> None:
     i, j = order[:-1], order[1:]  # one path visiting every node, numbered at random
     labels = components(1001, i, j)
     assert (labels[:1000] == 0).all() and labels[1000] == 1000
+
+
+def test_point_index_is_exact_nearest_and_radius_search(milk: np.ndarray) -> None:
+    """The k-d tree ICP scoring shares answers as brute force does (nearest point and its squared
+    distance) and as Open3D's radius search does (within r), for queries near and far from the points."""
+    rng = np.random.default_rng(5)
+    points = milk[rng.choice(len(milk), 800, replace=False)]
+    query = np.concatenate([points + rng.normal(0, 0.01, points.shape), rng.uniform(-1, 2, (200, 3))]).astype(np.float32)
+    index, sq_dist = PointIndex(points).nearest(query)
+    all_sq = ((query[:, None, :] - points[None, :, :]) ** 2).sum(axis=2)
+    np.testing.assert_allclose(sq_dist, all_sq.min(axis=1), rtol=1e-5, atol=1e-10)
+    assert np.all(all_sq[np.arange(len(query)), index] <= all_sq.min(axis=1) * (1 + 1e-5) + 1e-10)
+    search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(points))
+    search.fixed_radius_index(0.008)
+    _, _, splits = search.fixed_radius_search(o3d.core.Tensor(query), 0.008)
+    np.testing.assert_array_equal(PointIndex(points).within(query, 0.008), np.diff(splits.numpy()) > 0)
+    assert not PointIndex(np.zeros((0, 3))).within(query, 1.0).any()
 
 
 def test_closed_form_normals_match_lapack_on_random_neighbourhoods() -> None:
