@@ -21,7 +21,7 @@ import numpy as np
 import open3d as o3d
 
 from recognition.align import (
-    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z, views_to_scene,
+    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
 )
 from recognition.cloud import PointIndex, estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
@@ -241,7 +241,7 @@ class Recognizer:
             target = Target.of(scene, rest) if pieces else None
             for oid, centres in pieces.items():
                 model = self.db.models[oid]
-                starts = np.concatenate([standing_starts(model.points, centre, support) for centre in centres])
+                starts = standing_starts(model.points, centres, support)
                 match = self._score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS)
                 if match is not None:
                     candidates.append((part, match[0]))
@@ -503,25 +503,30 @@ def _support(planes: np.ndarray, up: np.ndarray | None) -> np.ndarray | None:
 
 
 def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndarray) -> np.ndarray:
-    """Poses (S, 4, 4), camera frame, of an object standing upright on the support plane (a, b, c, d;
-    unit normal towards the camera): its base's centre (the model's lowest points, object frame
-    (M, 3)) below ``near`` (3,) and half its smaller width further from the camera, at yaws
-    YAW_STEP_DEG apart."""
+    """Poses (K * S, 4, 4), camera frame, of an object standing upright on the support plane (a, b, c,
+    d; unit normal towards the camera): its base's centre (the model's lowest points, object frame
+    (M, 3)) below each of ``near`` (K, 3) or (3,) and half its smaller width further from the
+    camera, at yaws YAW_STEP_DEG apart; S of them per point, the ones below it first."""
     n, d = support[:3], support[3]
-    foot = near - (near @ n + d) * n  # onto the plane
-    away = foot - (foot @ n) * n  # the camera's viewing direction along the plane
-    if np.linalg.norm(away) < 1e-6:  # looking straight down: any direction along the plane
-        away = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-    away /= np.linalg.norm(away)
-    plane_T_yaw0 = np.column_stack([away, np.cross(n, away), n])
+    near = np.atleast_2d(near)
+    foot = near - (near @ n + d)[:, None] * n  # onto the plane
+    away = foot - (foot @ n)[:, None] * n  # the camera's viewing direction along the plane
+    # Looking straight down: any direction along the plane.
+    anywhere = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    away = np.where(np.linalg.norm(away, axis=1, keepdims=True) < 1e-6, anywhere, away)
+    away /= np.linalg.norm(away, axis=1, keepdims=True)
+    plane_T_yaw0 = np.stack([away, np.cross(n, away), np.broadcast_to(n, away.shape)], axis=2)  # (K, 3, 3)
+    yaws = np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG))
+    yaw_R = np.zeros((len(yaws), 3, 3))
+    yaw_R[:, 0, 0], yaw_R[:, 0, 1], yaw_R[:, 1, 0], yaw_R[:, 1, 1], yaw_R[:, 2, 2] = (
+        np.cos(yaws), -np.sin(yaws), np.sin(yaws), np.cos(yaws), 1.0)
+    R = plane_T_yaw0[:, None] @ yaw_R  # (K, Y, 3, 3)
     lo, hi = model_points.min(axis=0), model_points.max(axis=0)
     base = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    R = plane_T_yaw0 @ np.stack([rot_z(yaw) for yaw in np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG))])
-    n_yaws = len(R)
-    out = np.tile(np.eye(4), (2, n_yaws, 1, 1))
-    out[:, :, :3, :3] = R
+    out = np.tile(np.eye(4), (len(near), 2, len(yaws), 1, 1))
+    out[..., :3, :3] = R[:, None]
     for i, back in enumerate((0.0, 0.5 * min(hi[0] - lo[0], hi[1] - lo[1]))):
-        out[i, :, :3, 3] = foot + back * away - R @ base
+        out[:, i, :, :3, 3] = (foot + back * away)[:, None] - R @ base
     return out.reshape(-1, 4, 4)
 
 
