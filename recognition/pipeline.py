@@ -252,22 +252,24 @@ class Recognizer:
         # a part two objects fit goes to the one not found better elsewhere. A hypothesis the frame
         # contradicts never takes a part, and a pixel explains one object.
         candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
-        verdicts = self._verify(cloud, [det for _, det in candidates], scene.planes) if c.verify else [None] * len(candidates)
+        # Judged only when it could be taken: most frames hold candidates for objects already found.
+        view = DepthView.of(cloud) if c.verify and candidates else None
         found: dict[str, Detection] = {}
         cluster_found: dict[str, int | None] = {}  # object -> the cluster its part came from (None: a prior's)
         taken: set[int] = set()
         explained = Explained()
         # Objects rest on the support or on an object found under them (``_rests``): one that does
         # not yet waits for another pass, in case what it stands on is found after it.
-        pending = list(zip(candidates, verdicts))
+        pending = candidates
         while pending:
             waiting, before = [], len(found)
-            for (p, det), v in pending:
+            for p, det in pending:
                 if p in taken or det.object_id in found:
                     continue
                 if support is not None and c.max_float_m > 0 and not self._rests(det, found.values(), support):
-                    waiting.append(((p, det), v))
+                    waiting.append((p, det))
                     continue
+                v = self._verdict(view, det, scene.planes) if view is not None else None
                 if v is not None and not (v.fitness >= c.min_visible_fitness and v.support >= c.min_visible_support
                                           and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
                                           and v.penetration <= c.max_penetration and explained.admit(v)):  # fmt: skip
@@ -280,7 +282,7 @@ class Recognizer:
                 found[det.object_id] = det
                 cluster_found[det.object_id] = cluster_of.get(p)
             if len(found) == before:
-                for (_, det), _ in waiting:
+                for _, det in waiting:
                     log.debug("%s rejected: it floats above the support with nothing found under it", det.object_id)
                 break
             pending = waiting
@@ -296,15 +298,11 @@ class Recognizer:
                 del found[oid]
         return sorted(found.values(), key=lambda d: d.object_id)
 
-    def _verify(self, cloud: np.ndarray, detections: list[Detection], planes: np.ndarray) -> list[Verdict | None]:
-        """Each hypothesis judged against the frame's depth and the supports removed from it
+    def _verdict(self, view: DepthView, det: Detection, planes: np.ndarray) -> Verdict:
+        """A hypothesis judged against the frame's depth and the supports removed from it
         (``recognition.verify``)."""
-        if not detections:
-            return []
-        view = DepthView.of(cloud)
-        c = self.config
-        return [verdict(view, self.db.models[d.object_id].points, self.db.models[d.object_id].normals, d.camera_T_object,
-                        c.icp_distance_m, c.plane_noise_per_m2, planes) for d in detections]  # fmt: skip
+        model, c = self.db.models[det.object_id], self.config
+        return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes)
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None
