@@ -84,7 +84,7 @@ class DepthView:
             np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
             z = z.reshape(H, W)
             z[np.isinf(z)] = np.nan
-        return cls(_filter3(z, np.fmin), _filter3(z, np.fmax), K, z)
+        return cls(_filter3(z, nearest=True), _filter3(z, nearest=False), K, z)
 
 
 @dataclass(frozen=True)
@@ -284,12 +284,11 @@ def _depth_normals(view: DepthView, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _filter3(z: np.ndarray, op) -> np.ndarray:
-    """3x3 neighbourhood reduction ignoring NaN (``np.fmin``: nearest, ``np.fmax``: farthest)."""
-    padded = np.pad(z, 1, constant_values=np.nan)
-    out = z.copy()
-    H, W = z.shape
-    for dv in range(3):
-        for du in range(3):
-            out = op(out, padded[dv:dv + H, du:du + W])
+def _filter3(z: np.ndarray, nearest: bool) -> np.ndarray:
+    """3x3 neighbourhood minimum (``nearest``) or maximum of z (H, W), ignoring NaN (NaN where the
+    whole neighbourhood is)."""
+    fill = np.inf if nearest else -np.inf
+    morph = cv2.erode if nearest else cv2.dilate  # min / max filters, exact
+    out = morph(np.where(np.isnan(z), fill, z), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=fill)
+    out[np.isinf(out)] = np.nan
     return out
