@@ -36,14 +36,14 @@ def depth_to_cloud(depth: np.ndarray, K: np.ndarray, depth_scale: float = 0.001)
         raise CloudError("intrinsics K must be a finite 3x3 matrix with positive focal lengths")
     h, w = depth.shape
     z = depth.astype(np.float32) * np.float32(depth_scale)
+    z[~(z > 0)] = np.nan  # x and y follow: NaN times anything
     inv_fx, inv_fy = np.float32(1.0 / K[0, 0]), np.float32(1.0 / K[1, 1])
     u = np.arange(w, dtype=np.float32) - np.float32(K[0, 2])
     v = np.arange(h, dtype=np.float32) - np.float32(K[1, 2])
     cloud = np.empty((h, w, 3), dtype=np.float32)
-    cloud[..., 0] = u[None, :] * z * inv_fx
-    cloud[..., 1] = v[:, None] * z * inv_fy
+    np.multiply(u[None, :] * z, inv_fx, out=cloud[..., 0])
+    np.multiply(v[:, None] * z, inv_fy, out=cloud[..., 1])
     cloud[..., 2] = z
-    cloud[~(z > 0)] = np.nan
     return cloud
 
 
