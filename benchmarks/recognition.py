@@ -53,7 +53,7 @@ import open3d as o3d  # noqa: E402
 from benchmarks.common import PCL_DATA, main  # noqa: E402
 from cellsight.model_build import database_from_scenario  # noqa: E402
 from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
-from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
+from drivers.sim.scenario import ObjectSpec, Scenario, apart, footprint, load_scenario  # noqa: E402
 from recognition import ppf  # noqa: E402
 from recognition.align import model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
 from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_cloud  # noqa: E402
@@ -142,24 +142,31 @@ def mssd(shape: Shape, est: np.ndarray, gt: np.ndarray) -> float:
 
 
 def random_layout(s: Scenario, rng: np.random.Generator, tight: bool) -> Scenario:
-    """The scenario with its objects at random non-overlapping table positions and yaws, all static.
+    """The scenario with its objects at random table positions and yaws, all static, no two closer
+    than a gap (their outlines on the table, ``footprint``): objects that interpenetrate are no
+    scene a sensor can see.
 
     tight: crowded into the middle of the table with 1.5 cm gaps (so that they hide one another),
     instead of spread with 5 cm gaps.
     """
     half, gap = (np.array(TABLE_HALF) * (0.45 if tight else 1.0)), (0.015 if tight else 0.05)
-    placed: list[tuple[np.ndarray, float]] = []
-    objects = []
-    for obj in s.objects:
-        radius = 0.5 * float(np.hypot(obj.size[0] * (2 if obj.shape != "box" else 1), obj.size[1] * (2 if obj.shape != "box" else 1)))
-        for _ in range(1000):
-            xy = rng.uniform(-half, half)
-            if all(np.linalg.norm(xy - p) > radius + r + gap for p, r in placed):
+    for _ in range(200):  # a layout whose last object found no room starts again
+        outlines: list[np.ndarray] = []
+        objects = []
+        for obj in s.objects:
+            for _ in range(200):
+                xy, yaw = rng.uniform(-half, half), float(rng.uniform(0, 2 * np.pi))
+                outline = footprint(obj, xy, yaw)
+                if all(apart(outline, other, gap) for other in outlines):
+                    break
+            else:
                 break
-        placed.append((xy, radius))
-        pose = PoseSpec(position=(float(xy[0]), float(xy[1]), 0.75), rpy_deg=(0.0, 0.0, float(rng.uniform(0, 360))))
-        objects.append(obj.model_copy(update={"pose": pose, "motion": obj.motion.model_copy(update={"kind": "static"})}))
-    return s.model_copy(update={"objects": objects})
+            outlines.append(outline)
+            pose = PoseSpec(position=(float(xy[0]), float(xy[1]), 0.75), rpy_deg=(0.0, 0.0, float(np.degrees(yaw))))
+            objects.append(obj.model_copy(update={"pose": pose, "motion": obj.motion.model_copy(update={"kind": "static"})}))
+        if len(objects) == len(s.objects):
+            return s.model_copy(update={"objects": objects})
+    raise RuntimeError(f"no layout of {len(s.objects)} objects {gap} m apart within +-{half} m")
 
 
 def visible_share(cell: SimCell, s: Scenario, cam_id: str, obj: ObjectSpec) -> float:

@@ -228,6 +228,32 @@ class Scenario(_Strict):
         return obj.world_T_object(t_s) @ T
 
 
+def footprint(obj: ObjectSpec, xy: np.ndarray, yaw: float) -> np.ndarray:
+    """The object's outline on the table (K, 2), m, a convex polygon: a box's rectangle, a round
+    object's circumscribed 16-gon, a mesh's bounding circle's."""
+    if obj.shape == "box":
+        hx, hy = 0.5 * obj.size[0], 0.5 * obj.size[1]
+        local = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+    else:
+        r = obj.size[0] if obj.shape in ("cylinder", "sphere") else 0.5 * float(np.hypot(obj.size[0], obj.size[1]))
+        a = np.arange(16) * (2 * np.pi / 16)
+        local = r / np.cos(np.pi / 16) * np.column_stack([np.cos(a), np.sin(a)])
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    return local @ np.array([[c, s_], [-s_, c]]) + xy
+
+
+def apart(a: np.ndarray, b: np.ndarray, gap: float) -> bool:
+    """Whether convex polygons a and b (K, 2) are at least ``gap`` apart along one of their edge
+    normals (separating axes): then no point of one is within ``gap`` of the other."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        normals = np.column_stack([edges[:, 1], -edges[:, 0]]) / np.linalg.norm(edges, axis=1)[:, None]
+        pa, pb = a @ normals.T, b @ normals.T
+        if np.any((pb.min(axis=0) - pa.max(axis=0) >= gap) | (pa.min(axis=0) - pb.max(axis=0) >= gap)):
+            return True
+    return False
+
+
 def load_scenario(path: Path | None = None) -> Scenario:
     """Load a scenario TOML (None: the built-in demo cell); raise ``ScenarioError`` naming the field."""
     path = DEMO_CELL if path is None else Path(path)

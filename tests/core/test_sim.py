@@ -9,7 +9,7 @@ import pytest
 
 from drivers.errors import ScenarioError
 from drivers.sim.render import SimCell, kinect_depth
-from drivers.sim.scenario import NoiseSpec, Scenario, load_scenario
+from drivers.sim.scenario import NoiseSpec, Scenario, apart, footprint, load_scenario
 from drivers.sim.source import SimSource
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, rotation_angle
@@ -152,3 +152,41 @@ def test_prerendered_frames_loop_with_live_stamps() -> None:
     np.testing.assert_array_equal(frames[2].rgb, frames[0].rgb)
     np.testing.assert_array_equal(frames[3].depth_mm, frames[1].depth_mm)
     assert not np.array_equal(frames[0].depth_mm, frames[1].depth_mm)  # two renders: their own noise
+
+
+def test_footprints_said_apart_are_apart_and_overlapping_ones_never() -> None:
+    """``apart`` against the distance between the objects' true outlines on the table (a box's
+    rectangle, the can's circle, sampled every millimetre), for random placements of the demo objects."""
+    objects = load_scenario().objects
+    rng = np.random.default_rng(4)
+
+    def outline(obj, xy: np.ndarray, yaw: float) -> np.ndarray:  # (N, 2) on the true edge
+        if obj.shape == "box":
+            hx, hy = 0.5 * obj.size[0], 0.5 * obj.size[1]
+            tx, ty = np.arange(-hx, hx, 0.001)[:, None], np.arange(-hy, hy, 0.001)[:, None]
+            edge = np.concatenate([np.hstack([tx, np.full_like(tx, s_ * hy)]) for s_ in (-1, 1)]
+                                  + [np.hstack([np.full_like(ty, s_ * hx), ty]) for s_ in (-1, 1)])  # fmt: skip
+        else:
+            a = np.arange(0, 2 * np.pi, 0.001 / obj.size[0])
+            edge = obj.size[0] * np.column_stack([np.cos(a), np.sin(a)])
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        return edge @ np.array([[c, s_], [-s_, c]]) + xy
+
+    def inside(obj, xy: np.ndarray, yaw: float, p: np.ndarray) -> bool:  # p (2,) within the true outline
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        local = np.array([[c, -s_], [s_, c]]) @ (p - xy)
+        return bool(np.all(np.abs(local) <= 0.5 * np.array(obj.size[:2]))) if obj.shape == "box" else bool(np.linalg.norm(local) <= obj.size[0])
+
+    said_apart = overlapping = 0
+    for _ in range(100):
+        a, b = (objects[k] for k in rng.choice(len(objects), 2, replace=False))
+        (xa, xb), (ya, yb) = rng.uniform(-0.25, 0.25, (2, 2)), rng.uniform(0, 2 * np.pi, 2)
+        ea, eb = outline(a, xa, ya), outline(b, xb, yb)
+        gap = np.sqrt(((ea[:, None] - eb[None]) ** 2).sum(-1).min())
+        if inside(a, xa, ya, xb) or inside(b, xb, yb, xa) or gap < 0.0015:  # convex: edges cross, or one holds the other
+            overlapping += 1
+            assert not apart(footprint(a, xa, ya), footprint(b, xb, yb), 0.0)
+        elif apart(footprint(a, xa, ya), footprint(b, xb, yb), 0.015):
+            said_apart += 1
+            assert gap >= 0.015 - 0.001, f"said 1.5 cm apart, {1e3 * gap:.1f} mm"  # the samples' spacing
+    assert said_apart >= 15 and overlapping >= 15  # both cases were tried
