@@ -136,8 +136,7 @@ class _Scene:
                 size = tex.shape[0]
                 u = ((pm[:, 0] / half + 1.0) * 0.5 * size - 0.5).astype(np.float32)
                 v = ((1.0 - pm[:, 1] / half) * 0.5 * size - 0.5).astype(np.float32)
-                g_val = cv2.remap(tex, u[:, None], v[:, None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0]
-                color[sel] = g_val[:, None]
+                color[sel] = _sample(tex, u, v)[:, None]
             else:
                 color[sel] = c
         # Lambert shading from an overhead light plus ambient: enough for markers to have contrast.
@@ -307,3 +306,14 @@ def shade_rgb(color: np.ndarray, info: CameraInfo, noise, rng: np.random.Generat
     if noise.enabled and noise.rgb_sigma > 0:
         img = img + rng.normal(0.0, noise.rgb_sigma, size=img.shape).astype(np.float32)
     return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _sample(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The texture (S, S) bilinearly sampled at pixel coordinates u, v (N,) float32: (N,). OpenCV's
+    remap takes maps under 32,767 rows, so the N points go in rows of 1,024 (a marker close to the
+    camera covers more pixels than that)."""
+    n, width = len(u), 1024
+    rows = -(-n // width)
+    maps = [np.pad(a, (0, rows * width - n)).reshape(rows, width) for a in (u, v)]
+    return cv2.remap(tex, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)[:n]
+

@@ -102,6 +102,30 @@ def test_true_marker_corners_project_onto_detections() -> None:
         assert np.abs(uv - c).max() < 1.5, f"marker {i}"
 
 
+def test_a_marker_close_to_the_camera_renders_and_its_corners_are_true() -> None:
+    """A 20 cm marker 45 cm from the camera covers ~50k pixels (OpenCV's remap takes maps under
+    32,767 rows): it renders, and its true corners land on the detected ones."""
+    from drivers.config import MarkerConfig
+    from drivers.markers import MarkerDetector, marker_object_points
+    from drivers.sim.scenario import BoxSpec, CameraSpec, MarkerSpec
+    from schemas.spec import PoseSpec
+
+    s = Scenario(
+        floor_size=(0.01, 0.01), noise={"enabled": False},
+        boxes=[BoxSpec(size=(3, 0.02, 3), pose=PoseSpec(position=(0, 0.011, 1.0)))],
+        markers=[MarkerSpec(id=5, side_m=0.2, pose=PoseSpec(position=(0, 0, 1.0), normal=(0, -1, 0), up=(0, 0, 1)))],
+        cameras=[CameraSpec(id="c", pose=PoseSpec(position=(0.05, -0.45, 1.02), look_at=(0, 0, 1.0)))],
+    )  # fmt: skip
+    frame = SimCell(s).render("c", 0.0, 0)
+    ids, corners = MarkerDetector(MarkerConfig(dictionary=s.dictionary, side_m=0.2)).find(frame.rgb)
+    assert ids.tolist() == [5]
+    cam_T_m = invert_pose(frame.world_T_camera) @ s.world_T_marker(s.markers[0], 0.0)
+    p = marker_object_points(0.2) @ cam_T_m[:3, :3].T + cam_T_m[:3, 3]
+    K = frame.info.K
+    uv = (p[:, :2] / p[:, 2:]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    assert np.abs(uv - corners[0]).max() < 1.5
+
+
 def test_bumped_camera_moves_by_the_scripted_amount() -> None:
     s = load_scenario()
     cam = s.camera("cam2")
