@@ -30,7 +30,7 @@ A hypothesis is kept when these reach their thresholds (``recognition.config``, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -100,6 +100,7 @@ class Verdict:
     outline_measured: int = 0  # ... with a depth
     outline_continuing: int = 0  # ... where the model's surface goes on
     inside_support: int = 0  # visible pixels hidden by a support plane the model point lies behind
+    hidden: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat indices of the occluded pixels
 
     @property
     def fitness(self) -> float:
@@ -161,7 +162,8 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     if planes is not None and len(planes) and occluded.any():
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
-    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline, inside)
+    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline, inside,
+                   flat[occluded])
 
 
 def _inside_support(view: DepthView, pixels: np.ndarray, z: np.ndarray, band: np.ndarray, planes: np.ndarray,
@@ -228,6 +230,12 @@ class Explained:
     def __init__(self, max_shared: float = 0.2) -> None:
         self.max_shared = max_shared
         self.pixels: set[int] = set()
+
+    def support(self, v: Verdict) -> float:
+        """``v.support`` with the pixels an accepted object explains in front of it left out of what
+        it should show: the part of an object a found one hides is no evidence against it."""
+        behind_found = len(self.pixels.intersection(v.hidden.tolist()))
+        return v.inliers / max(v.visible - behind_found, 1)
 
     def admit(self, v: Verdict) -> bool:
         """Accept ``v`` unless more than ``max_shared`` of its inlier pixels are already explained

@@ -69,6 +69,25 @@ def test_a_pixel_explains_one_object() -> None:
     assert [explained.admit(v) for v in (a, b, c)] == [True, False, True]
 
 
+def test_what_a_found_object_hides_is_no_evidence_against_the_one_behind_it() -> None:
+    """A wall at 2 m with a near panel covering its left half (x < 0) at 1.5 m. A patch on the wall
+    straddling the panel's edge is half hidden: its support is half. Once the panel is a found
+    object, the half it hides no longer counts as visible; behind a surface nothing explains, it
+    still does."""
+    depth = np.full((480, 640), 2000, np.uint16)
+    depth[:, :320] = 1500  # the panel, left of the optical axis
+    view = DepthView.of(depth_to_cloud(depth, K))
+    points, normals = patch(side_m=0.4)
+    behind = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 2.0]), TOL, NOISE)
+    assert 0.4 < behind.support < 0.6 and behind.violations == 0
+    panel_points, panel_normals = patch(side_m=0.6)
+    panel = verdict(view, panel_points, panel_normals, make_pose(t=[-0.3, 0.0, 1.5]), TOL, NOISE)
+    explained = Explained()
+    assert explained.support(behind) == behind.support  # nothing found yet: the hidden half counts
+    assert explained.admit(panel)
+    assert explained.support(behind) > 0.95
+
+
 @pytest.fixture(scope="module")
 def recognizer(demo_models: dict) -> Recognizer:
     """The demo objects and PCL's milk carton, as ``cellsight model build --demo --cloud milk=...`` makes them."""
