@@ -13,7 +13,8 @@ pixel with a measured depth d and is
 - unmeasured: no depth there (neutral).
 
 ``fitness`` = inliers / (inliers + violations) is how much of what the sensor could judge agrees;
-``support`` = inliers / visible is how much of the visible model is actually seen.
+``support`` = inliers / visible is how much of the visible model is actually seen; judged among
+accepted hypotheses (``Explained.support``), pixels an accepted object hides leave ``visible``.
 
 The outline: the ring of pixels just outside the model's silhouette (``OUTLINE_PX``). An object
 ends there: beyond it the sensor sees background, a support it stands on, or something in front.
