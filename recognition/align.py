@@ -67,9 +67,12 @@ def roll_candidates(scene_hist: np.ndarray, view_hist: np.ndarray, peaks: int = 
     return roll_peaks(roll_correlations(scene_hist, view_hist), peaks, ratio)[0]
 
 
-def rot_z(angle: float) -> np.ndarray:
+def rot_z(angle: float | np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) about z by ``angle`` rad; (..., 3, 3) for an array of angles."""
     c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    R = np.zeros(np.shape(angle) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
+    return R
 
 
 def views_to_scene(
@@ -81,11 +84,7 @@ def views_to_scene(
     ``align_to_z`` of each view centroid (K, 3), m), the view is rolled by rolls (K,) rad about z,
     and the centroids are made to coincide.
     """
-    A_s = align_to_z(scene_centroid)
-    c, s = np.cos(rolls), np.sin(rolls)
-    Rz = np.zeros((len(rolls), 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-    R = A_s.T @ Rz @ view_to_z
+    R = align_to_z(scene_centroid).T @ rot_z(np.asarray(rolls, dtype=np.float64)) @ view_to_z
     T = np.zeros((len(rolls), 4, 4))
     T[:, :3, :3] = R
     T[:, :3, 3] = np.asarray(scene_centroid) - np.einsum("kij,kj->ki", R, view_centroids)

@@ -22,7 +22,7 @@ import numpy as np
 import open3d as o3d
 
 from recognition.align import (
-    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, views_to_scene,
+    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z, views_to_scene,
 )
 from recognition.cloud import PointIndex, estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
@@ -513,14 +513,11 @@ def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndar
     away = np.where(np.linalg.norm(away, axis=1, keepdims=True) < 1e-6, anywhere, away)
     away /= np.linalg.norm(away, axis=1, keepdims=True)
     plane_T_yaw0 = np.stack([away, np.cross(n, away), np.broadcast_to(n, away.shape)], axis=2)  # (K, 3, 3)
-    yaws = np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG))
-    yaw_R = np.zeros((len(yaws), 3, 3))
-    yaw_R[:, 0, 0], yaw_R[:, 0, 1], yaw_R[:, 1, 0], yaw_R[:, 1, 1], yaw_R[:, 2, 2] = (
-        np.cos(yaws), -np.sin(yaws), np.sin(yaws), np.cos(yaws), 1.0)
+    yaw_R = rot_z(np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG)))  # (Y, 3, 3)
     R = plane_T_yaw0[:, None] @ yaw_R  # (K, Y, 3, 3)
     lo, hi = model_points.min(axis=0), model_points.max(axis=0)
     base = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    out = np.tile(np.eye(4), (len(near), 2, len(yaws), 1, 1))
+    out = np.tile(np.eye(4), (len(near), 2, len(yaw_R), 1, 1))
     out[..., :3, :3] = R[:, None]
     for i, back in enumerate((0.0, 0.5 * min(hi[0] - lo[0], hi[1] - lo[1]))):
         out[:, i, :, :3, 3] = (foot + back * away)[:, None] - R @ base

@@ -316,4 +316,3 @@ def _sample(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     rows = -(-n // width)
     maps = [np.pad(a, (0, rows * width - n)).reshape(rows, width) for a in (u, v)]
     return cv2.remap(tex, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)[:n]
-
