@@ -36,7 +36,7 @@ class MarkerConfig(BaseModel):
         description="edges: lines fitted to the black border's outer edges, corners where they meet (needs a light margin "
         "round the marker; falls back to OpenCV's corners where an edge is not found); otherwise OpenCV's refinement",
     )
-    detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML read first")
+    detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML; the values it gives override ours")
     pixel_sigma: float = Field(default=0.25, gt=0, description="corner noise (px) behind the covariance model")
 
 
