@@ -27,7 +27,7 @@ import numpy as np
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError
 from schemas.codec import CameraInfo
-from schemas.geometry import make_pose
+from schemas.geometry import so3_exp
 
 # Kinect v1: depth noise sigma_z = K z^2 (Khoshelham & Elberink 2012) plus 1/8 px disparity
 # quantisation over a 7.5 cm baseline; and a bias floor per fitted plane.
@@ -86,25 +86,21 @@ def marker_object_points(side_m: float) -> np.ndarray:
     return np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]], dtype=np.float64)
 
 
-def kinect_sigma_z(z: float, f_px: float) -> float:
-    """Per-pixel depth sigma (m) at range z: Gaussian disparity noise and uniform quantisation."""
-    step = z * z * KINECT_DISPARITY_STEP_PX / (f_px * KINECT_BASELINE_M)
-    return math.hypot(KINECT_SIGMA_Z_1M * z * z, step / math.sqrt(12.0))
+def kinect_sigma_z(z: np.ndarray | float, f_px: float) -> np.ndarray:
+    """Per-pixel depth sigma (m) at range z (m, any shape): Gaussian disparity noise and uniform quantisation."""
+    step = np.multiply(z, z) * KINECT_DISPARITY_STEP_PX / (f_px * KINECT_BASELINE_M)
+    return np.hypot(KINECT_SIGMA_Z_1M * np.multiply(z, z), step / math.sqrt(12.0))
 
 
-def _rt_to_pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    return make_pose(cv2.Rodrigues(np.asarray(rvec, float))[0], np.asarray(tvec, float).ravel())
-
-
-def _diagonal_intersection(c: np.ndarray) -> np.ndarray:
-    """Image of the marker centre: where the quad's diagonals cross (exact under perspective)."""
-    p, r = c[0], c[2] - c[0]
-    q, s = c[1], c[3] - c[1]
-    denom = r[0] * s[1] - r[1] * s[0]
-    if abs(denom) < 1e-9:
-        return c.mean(0)
-    t = ((q[0] - p[0]) * s[1] - (q[1] - p[1]) * s[0]) / denom
-    return p + t * r
+def _diagonal_intersections(C: np.ndarray) -> np.ndarray:
+    """Images (M, 2) of the marker centres of quads C (M, 4, 2): where the diagonals cross (exact
+    under perspective; the corners' mean for a degenerate quad)."""
+    p, r = C[:, 0], C[:, 2] - C[:, 0]
+    q, s = C[:, 1], C[:, 3] - C[:, 1]
+    denom = r[:, 0] * s[:, 1] - r[:, 1] * s[:, 0]
+    ok = np.abs(denom) >= 1e-9
+    t = ((q[:, 0] - p[:, 0]) * s[:, 1] - (q[:, 1] - p[:, 1]) * s[:, 0]) / np.where(ok, denom, 1.0)
+    return np.where(ok[:, None], p + t[:, None] * r, C.mean(1))
 
 
 @dataclass(frozen=True)
@@ -116,6 +112,39 @@ class PlaneFit:
     n_points: int
     rms_m: float
     extent_m: float
+
+
+@dataclass(frozen=True)
+class PlaneFits:
+    """The planes of M quads as arrays (the fields of ``PlaneFit`` stacked); ``ok`` (M,) False where a
+    quad has none."""
+
+    normal: np.ndarray  # (M, 3)
+    d: np.ndarray  # (M,) m
+    n_points: np.ndarray  # (M,)
+    rms_m: np.ndarray  # (M,)
+    extent_m: np.ndarray  # (M,)
+    ok: np.ndarray  # (M,) bool
+
+    @staticmethod
+    def of(planes: list[PlaneFit | None]) -> "PlaneFits":
+        fits = [p or PlaneFit(np.array([0.0, 0.0, -1.0]), -1.0, 0, 0.0, 0.0) for p in planes]
+        arrays = (np.array([getattr(p, k) for p in fits], dtype=float).reshape(len(fits), -1) for k in ("normal", "d", "n_points", "rms_m", "extent_m"))
+        normal, d, n, rms, extent = arrays
+        return PlaneFits(normal, d[:, 0], n[:, 0], rms[:, 0], extent[:, 0], np.array([p is not None for p in planes], bool))
+
+    def __getitem__(self, i: int) -> PlaneFit | None:
+        if not self.ok[i]:
+            return None
+        return PlaneFit(self.normal[i], float(self.d[i]), int(self.n_points[i]), float(self.rms_m[i]), float(self.extent_m[i]))
+
+    def take(self, idx: np.ndarray) -> "PlaneFits":
+        """The planes of quads ``idx`` (indices or a mask), in that order."""
+        return PlaneFits(self.normal[idx], self.d[idx], self.n_points[idx], self.rms_m[idx], self.extent_m[idx], self.ok[idx])
+
+    def where(self, keep: np.ndarray) -> "PlaneFits":
+        """The same planes, those where ``keep`` (M,) is False dropped."""
+        return PlaneFits(self.normal, self.d, self.n_points, self.rms_m, self.extent_m, self.ok & keep)
 
 
 def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrink: float = 0.8) -> PlaneFit | None:
@@ -169,7 +198,7 @@ def _segment_medians(r: np.ndarray, bounds: np.ndarray, keep: np.ndarray) -> np.
     return out
 
 
-def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo, shrink: float = 0.8) -> list[PlaneFit | None]:
+def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo, shrink: float = 0.8) -> PlaneFits:
     """Planes through the depth pixels inside each (shrunken) marker quad, fitted in inverse depth.
 
     A plane n.X = d seen through normalised image coordinates (x, y) has inverse depth
@@ -186,11 +215,11 @@ def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo
     """
     m = len(corners)
     if m == 0:
-        return []
+        return PlaneFits.of([])
     parts = [_quad_pixels(depth_mm, np.asarray(c, np.float64), shrink) for c in corners]
     counts = np.array([len(p[2]) for p in parts])
     if counts.max() < 12:
-        return [None] * m
+        return PlaneFits.of([None] * m)
     seg = np.repeat(np.arange(m), counts)
     bounds = np.concatenate([[0], np.cumsum(counts)])
     u, v, z = (np.concatenate([p[i] for p in parts]) for i in range(3))
@@ -222,72 +251,80 @@ def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo
     scatter = np.einsum("ni,nj->nij", d * k[:, None], d).reshape(len(d), 9)
     scatter = np.stack([np.bincount(seg, scatter[:, i], m) for i in range(9)], axis=1).reshape(m, 3, 3)
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(scatter)[:, -1], 0.0) / n)
-    out: list[PlaneFit | None] = []
-    for i in range(m):
-        if not enough[i] or p[i, 2] <= 0:  # too few pixels, or the plane does not face the camera
-            out.append(None)
-            continue
-        out.append(PlaneFit(-p[i] / norm[i], -1.0 / norm[i], int(n[i]), float(rms[i]), float(spread[i] * 2 * math.sqrt(3))))
-    return out
+    ok = enough & (p[:, 2] > 0)  # enough pixels, and the plane faces the camera
+    return PlaneFits(-p / norm[:, None], -1.0 / norm, n, rms, spread * 2 * math.sqrt(3), ok)
 
 
 @dataclass(frozen=True)
 class Sigmas:
-    """Standard deviations of one observation: lateral and along-ray position (m), tilt and in-plane rotation (rad)."""
+    """Standard deviations of M observations, arrays (M,): lateral and along-ray position (m), tilt
+    and in-plane rotation (rad)."""
 
-    lateral: float
-    ray: float
-    tilt: float
-    inplane: float
+    lateral: np.ndarray
+    ray: np.ndarray
+    tilt: np.ndarray
+    inplane: np.ndarray
 
 
-def pnp_sigmas(camera_T_marker: np.ndarray, side_m: float, f_px: float, pixel_sigma: float) -> Sigmas:
-    """Uncertainty of a planar-PnP pose from corner noise alone; see the module docstring."""
-    t = camera_T_marker[:3, 3]
-    z = max(float(np.linalg.norm(t)), 0.05)
-    cos_view = abs(float(camera_T_marker[:3, 2] @ t)) / z
-    sin_view = math.sqrt(max(1.0 - cos_view**2, 0.0))
+def pnp_sigmas(camera_T_marker: np.ndarray, side_m: np.ndarray, f_px: float, pixel_sigma: float) -> Sigmas:
+    """Uncertainty of planar-PnP poses (M, 4, 4) of markers with sides (M,) (m) from corner noise
+    alone; see the module docstring."""
+    t = camera_T_marker[:, :3, 3]
+    z = np.maximum(np.linalg.norm(t, axis=1), 0.05)
+    cos_view = np.abs(np.einsum("mi,mi->m", camera_T_marker[:, :3, 2], t)) / z
+    sin_view = np.sqrt(np.maximum(1.0 - cos_view**2, 0.0))
     w_px = f_px * side_m / z
     return Sigmas(
         lateral=PNP_POSITION_FACTOR * z * pixel_sigma / (f_px * 2.0),
         ray=PNP_POSITION_FACTOR * z * z * pixel_sigma / (f_px * side_m),
-        tilt=PNP_TILT_FACTOR * 2.0 * pixel_sigma * z / (f_px * side_m) / max(sin_view, 0.25),
+        tilt=PNP_TILT_FACTOR * 2.0 * pixel_sigma * z / (f_px * side_m) / np.maximum(sin_view, 0.25),
         inplane=PNP_INPLANE_FACTOR * pixel_sigma / w_px,
     )
 
 
-def plane_sigmas(z: float, f_px: float, plane: PlaneFit) -> tuple[float, float]:
-    """(range sigma m, normal sigma rad) of a depth-plane fit over ``plane.n_points`` pixels."""
-    n = max(plane.n_points / PLANE_CORRELATION, 1.0)
+def plane_sigmas(z: np.ndarray, f_px: float, planes: PlaneFits) -> tuple[np.ndarray, np.ndarray]:
+    """(range sigma m, normal sigma rad), each (M,), of depth-plane fits at ranges z (M,) (m) over
+    ``planes.n_points`` pixels."""
+    n = np.maximum(planes.n_points / PLANE_CORRELATION, 1.0)
     sig = kinect_sigma_z(z, f_px)
-    ray = math.hypot(sig / math.sqrt(n), PLANE_BIAS_FLOOR_M * z * z)
-    tilt = math.hypot(sig / (max(plane.extent_m, 0.01) * math.sqrt(n)) * 4.0, PLANE_TILT_FLOOR_RAD)
+    ray = np.hypot(sig / np.sqrt(n), PLANE_BIAS_FLOOR_M * z * z)
+    tilt = np.hypot(sig / (np.maximum(planes.extent_m, 0.01) * np.sqrt(n)) * 4.0, PLANE_TILT_FLOOR_RAD)
     return ray, tilt
 
 
 def covariance_from_sigmas(camera_T_marker: np.ndarray, s: Sigmas) -> np.ndarray:
-    """6x6 covariance, ROS order (x y z rx ry rz), in the marker frame (gtsam's body convention)."""
-    t = camera_T_marker[:3, 3]
-    R = camera_T_marker[:3, :3]
-    ray = t / max(float(np.linalg.norm(t)), 1e-9)
-    P = np.outer(ray, ray)
-    cov_t_cam = s.lateral**2 * (np.eye(3) - P) + s.ray**2 * P
-    cov = np.zeros((6, 6))
-    cov[:3, :3] = R.T @ cov_t_cam @ R
-    cov[3:, 3:] = np.diag([s.tilt**2, s.tilt**2, s.inplane**2])
+    """Covariances (M, 6, 6) of poses (M, 4, 4), ROS order (x y z rx ry rz), in the marker frame
+    (gtsam's body convention)."""
+    t = camera_T_marker[:, :3, 3]
+    R = camera_T_marker[:, :3, :3]
+    ray = t / np.maximum(np.linalg.norm(t, axis=1), 1e-9)[:, None]
+    P = ray[:, :, None] * ray[:, None, :]
+    cov_t_cam = s.lateral[:, None, None] ** 2 * (np.eye(3) - P) + s.ray[:, None, None] ** 2 * P
+    cov = np.zeros((len(t), 6, 6))
+    cov[:, :3, :3] = np.swapaxes(R, 1, 2) @ cov_t_cam @ R
+    cov[:, 3, 3] = cov[:, 4, 4] = s.tilt**2
+    cov[:, 5, 5] = s.inplane**2
     return cov
+
+
+def covariance_models(
+    camera_T_marker: np.ndarray, side_m: np.ndarray, info: CameraInfo, pixel_sigma: float, planes: PlaneFits
+) -> np.ndarray:
+    """Covariances (M, 6, 6) of M observations (poses (M, 4, 4), sides (M,) m): PnP alone, or fused
+    with the depth plane fit where ``planes.ok``."""
+    f = 0.5 * (info.K[0, 0] + info.K[1, 1])
+    s = pnp_sigmas(camera_T_marker, side_m, f, pixel_sigma)
+    ray, tilt = plane_sigmas(np.linalg.norm(camera_T_marker[:, :3, 3], axis=1), f, planes)
+    fused_tilt = 1.0 / np.sqrt(1.0 / s.tilt**2 + 1.0 / tilt**2)
+    s = Sigmas(s.lateral, np.where(planes.ok, ray, s.ray), np.where(planes.ok, fused_tilt, s.tilt), s.inplane)
+    return covariance_from_sigmas(camera_T_marker, s)
 
 
 def covariance_model(
     camera_T_marker: np.ndarray, side_m: float, info: CameraInfo, pixel_sigma: float, plane: PlaneFit | None
 ) -> np.ndarray:
-    """Covariance of one observation, PnP alone or fused with a depth plane fit."""
-    f = 0.5 * (info.K[0, 0] + info.K[1, 1])
-    s = pnp_sigmas(camera_T_marker, side_m, f, pixel_sigma)
-    if plane is not None:
-        ray, tilt = plane_sigmas(float(np.linalg.norm(camera_T_marker[:3, 3])), f, plane)
-        s = Sigmas(s.lateral, ray, 1.0 / math.sqrt(1.0 / s.tilt**2 + 1.0 / tilt**2), s.inplane)
-    return covariance_from_sigmas(camera_T_marker, s)
+    """Covariance (6, 6) of one observation, PnP alone or fused with a depth plane fit."""
+    return covariance_models(camera_T_marker[None], np.array([side_m]), info, pixel_sigma, PlaneFits.of([plane]))[0]
 
 
 EDGE_MIN_CONTRAST = 20.0  # grey levels between the border and the margin for an edge sample to count
@@ -436,58 +473,70 @@ class MarkerDetector:
         if depth_mm is not None and depth_mm.shape[:2] != image.shape[:2]:
             raise DriverError(f"depth {depth_mm.shape[1]}x{depth_mm.shape[0]} does not match the image {image.shape[1]}x{image.shape[0]}")
         ids, corners = self.find(image)
+        if len(ids) == 0:
+            return []
         use_depth = depth_mm is not None and self.config.use_depth
-        planes = fit_planes(depth_mm, corners, info) if use_depth else [None] * len(corners)
-        out = []
-        for marker_id, c, plane in zip(ids, corners, planes):
-            det = self._pose(int(marker_id), c, info, plane)
-            if det is not None:
-                out.append(det)
-        return out
+        planes = fit_planes(depth_mm, corners, info) if use_depth else PlaneFits.of([None] * len(ids))
+        return self._poses(ids, corners, info, planes)
 
-    def _pose(self, marker_id: int, corners: np.ndarray, info: CameraInfo, plane: PlaneFit | None) -> MarkerDetection | None:
-        side = self.config.side_for(marker_id)
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
-            marker_object_points(side), corners, info.K, info.D, flags=cv2.SOLVEPNP_IPPE_SQUARE
-        )
-        if n == 0:
-            return None
-        sols = sorted(
-            ((_rt_to_pose(r, t), float(e)) for r, t, e in zip(rvecs, tvecs, np.asarray(errs).ravel())), key=lambda s: s[1]
-        )
-        if len(sols) == 1:
-            sols.append(sols[0])
-        (Ta, ea), (Tb, eb) = sols[0], sols[1]
+    def _poses(self, ids: np.ndarray, corners: list[np.ndarray], info: CameraInfo, planes: PlaneFits) -> list[MarkerDetection]:
+        """Both IPPE solutions of every marker (the better first), the depth refinement where its plane
+        is usable, covariances; numpy over the frame's markers (per-marker Python cost more than the sums)."""
+        sides = np.array([self.config.side_for(int(i)) for i in ids])
+        solved, rvecs, tvecs, errs = [], [], [], []
+        for k, (c, side) in enumerate(zip(corners, sides)):
+            n, r, t, e = cv2.solvePnPGeneric(marker_object_points(side), c, info.K, info.D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            if n == 0:
+                continue
+            e = np.asarray(e, float).ravel()
+            order = np.argsort(e, kind="stable")[[0, -1]]  # a single solution stands as both
+            solved.append(k)
+            rvecs += [np.ravel(r[i]) for i in order]
+            tvecs += [np.ravel(t[i]) for i in order]
+            errs.append(e[order])
+        if not solved:
+            return []
+        keep = np.array(solved)
+        T = np.tile(np.eye(4), (2 * len(keep), 1, 1))
+        T[:, :3, :3], T[:, :3, 3] = so3_exp(np.array(rvecs)), np.array(tvecs)
+        Ta, Tb, err = T[0::2], T[1::2], np.array(errs)
+        C = np.stack([corners[k] for k in keep])
+        sides, planes = sides[keep], planes.take(keep)
         f = 0.5 * (info.K[0, 0] + info.K[1, 1])
-        if plane is not None and plane.rms_m > 2.0 * kinect_sigma_z(-plane.d, f) + 0.003:
-            plane = None  # rougher than sensor noise: occluded, or straddling a depth edge
-        chosen = Ta
-        if plane is not None:
-            chosen = self._refine(Ta, Tb, corners, side, info, plane)
-        ambiguous = plane is None and eb < max(2.0 * ea, ea + self.config.pixel_sigma)
-        cov = covariance_model(chosen, side, info, self.config.pixel_sigma, plane)
-        return MarkerDetection(marker_id, side, corners, Ta, ea, Tb, eb, chosen, cov, plane is not None, ambiguous)
+        # A plane rougher than sensor noise is occluded or straddles a depth edge: PnP alone there.
+        planes = planes.where(planes.rms_m <= 2.0 * kinect_sigma_z(-planes.d, f) + 0.003)
+        chosen = np.where(planes.ok[:, None, None], self._refine(Ta, Tb, C, sides, info, planes), Ta)
+        ambiguous = ~planes.ok & (err[:, 1] < np.maximum(2.0 * err[:, 0], err[:, 0] + self.config.pixel_sigma))
+        cov = covariance_models(chosen, sides, info, self.config.pixel_sigma, planes)
+        return [
+            MarkerDetection(int(ids[k]), float(sides[i]), corners[k], Ta[i], float(err[i, 0]), Tb[i], float(err[i, 1]),
+                            chosen[i], cov[i], bool(planes.ok[i]), bool(ambiguous[i]))
+            for i, k in enumerate(keep)
+        ]  # fmt: skip
 
     def _refine(
-        self, Ta: np.ndarray, Tb: np.ndarray, corners: np.ndarray, side: float, info: CameraInfo, plane: PlaneFit
+        self, Ta: np.ndarray, Tb: np.ndarray, C: np.ndarray, sides: np.ndarray, info: CameraInfo, planes: PlaneFits
     ) -> np.ndarray:
-        """Pick the IPPE solution the depth plane agrees with, fuse its tilt, take range from the plane."""
-        chosen = Ta if Ta[:3, 2] @ plane.normal >= Tb[:3, 2] @ plane.normal else Tb
+        """Poses (M, 4, 4): for each marker the IPPE solution its depth plane agrees with, the tilt
+        fused with the plane's, the range from the plane (meaningful where ``planes.ok``)."""
+        nearer_a = np.einsum("mi,mi->m", Ta[:, :3, 2], planes.normal) >= np.einsum("mi,mi->m", Tb[:, :3, 2], planes.normal)
+        chosen = np.where(nearer_a[:, None, None], Ta, Tb)
         f = 0.5 * (info.K[0, 0] + info.K[1, 1])
-        z = float(np.linalg.norm(chosen[:3, 3]))
-        pnp = pnp_sigmas(chosen, side, f, self.config.pixel_sigma)
-        _, plane_tilt = plane_sigmas(z, f, plane)
+        pnp = pnp_sigmas(chosen, sides, f, self.config.pixel_sigma)
+        _, plane_tilt = plane_sigmas(np.linalg.norm(chosen[:, :3, 3], axis=1), f, planes)
         # Rotate the face normal toward the plane's by the inverse-variance weight of the plane.
         weight = pnp.tilt**2 / (pnp.tilt**2 + plane_tilt**2)
-        a, b = chosen[:3, 2], plane.normal
-        axis = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-        sin = float(np.linalg.norm(axis))  # under 90 deg: the chosen solution is the one nearer the plane's normal
-        rvec = axis * (weight * math.atan2(sin, float(a @ b)) / sin) if sin > 1e-12 else np.zeros(3)
-        R = cv2.Rodrigues(rvec)[0] @ chosen[:3, :3]
+        a, b = chosen[:, :3, 2], planes.normal
+        axis = np.cross(a, b)
+        sin = np.linalg.norm(axis, axis=1)  # under 90 deg: the chosen solution is the one nearer the plane's normal
+        scale = np.where(sin > 1e-12, weight * np.arctan2(sin, np.einsum("mi,mi->m", a, b)) / np.maximum(sin, 1e-12), 0.0)
+        out = chosen.copy()
+        out[:, :3, :3] = so3_exp(axis * scale[:, None]) @ chosen[:, :3, :3]
         # Range: intersect the ray through the marker centre's image with the plane.
-        uv = _diagonal_intersection(corners)
-        undist = cv2.undistortPoints(uv.reshape(1, 1, 2), info.K, info.D).ravel()
-        ray = np.array([undist[0], undist[1], 1.0])
-        denom = plane.normal @ ray
-        t = ray * (plane.d / denom) if abs(denom) > 1e-6 else chosen[:3, 3]
-        return make_pose(R, t)
+        uv = _diagonal_intersections(C)
+        undist = cv2.undistortPoints(uv.reshape(-1, 1, 2), info.K, info.D).reshape(-1, 2)
+        ray = np.concatenate([undist, np.ones((len(undist), 1))], axis=1)
+        denom = np.einsum("mi,mi->m", planes.normal, ray)
+        hit = np.abs(denom) > 1e-6
+        out[:, :3, 3] = np.where(hit[:, None], ray * (planes.d / np.where(hit, denom, 1.0))[:, None], chosen[:, :3, 3])
+        return out

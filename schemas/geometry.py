@@ -271,15 +271,20 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     return np.concatenate([t, w * scale[..., None]], axis=-1)
 
 
-def pose_retract(T_a: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Poses (..., 4, 4) ``T_a`` moved by tangent vectors ``d`` (..., 6) in ROS order in a's own
-    frame, the inverse of ``pose_difference``: rotation R_a exp(d_rot), translation t_a + R_a d_t."""
-    w = np.asarray(d[..., 3:], dtype=np.float64)
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotations (..., 3, 3) of axis-angle vectors w (..., 3) (rad), Rodrigues' formula."""
+    w = np.asarray(w, dtype=np.float64)
     angle = np.sqrt(np.einsum("...i,...i->...", w, w))[..., None, None]
     K = skew(w)
     small = angle < 1e-8  # series terms: sin(a)/a -> 1, (1 - cos(a))/a^2 -> 1/2
     a = np.where(small, 1.0, angle)
-    R = np.eye(3) + np.where(small, 1.0, np.sin(a) / a) * K + np.where(small, 0.5, (1.0 - np.cos(a)) / a**2) * (K @ K)
+    return np.eye(3) + np.where(small, 1.0, np.sin(a) / a) * K + np.where(small, 0.5, (1.0 - np.cos(a)) / a**2) * (K @ K)
+
+
+def pose_retract(T_a: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Poses (..., 4, 4) ``T_a`` moved by tangent vectors ``d`` (..., 6) in ROS order in a's own
+    frame, the inverse of ``pose_difference``: rotation R_a exp(d_rot), translation t_a + R_a d_t."""
+    R = so3_exp(d[..., 3:])
     out = np.array(T_a, dtype=np.float64, copy=True)
     out[..., :3, :3] = T_a[..., :3, :3] @ R
     out[..., :3, 3] = T_a[..., :3, 3] + (T_a[..., :3, :3] @ d[..., :3, None])[..., 0]
