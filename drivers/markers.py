@@ -152,38 +152,76 @@ def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrin
     return fit_planes(depth_mm, [corners], info, shrink)[0]
 
 
-def _quad_pixels(depth_mm: np.ndarray, corners: np.ndarray, shrink: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Columns, rows (int) and depths (m) of the measured pixels inside the shrunken quad."""
-    centre = corners.mean(0)
-    quad = (centre + shrink * (corners - centre)).astype(np.int32)
-    x0, y0 = np.maximum(quad.min(0), 0)
-    x1, y1 = np.minimum(quad.max(0) + 1, [depth_mm.shape[1], depth_mm.shape[0]])
-    if x1 - x0 < 3 or y1 - y0 < 3:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    cv2.fillConvexPoly(mask, quad - [x0, y0], 1)
-    z = depth_mm[y0:y1, x0:x1]
-    v, u = np.nonzero((mask > 0) & (z > 0))
-    return u + x0, v + y0, z[v, u].astype(np.float64) * 1e-3
+def _quad_pixels(depth_mm: np.ndarray, corners: np.ndarray, shrink: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Columns, rows (int) and depths (m) of the measured pixels inside each shrunken quad of corners
+    (M, 4, 2), quad after quad, and how many each quad has (M,)."""
+    centre = corners.mean(1, keepdims=True)
+    quads = (centre + shrink * (corners - centre)).astype(np.int32)
+    lo = np.maximum(quads.min(1), 0)
+    hi = np.minimum(quads.max(1) + 1, [depth_mm.shape[1], depth_mm.shape[0]])
+    local = quads - lo[:, None, :]
+    us, vs, zs = [], [], []
+    counts = np.zeros(len(quads), int)
+    for i, ((x0, y0), (x1, y1)) in enumerate(zip(lo.tolist(), hi.tolist())):
+        if x1 - x0 < 3 or y1 - y0 < 3:
+            continue
+        inside = np.zeros((y1 - y0, x1 - x0), depth_mm.dtype)
+        cv2.fillConvexPoly(inside, local[i], np.iinfo(depth_mm.dtype).max)
+        z = inside & depth_mm[y0:y1, x0:x1]  # the depth inside the quad, 0 outside it
+        v, u = np.nonzero(z)
+        us.append(u)
+        vs.append(v)
+        zs.append(z[v, u])
+        counts[i] = len(u)
+    if not us:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0), counts
+    u, v = np.concatenate(us), np.concatenate(vs)
+    return u + np.repeat(lo[:, 0], counts), v + np.repeat(lo[:, 1], counts), np.concatenate(zs) * 1e-3, counts
 
 
-def _segment_lines(x: np.ndarray, y: np.ndarray, w: np.ndarray, seg: np.ndarray, keep: np.ndarray, m: int) -> np.ndarray:
-    """Least-squares w = a x + b y + c over the kept samples of each of ``m`` segments: (m, 3).
+class _Segments:
+    """Consecutive runs of samples, one per quad: run i is [starts[i], starts[i] + counts[i])."""
 
-    Normal equations on centred coordinates, all segments at once (a quad spans a few hundredths
+    def __init__(self, counts: np.ndarray) -> None:
+        self.counts = counts
+        self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self._full = counts > 0
+
+    def sums(self, rows: np.ndarray) -> np.ndarray:
+        """Sums (k, m) of each row of ``rows`` (k, n) over each run. One reduceat over contiguous
+        rows: a tenth of the time of a weighted bincount per row."""
+        out = np.zeros((len(rows), len(self.counts)))
+        out[:, self._full] = np.add.reduceat(rows, self.starts[self._full], axis=1)  # reduceat misreads empty runs
+        return out
+
+    def spread(self, values: np.ndarray) -> np.ndarray:
+        """Per-run values (..., m) repeated for each sample of the run: (..., n). (np.repeat: a
+        fifth of the time of indexing by each sample's run.)"""
+        return np.repeat(values, self.counts, axis=-1)
+
+
+def _segment_lines(xyw: np.ndarray, runs: _Segments, keep: np.ndarray) -> np.ndarray:
+    """Least-squares w = a x + b y + c over the kept samples of each run, xyw (3, n): (m, 3).
+
+    Normal equations on centred coordinates, all runs at once (a quad spans a few hundredths
     in x and y, so centring keeps the 2x2 system well conditioned).
     """
     k = keep.astype(np.float64)
-    n = np.maximum(np.bincount(seg, k, m), 1.0)
-    mx, my, mw = (np.bincount(seg, k * q, m) / n for q in (x, y, w))
-    xc, yc, wc = x - mx[seg], y - my[seg], w - mw[seg]
-    sxx, syy, sxy = (np.bincount(seg, k * p, m) for p in (xc * xc, yc * yc, xc * yc))
-    sxw, syw = (np.bincount(seg, k * p, m) for p in (xc * wc, yc * wc))
+    n = np.maximum(runs.sums(k[None])[0], 1.0)
+    mean = runs.sums(xyw * k) / n  # (3, m): x, y, w
+    d = xyw - runs.spread(mean)
+    sxx, syy, sxy, sxw, syw = runs.sums(d[[0, 1, 0, 0, 1]] * d[[0, 1, 1, 2, 2]] * k)
     det = sxx * syy - sxy * sxy
     det = np.where(np.abs(det) > 1e-300, det, 1e-300)
     a = (syy * sxw - sxy * syw) / det
     b = (sxx * syw - sxy * sxw) / det
-    return np.stack([a, b, mw - a * mx - b * my], axis=1)
+    return np.stack([a, b, mean[2] - a * mean[0] - b * mean[1]], axis=1)
+
+
+def _plane_w(p: np.ndarray, xyw: np.ndarray, runs: _Segments) -> np.ndarray:
+    """Each sample's w on its run's plane w = a x + b y + c, p (m, 3): (n,)."""
+    a, b, c = runs.spread(p.T)
+    return a * xyw[0] + b * xyw[1] + c
 
 
 def _segment_medians(r: np.ndarray, bounds: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -216,40 +254,38 @@ def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo
     m = len(corners)
     if m == 0:
         return PlaneFits.of([])
-    parts = [_quad_pixels(depth_mm, np.asarray(c, np.float64), shrink) for c in corners]
-    counts = np.array([len(p[2]) for p in parts])
+    u, v, z, counts = _quad_pixels(depth_mm, np.asarray(corners, np.float64), shrink)
     if counts.max() < 12:
         return PlaneFits.of([None] * m)
-    seg = np.repeat(np.arange(m), counts)
-    bounds = np.concatenate([[0], np.cumsum(counts)])
-    u, v, z = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    x, y = (u - info.K[0, 2]) / info.K[0, 0], (v - info.K[1, 2]) / info.K[1, 1]
-    w = 1.0 / np.maximum(z, 1e-9)
+    runs = _Segments(counts)
+    bounds = np.concatenate([runs.starts, [counts.sum()]])
+    xyw = np.stack([(u - info.K[0, 2]) / info.K[0, 0], (v - info.K[1, 2]) / info.K[1, 1], 1.0 / np.maximum(z, 1e-9)])
     f = 0.5 * (info.K[0, 0] + info.K[1, 1])
     noise_w = kinect_sigma_z(1.0, f)  # the sensor's 1/z sigma (1/m), the same at every range
     enough = counts >= 12
-    keep = np.ones(len(w), bool)
+    keep = np.ones(len(z), bool)
     for _ in range(2):
-        p = _segment_lines(x, y, w, seg, keep, m)
-        res = np.abs(w - (p[seg, 0] * x + p[seg, 1] * y + p[seg, 2]))
+        p = _segment_lines(xyw, runs, keep)
+        res = np.abs(xyw[2] - _plane_w(p, xyw, runs))
         cut = 3.0 * np.maximum(1.4826 * _segment_medians(res, bounds, keep), noise_w)
-        keep = res < cut[seg]  # every pixel judged again against the refitted plane
-        enough &= np.bincount(seg, keep, m) >= 12
-    p = _segment_lines(x, y, w, seg, keep, m)
+        keep = res < runs.spread(cut)  # every pixel judged again against the refitted plane
+        enough &= runs.sums(keep[None].astype(np.float64))[0] >= 12
+    p = _segment_lines(xyw, runs, keep)
     k = keep.astype(np.float64)
-    n = np.maximum(np.bincount(seg, k, m), 1.0)
+    n = np.maximum(runs.sums(k[None])[0], 1.0)
     norm = np.linalg.norm(p, axis=1)
     # Residuals as distances from the plane (m), as a metric fit would report them: a pixel off by
     # dw in 1/z is off by dz = dw z^2 along its ray (x, y, 1), and by dz |n . (x, y, 1)| from the plane.
-    fitted = p[seg, 0] * x + p[seg, 1] * y + p[seg, 2]
-    off = (w - fitted) / w**2 * fitted / norm[seg]
-    rms = np.sqrt(np.bincount(seg, k * off**2, m) / n)
+    w, fitted = xyw[2], _plane_w(p, xyw, runs)
+    off = (w - fitted) / w**2 * fitted / runs.spread(norm)
+    rms = np.sqrt(runs.sums((k * off**2)[None])[0] / n)
     # Extent: the largest spread of the kept points (m), from each quad's 3x3 scatter.
-    pts = np.stack([x, y, np.ones_like(x)], axis=1) / w[:, None]
-    mean = np.stack([np.bincount(seg, k * pts[:, i], m) for i in range(3)], axis=1) / n[:, None]
-    d = pts - mean[seg]
-    scatter = np.einsum("ni,nj->nij", d * k[:, None], d).reshape(len(d), 9)
-    scatter = np.stack([np.bincount(seg, scatter[:, i], m) for i in range(9)], axis=1).reshape(m, 3, 3)
+    pts = np.vstack([xyw[:2], np.ones(len(w))]) / w  # (3, n)
+    d = pts - runs.spread(runs.sums(pts * k) / n)
+    i, j = np.triu_indices(3)
+    upper = runs.sums(d[i] * d[j] * k)  # (6, m)
+    scatter = np.zeros((m, 3, 3))
+    scatter[:, i, j] = scatter[:, j, i] = upper.T
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(scatter)[:, -1], 0.0) / n)
     ok = enough & (p[:, 2] > 0)  # enough pixels, and the plane faces the camera
     return PlaneFits(-p / norm[:, None], -1.0 / norm, n, rms, spread * 2 * math.sqrt(3), ok)
@@ -472,6 +508,8 @@ class MarkerDetector:
             raise DriverError(f"image is {image.shape[1]}x{image.shape[0]} but camera info says {info.width}x{info.height}")
         if depth_mm is not None and depth_mm.shape[:2] != image.shape[:2]:
             raise DriverError(f"depth {depth_mm.shape[1]}x{depth_mm.shape[0]} does not match the image {image.shape[1]}x{image.shape[0]}")
+        if depth_mm is not None and depth_mm.dtype != np.uint16:
+            raise DriverError(f"depth is {depth_mm.dtype}, expected uint16 millimetres")
         ids, corners = self.find(image)
         if len(ids) == 0:
             return []

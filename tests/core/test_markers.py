@@ -77,6 +77,8 @@ def test_mismatched_image_and_camera_info_is_a_clear_error() -> None:
     det = MarkerDetector(MarkerConfig())
     with pytest.raises(DriverError, match="camera info says 640x480"):
         det.detect(np.zeros((240, 320, 3), np.uint8), CameraInfo.kinect_v1())
+    with pytest.raises(DriverError, match="depth is float32, expected uint16 millimetres"):
+        det.detect(np.zeros((480, 640, 3), np.uint8), CameraInfo.kinect_v1(), np.zeros((480, 640), np.float32))
 
 
 def test_unknown_dictionary_is_a_clear_error() -> None:
