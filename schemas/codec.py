@@ -262,12 +262,21 @@ def points_from_msg(msg: m.PointCloud) -> tuple[np.ndarray, np.ndarray]:
 def transforms_to_msg(stamp_ns: int, transforms: Iterable[tuple[str, str, np.ndarray]]) -> m.FrameTransforms:
     """``FrameTransforms`` from (parent_frame, child_frame, parent_T_child) triples."""
     msg = m.FrameTransforms()
-    for parent, child, T in transforms:
+    transforms = list(transforms)
+    if not transforms:
+        return msg
+    # All poses checked and converted together: per-pose numpy calls cost more than the maths.
+    poses = [np.asarray(T, dtype=np.float64) for _, _, T in transforms]
+    for (_, child, _), T in zip(transforms, poses):
+        if T.shape != (4, 4):
+            raise DecodeError(f"transform {child}: expected a 4x4 array, got shape {T.shape}")
+    T = check_poses(np.stack(poses), tol=1e-5)
+    q = quats_from_matrices(T[:, :3, :3])
+    for (parent, child, _), t, qi in zip(transforms, T[:, :3, 3].tolist(), q.tolist()):
         tr = msg.transforms.add(parent_frame_id=parent, child_frame_id=child)
         stamp_to_timestamp(stamp_ns, tr.timestamp)
-        p = pose_to_msg(T)
-        tr.translation.x, tr.translation.y, tr.translation.z = p.x, p.y, p.z
-        tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = p.qx, p.qy, p.qz, p.qw
+        tr.translation.x, tr.translation.y, tr.translation.z = t
+        tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = qi
     return msg
 
 
