@@ -124,7 +124,7 @@ class EstimatorConfig(BaseModel):
         "are off by 0.09 deg median, 0.36 p90); added to every pair factor's rotation covariance, so a camera is placed "
         "by where its markers are more than by how they look turned (0: trust the detector's rotations)",
     )
-    update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon when no frames arrive")
+    update_hz: float = Field(default=10.0, gt=0, description="solver updates per second in the daemon when no frames arrive; also the most the map (markers, status) is published")
     max_update_hz: float = Field(
         default=30.0, gt=0, description="arriving frames trigger an update at once, at most this often (what arrives meanwhile goes in together)"
     )

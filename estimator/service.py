@@ -152,6 +152,7 @@ class EstimatorService:
         self._lock = threading.Lock()  # the queryable answers from zenoh's thread
         self._map: m.Map | None = None
         self._last_save = time.monotonic()
+        self._last_map = -1.0  # monotonic s of the last markers/status publish
         self.save_failures = 0  # consecutive, so a full disk is reported once, not every period
         self.restored = self._restore()
         cell = bus.cell
@@ -238,24 +239,33 @@ class EstimatorService:
         return est
 
     def publish(self, est: Estimate, stamp_ns: int) -> None:
+        """Camera poses (``estimate/cameras`` and their ``tf``) after every update; the map (markers,
+        their ``tf``, status, the ``estimate/map`` answer) at most ``update_hz``: it changes slowly,
+        and publishing it with every frame-triggered update cost as much CPU as the update itself."""
+        now = time.monotonic()
+        with_map = now - self._last_map >= 1.0 / self.config.update_hz
         # Each camera's pose carries the stamp of its newest frame in the estimate: how old it is.
         cams = [
             codec.StampedPose("world", c.camera_id, c.last_stamp_ns, c.pose.T, c.pose.covariance)
             for c in est.cameras.values()
             if c.pose is not None and c.state in (CameraState.LOCALIZED, CameraState.MOVING, CameraState.STALE)
         ]
-        marks = [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.markers.items()]
-        marks += [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.object_markers.items()]
-        cams_msg, marks_msg = codec.poses_to_msg(stamp_ns, cams), codec.poses_to_msg(stamp_ns, marks)
-        status = self.status_msg(est, stamp_ns)
+        marks = []
+        if with_map:
+            marks = [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.markers.items()]
+            marks += [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.object_markers.items()]
+        cams_msg = codec.poses_to_msg(stamp_ns, cams)
         self._pub["tf"].put(codec.transforms_to_msg(stamp_ns, [(p.parent, p.child, p.T) for p in cams + marks]))
         self._pub["cameras"].put(cams_msg)
-        self._pub["markers"].put(marks_msg)
-        self._pub["status"].put(status)
         if self.ros2 is not None:
             self.ros2.publish(cams, marks, stamp_ns)
-        with self._lock:
-            self._map = m.Map(cameras=cams_msg, markers=marks_msg, status=status)
+        if with_map:
+            marks_msg, status = codec.poses_to_msg(stamp_ns, marks), self.status_msg(est, stamp_ns)
+            self._pub["markers"].put(marks_msg)
+            self._pub["status"].put(status)
+            self._last_map = now
+            with self._lock:
+                self._map = m.Map(cameras=cams_msg, markers=marks_msg, status=status)
 
     def status_msg(self, est: Estimate, stamp_ns: int) -> m.EstimatorStatus:
         c = self.estimator.counters

@@ -68,6 +68,34 @@ def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: f
     return svc, statuses, replies
 
 
+def test_camera_poses_follow_every_update_and_the_map_at_most_update_hz(client_transport: TransportConfig, tmp_path: Path) -> None:
+    s = scene()
+    cfg = estimator_config(s, update_hz=5.0, max_update_hz=30.0)
+    stamps: dict[str, list[float]] = {"cameras": [], "markers": [], "status": []}
+    with Bus(client_transport, CELL) as svc_bus, Bus(client_transport, CELL) as client:
+        svc = EstimatorService(svc_bus, cfg)
+        for what, key, typ in (("cameras", keys.estimate_cameras(CELL), m.PosesWithCovariance),
+                               ("markers", keys.estimate_markers(CELL), m.PosesWithCovariance),
+                               ("status", keys.estimate_status(CELL), m.EstimatorStatus)):  # fmt: skip
+            client.subscribe(key, typ, callback=lambda r, what=what: stamps[what].append(time.monotonic()))
+        stop = threading.Event()
+        thread = threading.Thread(target=svc.run, args=(stop,))
+        thread.start()
+        try:
+            time.sleep(0.5)  # routes
+            feed(client, s, 2.0, 10**18)  # 60 frames over ~0.7 s of wall time
+            time.sleep(0.3)
+        finally:
+            stop.set()
+            thread.join(10)
+    span = stamps["cameras"][-1] - stamps["cameras"][0]
+    # The map and status: at most 5 Hz (one more for the window's ends); camera poses with each
+    # frame-triggered update, several times as often.
+    for what in ("markers", "status"):
+        assert len(stamps[what]) <= 5.0 * (span + 0.5) + 2, (what, len(stamps[what]), span)
+    assert len(stamps["cameras"]) >= 2 * len(stamps["markers"]), {k: len(v) for k, v in stamps.items()}
+
+
 @pytest.mark.slow
 def test_daemon_publishes_answers_the_map_and_survives_garbage(client_transport: TransportConfig, tmp_path: Path) -> None:
     s = scene()
