@@ -248,8 +248,8 @@ def fit_planes(depth_mm: np.ndarray, corners: list[np.ndarray], info: CameraInfo
     quad whose pixels mostly share one quantisation level would keep only those.
 
     All quads of a frame are fitted together (numpy over the concatenated pixels, one segment per
-    quad): per-quad Python calls cost more than the arithmetic. None where a quad has fewer than 12
-    usable pixels or its plane does not face the camera.
+    quad): per-quad Python calls cost more than the arithmetic. ``ok`` is False where a quad has
+    fewer than 12 usable pixels or its plane does not face the camera.
     """
     m = len(corners)
     if m == 0:
