@@ -623,18 +623,20 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
 
     def tick(sup) -> None:
         nonlocal board_bus, board, bridge
-        if board is None:
+        if not live and foxglove_port is None:
+            return  # nobody to show: no session, no decoding of the cell's messages
+        if board_bus is None:
             try:  # the router comes up with the cell; join it once it is there
                 board_bus = Bus(cfg.transport, cfg.cell.name)
-                board = StatusBoard(board_bus)
             except SchemaError:
                 return
+            board = StatusBoard(board_bus) if live else None
             if foxglove_port is not None:
                 from cellsight.live import FoxgloveBridge
 
                 bridge = FoxgloveBridge(board_bus, foxglove_port)
                 _stderr().print(f"Foxglove live view: open ws://127.0.0.1:{bridge.port} in the Foxglove app")
-        if live_view is not None:
+        if live_view is not None and board is not None:
             live_view.update(board.table())
 
     try:
@@ -648,6 +650,7 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
             bridge.close()
         if board is not None:
             board.close()
+        if board_bus is not None:
             board_bus.close()
 
 

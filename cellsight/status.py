@@ -3,6 +3,8 @@ liveliness (rich tables)."""
 
 from __future__ import annotations
 
+import logging
+
 from rich.console import Group, RenderableType
 from rich.table import Table
 
@@ -10,6 +12,9 @@ from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
 from schemas.codec import StampedPose
+from schemas.errors import DecodeError
+
+log = logging.getLogger(__name__)
 
 _DRIVER = {v.number: v.name.lower() for v in m.DriverStatus.State.DESCRIPTOR.values}
 _CAMERA = {v.number: v.name.lower() for v in m.CameraState.State.DESCRIPTOR.values}
@@ -24,6 +29,7 @@ class StatusBoard:
         self.estimator: m.EstimatorStatus | None = None
         self.cameras: dict[str, StampedPose] = {}
         self.objects: m.ObjectDetections | None = None
+        self._cameras_msg: m.PosesWithCovariance | None = None
         cell = bus.cell
         self._subs = [
             bus.subscribe(keys.all_cameras(cell, "status"), m.DriverStatus, callback=lambda r: self.drivers.__setitem__(r.msg.camera_id, r.msg)),
@@ -33,10 +39,16 @@ class StatusBoard:
         ]
 
     def _on_cameras(self, received) -> None:
-        self.cameras.update(codec.poses_from_msg(received.msg))
+        self._cameras_msg = received.msg  # decoded when a table is drawn: poses arrive at 30 Hz, tables at 2
 
     def table(self, alive: list[str] | None = None) -> RenderableType:
         """The cameras' table, and the objects' when any were reported."""
+        if (msg := self._cameras_msg) is not None:
+            self._cameras_msg = None
+            try:
+                self.cameras.update(codec.poses_from_msg(msg))
+            except DecodeError as exc:  # one bad message must not take the table down
+                log.warning("camera poses skipped: %s", exc)
         t = Table(title=f"cellsight cell {self.bus.cell}")
         for col in ("camera", "driver", "rate (Hz)", "frames", "dropped", "state", "segment", "markers", "x, y, z (m)", "sigma (mm)"):
             t.add_column(col, no_wrap=True)
