@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-
+from dataclasses import replace
 
 from drivers.frames import Frame
 from drivers.sim.render import SimCell
@@ -34,6 +34,7 @@ class SimSource:
         self.dropped = 0
         self.t_s = 0.0
         self._loop = [self.cell.render(self.camera.id, i / self.camera.rate_hz, i) for i in range(prerender)]
+        self._truth_cache: dict[tuple[float, bool], tuple[list[StampedPose], list[StampedPose], list[StampedPose]]] = {}
 
     def read(self) -> Frame | None:
         period = 1.0 / self.camera.rate_hz
@@ -54,8 +55,18 @@ class SimSource:
 
     def truth(self, t_s: float, with_map: bool = True) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
         """(cameras, markers, objects) world poses at scenario time ``t_s``; stamps on the same clock.
-        Without ``with_map`` only the camera (markers and objects empty: they cost most)."""
+        Without ``with_map`` only the camera (markers and objects empty: they cost most). A
+        prerendered source's truth is that of the looped frame shown at ``t_s`` (what its pixels
+        show), computed once per looped frame."""
         stamp = self.epoch_ns + int(round(t_s * 1e9))
+        if not self._loop:
+            return self._truth_at(t_s, with_map, stamp)
+        shown = (int(round(t_s * self.camera.rate_hz)) % len(self._loop)) / self.camera.rate_hz
+        if (shown, with_map) not in self._truth_cache:
+            self._truth_cache[(shown, with_map)] = self._truth_at(shown, with_map, 0)
+        return tuple([replace(p, stamp_ns=stamp) for p in group] for group in self._truth_cache[(shown, with_map)])  # type: ignore[return-value]
+
+    def _truth_at(self, t_s: float, with_map: bool, stamp: int) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
         s = self.scenario
         cams = [StampedPose("world", self.camera.id, stamp, self.camera.world_T_camera(t_s))]
         if not with_map:

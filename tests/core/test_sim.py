@@ -9,7 +9,7 @@ import pytest
 
 from drivers.errors import ScenarioError
 from drivers.sim.render import SimCell, kinect_depth
-from drivers.sim.scenario import NoiseSpec, Scenario, apart, footprint, load_scenario
+from drivers.sim.scenario import CameraMotion, NoiseSpec, Scenario, apart, footprint, load_scenario
 from drivers.sim.source import SimSource
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, rotation_angle
@@ -176,6 +176,21 @@ def test_prerendered_frames_loop_with_live_stamps() -> None:
     np.testing.assert_array_equal(frames[2].rgb, frames[0].rgb)
     np.testing.assert_array_equal(frames[3].depth_mm, frames[1].depth_mm)
     assert not np.array_equal(frames[0].depth_mm, frames[1].depth_mm)  # two renders: their own noise
+
+
+def test_prerendered_truth_is_the_looped_frames_with_live_stamps() -> None:
+    """A camera sliding 1 m a second, two frames prerendered: each frame's truth is the pose its
+    looped image was rendered at, stamped like the frame."""
+    scenario = load_scenario()
+    cam = scenario.cameras[0].model_copy(update={"motion": [CameraMotion(kind="slide", offset=(1.0, 0.0, 0.0), end_s=10.0)]})
+    scenario = scenario.model_copy(update={"cameras": [cam]})
+    looped = SimSource(scenario, cam.id, epoch_ns=0, realtime=False, prerender=2)
+    for k in range(6):
+        frame = looped.read()
+        cams, markers, _ = looped.truth(looped.t_s)
+        assert cams[0].stamp_ns == frame.stamp_ns and {p.stamp_ns for p in markers} == {frame.stamp_ns}
+        shown_x = scenario.cameras[0].world_T_camera((k % 2) / 30)[0, 3]
+        assert abs(cams[0].T[0, 3] - shown_x) < 1e-12, (k, cams[0].T[0, 3], shown_x)
 
 
 def test_footprints_said_apart_are_apart_and_overlapping_ones_never() -> None:
