@@ -67,9 +67,10 @@ class DriverService:
             self.failed += 1
             log.warning("frame %d of %s skipped: %s", self.frames, cid, exc)
             return
-        if self.publish_images:
-            self._pub["color"].put(codec.image_to_msg(frame.rgb, stamp, cid, "rgb8"))
-            if frame.depth_mm is not None:
+        if self.publish_images:  # images only to a subscriber: 1.5 MB a frame to copy for nobody
+            if self._pub["color"].wanted():
+                self._pub["color"].put(codec.image_to_msg(frame.rgb, stamp, cid, "rgb8"))
+            if frame.depth_mm is not None and self._pub["depth"].wanted():
                 self._pub["depth"].put(codec.image_to_msg(frame.depth_mm, stamp, cid, "16UC1"))
             self._pub["info"].put(frame.info.to_msg(stamp, cid))
         self._pub["markers"].put(observations_to_msg(cid, stamp, frame.info, detections, self.dictionary))

@@ -295,6 +295,11 @@ class Publisher(Generic[Msg]):
         self._pub.put(data)
         self.published += 1
 
+    def wanted(self) -> bool:
+        """Whether any subscriber matches this key now (zenoh's matching status, through routers):
+        a frame nobody receives need not be built."""
+        return self._pub.matching_status.matching
+
     def close(self) -> None:
         self._pub.undeclare()
 

@@ -1,0 +1,43 @@
+"""A driver process's loop over a real router: what it publishes, and to whom."""
+
+from __future__ import annotations
+
+from drivers.config import MarkerConfig
+from drivers.service import DriverService
+from drivers.sim.scenario import load_scenario
+from drivers.sim.source import SimSource
+from schemas import keys
+from schemas import messages as m
+from schemas.bus import Bus, TransportConfig
+from tests.helpers import wait_until
+
+CELL = "drv"
+
+
+def test_images_are_built_only_while_someone_subscribes(client_transport: TransportConfig) -> None:
+    """Marker observations always go out; a frame's colour and depth only while a subscriber matches
+    them (copying 1.5 MB a frame for nobody cost a driver as much as its message building)."""
+    scenario = load_scenario()
+    cam = scenario.cameras[0].id
+    with Bus(client_transport, CELL) as drv_bus, Bus(client_transport, CELL) as client:
+        source = SimSource(scenario, cam, realtime=False, prerender=1)
+        driver = DriverService(drv_bus, source, cam, MarkerConfig(dictionary=scenario.dictionary))
+        got: dict[str, int] = {"markers": 0, "color": 0, "depth": 0}
+
+        def count(what: str):
+            return lambda _r: got.__setitem__(what, got[what] + 1)
+
+        client.subscribe(keys.markers(CELL, cam), m.MarkerObservations, callback=count("markers"))
+        wait_until(lambda: driver._pub["markers"].wanted(), 5.0, "the markers subscriber to be matched")
+        for _ in range(3):
+            driver.step()
+        wait_until(lambda: got["markers"] >= 3, 5.0, "three frames of marker observations")
+        assert driver._pub["color"].published == driver._pub["depth"].published == 0
+
+        client.subscribe(keys.color(CELL, cam), m.RawImage, callback=count("color"))
+        client.subscribe(keys.depth(CELL, cam), m.RawImage, callback=count("depth"))
+        wait_until(lambda: driver._pub["color"].wanted() and driver._pub["depth"].wanted(), 5.0, "the image subscribers to be matched")
+        for _ in range(3):
+            driver.step()
+        wait_until(lambda: got["color"] >= 3 and got["depth"] >= 3, 5.0, "three colour and depth images")
+        assert driver._pub["color"].published == driver._pub["depth"].published == 3
