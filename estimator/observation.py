@@ -54,6 +54,11 @@ class ObservationRows:
         return ObservationRows(self.ids[keep], self.poses[keep], self.alternatives[keep], self.covariances[keep],
                                self.ambiguous[keep], self.frame[keep])  # fmt: skip
 
+    def of_frames(self, frames: np.ndarray) -> "ObservationRows":
+        """The rows of the frames ``frames`` (ascending frame indices), renumbered 0, 1, ... in that order."""
+        a = self.rows(np.isin(self.frame, frames))
+        return dataclasses.replace(a, frame=np.searchsorted(frames, a.frame))
+
 
 def observation_rows(a: MarkerArrays) -> ObservationRows:
     """The wire's arrays with the other IPPE branch of each row chosen.
@@ -80,9 +85,11 @@ class ValidatedFrames:
     dropped: list[tuple[int, str]]
 
 
-def validated_rows(camera_id: str, msgs: Sequence[m.MarkerObservations]) -> ValidatedFrames:
-    """``validated_fields`` of the messages' fields (one camera's frames)."""
-    return validated_fields(camera_id, len(msgs), codec.marker_fields(msgs))
+def validated_rows(msgs: Sequence[m.MarkerObservations]) -> ValidatedFrames:
+    """``validated_fields`` of the messages' fields: frames of any cameras, whose ids the caller
+    checked (the daemon validates each update's frames in one pass; ``ObservationRows.of_frames``
+    splits them by camera)."""
+    return _validated(len(msgs), codec.marker_fields(msgs))
 
 
 def validated_fields(camera_id: str, frames: int, fields: MarkerFields) -> ValidatedFrames:
@@ -93,6 +100,10 @@ def validated_fields(camera_id: str, frames: int, fields: MarkerFields) -> Valid
         codec.check_id(camera_id, "marker observations camera_id")
     except DecodeError as exc:
         return ValidatedFrames([], None, [(i, str(exc)) for i in range(frames)])
+    return _validated(frames, fields)
+
+
+def _validated(frames: int, fields: MarkerFields) -> ValidatedFrames:
     problems = codec.marker_problems(fields)
     frame_of = fields.rows[:, 1].astype(np.int64)
     why: dict[int, str] = {}
@@ -104,9 +115,7 @@ def validated_fields(camera_id: str, frames: int, fields: MarkerFields) -> Valid
     keep_rows = ~np.isin(frame_of, list(why))
     rows = None
     if kept:
-        a = fields.arrays(keep_rows)
-        renumbered = np.searchsorted(np.array(kept), a.frame)  # frame indices among the kept frames
-        rows = observation_rows(dataclasses.replace(a, frame=renumbered))
+        rows = observation_rows(fields.arrays(keep_rows)).of_frames(np.array(kept))  # frame indices among the kept frames
     return ValidatedFrames(kept, rows, sorted(why.items()))
 
 

@@ -204,9 +204,10 @@ class EstimatorService:
     # ------------------------------------------------------------ loop
 
     def ingest(self, items: list[Received[m.MarkerObservations]]) -> None:
-        """One period's frames, each camera's as one block: a still camera's frames fold in with numpy
-        (``Estimator.add_frames``), the same as one by one. Cameras are independent between updates."""
-        by_camera: dict[str, list[tuple[int, m.MarkerObservations]]] = {}
+        """One update's frames: validated together in one numpy pass, then each camera's as one block
+        (``Estimator.add_frames``: a still camera's frames fold in with numpy, the same as one by
+        one). Cameras are independent between updates."""
+        cams, stamps, msgs = [], [], []
         for item in items:
             try:  # before the id keys any per-camera state
                 codec.check_id(item.msg.camera_id, "marker observations camera_id")
@@ -215,16 +216,24 @@ class EstimatorService:
                 continue
             stamp_ns = self.clock_jumps.correct(item.msg.camera_id, item.msg.stamp_ns, item.receive_ns)
             self.clock.observe(stamp_ns, item.receive_ns)
-            by_camera.setdefault(item.msg.camera_id, []).append((stamp_ns, item.msg))
-        for camera_id, frames in by_camera.items():
-            v = validated_rows(camera_id, [msg for _, msg in frames])
-            for i, why in v.dropped:
-                self.bad_frames[camera_id] += 1
-                if self.bad_frames[camera_id] == 1:  # once per camera: garbage must not flood the log
-                    log.warning("dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
-                                camera_id[:40], frames[i][1].stamp_ns, why)  # fmt: skip
-            if v.rows is not None:
-                self.estimator.add_frames(camera_id, np.array([frames[i][0] for i in v.kept], dtype=np.int64), v.rows)
+            cams.append(item.msg.camera_id)
+            stamps.append(stamp_ns)
+            msgs.append(item.msg)
+        if not msgs:
+            return
+        v = validated_rows(msgs)
+        for i, why in v.dropped:
+            camera_id = cams[i]
+            self.bad_frames[camera_id] += 1
+            if self.bad_frames[camera_id] == 1:  # once per camera: garbage must not flood the log
+                log.warning("dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
+                            camera_id[:40], msgs[i].stamp_ns, why)  # fmt: skip
+        if v.rows is None:
+            return
+        owner = np.array([cams[i] for i in v.kept])
+        for camera_id in dict.fromkeys(owner.tolist()):
+            mine = np.flatnonzero(owner == camera_id)  # positions among the kept frames, in arrival order
+            self.estimator.add_frames(camera_id, np.array([stamps[v.kept[j]] for j in mine], dtype=np.int64), v.rows.of_frames(mine))
 
     def step(self) -> Estimate:
         """Ingest what arrived, update, publish. One call per update period."""

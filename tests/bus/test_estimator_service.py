@@ -15,7 +15,7 @@ from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
 from estimator.service import ClockJumps, EstimatorService
 from schemas import codec, keys
 from schemas import messages as m
-from schemas.bus import Bus, TransportConfig
+from schemas.bus import Bus, Received, TransportConfig
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close, wait_until
 
@@ -66,6 +66,40 @@ def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: f
             stop.set()
             thread.join(10)
     return svc, statuses, replies
+
+
+def test_an_update_of_several_cameras_frames_is_what_each_camera_alone_gives(client_transport: TransportConfig) -> None:
+    """The daemon validates an update's frames of every camera together and then splits them by
+    camera: the same estimate as each camera's frames ingested on their own, and a malformed frame
+    counted against its own camera only."""
+    s = scene()
+    s = s.model_copy(update={"cameras": s.cameras + [CameraSpec(id="b", pose=PoseSpec(position=(0.6, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))]})
+    rng = np.random.default_rng(3)
+    updates = []
+    for k in range(0, 60, 3):
+        items = []
+        for j in range(3):  # three frames of each camera an update, interleaved
+            stamp = 10**18 + int((k + j) * 1e9 / 30)
+            for cam in ("a", "b"):
+                msg = observations_msg(cam, stamp, frame_observations(s, cam, 0.0, stamp, rng, NoiseSettings()))
+                if cam == "a" and k == 30 and j == 1:
+                    msg.markers[0].camera_T_marker.qw = 5.0  # not a unit quaternion
+                items.append(Received(keys.markers(CELL, cam), msg, stamp))
+        updates.append(items)
+    with Bus(client_transport, CELL) as bus_together, Bus(client_transport, CELL) as bus_apart:
+        together, apart = EstimatorService(bus_together, estimator_config(s)), EstimatorService(bus_apart, estimator_config(s))
+        for items in updates:
+            together.ingest(items)
+            for cam in ("a", "b"):
+                apart.ingest([r for r in items if r.msg.camera_id == cam])
+            for svc in (together, apart):  # at the newest stamp: the wall clock must not make them differ
+                svc.estimator.update(svc.clock.stamp_ns)
+        est_together, est_apart = (svc.estimator.estimate(svc.clock.stamp_ns) for svc in (together, apart))
+    assert together.bad_frames == apart.bad_frames == {"a": 1}
+    assert together.estimator.counters.observations == apart.estimator.counters.observations > 0
+    for cam in ("a", "b"):
+        assert est_together.cameras[cam].pose is not None
+        np.testing.assert_allclose(est_together.cameras[cam].pose.T, est_apart.cameras[cam].pose.T, atol=1e-9)
 
 
 def test_camera_poses_follow_every_update_and_the_map_at_most_update_hz(client_transport: TransportConfig, tmp_path: Path) -> None:
