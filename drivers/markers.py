@@ -381,17 +381,22 @@ def _edge_points(gray: np.ndarray, C: np.ndarray, modules: int) -> tuple[np.ndar
     reach = np.clip(0.8 * length / modules, 1.0, 3.0)  # stay inside the border module: the pattern starts after it
     offs = np.linspace(-1.0, 1.0, EDGE_OFFSETS)[None, :] * reach[:, None]  # (L, O)
     on_side = A[:, None, :] + np.linspace(0.15, 0.85, EDGE_SAMPLES)[None, :, None] * side[:, None, :]  # (L, S, 2)
-    P = (on_side[:, :, None, :] + offs[:, None, :, None] * normal[:, None, None, :]).reshape(-1, EDGE_OFFSETS, 2).astype(np.float32)
-    prof = cv2.remap(gray, P[..., 0], P[..., 1], cv2.INTER_LINEAR).reshape(len(side), EDGE_SAMPLES, EDGE_OFFSETS)
-    lo, hi = prof.min(axis=2), prof.max(axis=2)
+    # The x and y maps built apart: numpy's broadcasting over a last axis of 2 costs several times
+    # the arithmetic. Profiles as rows (L * S, O); indexing below is flat (take_along_axis builds
+    # index arrays that cost more than the arithmetic here).
+    mx, my = ((on_side[:, :, None, k] + offs[:, None, :] * normal[:, None, None, k]).astype(np.float32) for k in (0, 1))
+    prof = cv2.remap(gray, mx.reshape(-1, EDGE_OFFSETS), my.reshape(-1, EDGE_OFFSETS), cv2.INTER_LINEAR)
+    lo, hi = prof.min(axis=1), prof.max(axis=1)
     mid = 0.5 * (lo + hi)
-    rising = (prof[..., :-1] <= mid[..., None]) & (prof[..., 1:] > mid[..., None])  # dark -> light going outward
-    found = (hi - lo >= EDGE_MIN_CONTRAST) & (rising.sum(axis=2) == 1)  # one clean edge, else the profile is skipped
-    j = rising.argmax(axis=2)[..., None]
-    p0, p1 = np.take_along_axis(prof, j, 2)[..., 0], np.take_along_axis(prof, j + 1, 2)[..., 0]
-    d = np.take_along_axis(np.broadcast_to(offs[:, None, :], prof.shape), j, 2)[..., 0]
-    d = d + (mid - p0) / np.maximum(p1 - p0, 1e-6) * (offs[:, 1] - offs[:, 0])[:, None]
-    return on_side + d[..., None] * normal[:, None, :], found
+    rising = (prof[:, :-1] <= mid[:, None]) & (prof[:, 1:] > mid[:, None])  # dark -> light going outward
+    found = (hi - lo >= EDGE_MIN_CONTRAST) & (np.count_nonzero(rising, axis=1) == 1)  # one clean edge, else skipped
+    j = rising.argmax(axis=1)
+    at = np.arange(len(prof)) * EDGE_OFFSETS + j
+    p0, p1 = prof.ravel()[at], prof.ravel()[at + 1]
+    step = (offs[:, 1] - offs[:, 0]).repeat(EDGE_SAMPLES)
+    d = offs.repeat(EDGE_SAMPLES, axis=0).ravel()[at] + (mid - p0) / np.maximum(p1 - p0, 1e-6) * step
+    d = d.reshape(len(side), EDGE_SAMPLES)
+    return on_side + d[..., None] * normal[:, None, :], found.reshape(len(side), EDGE_SAMPLES)
 
 
 def _principal_lines(P: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
