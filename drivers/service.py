@@ -84,13 +84,19 @@ class DriverService:
             self._last_status = now
 
     def _publish_truth(self, stamp_ns: int) -> None:
+        """The simulator's truth, to whoever scores against it (tests, benchmarks, a recording); none
+        computed while nobody subscribes (~1 ms a frame)."""
+        pubs = self._truth_pubs
+        want_map = pubs["markers"].wanted() or pubs["objects"].wanted()
+        if not (want_map or pubs["cameras"].wanted()):
+            return
         t_s = self.source.t_s  # scenario time of the frame just published
-        with_map = t_s - self._last_truth >= TRUTH_PERIOD_S
+        with_map = want_map and t_s - self._last_truth >= TRUTH_PERIOD_S
         cams, markers, objects = self.source.truth(t_s, with_map)
-        self._truth_pubs["cameras"].put(codec.poses_to_msg(stamp_ns, cams))
+        pubs["cameras"].put(codec.poses_to_msg(stamp_ns, cams))
         if with_map:
-            self._truth_pubs["markers"].put(codec.poses_to_msg(stamp_ns, markers))
-            self._truth_pubs["objects"].put(codec.poses_to_msg(stamp_ns, objects))
+            pubs["markers"].put(codec.poses_to_msg(stamp_ns, markers))
+            pubs["objects"].put(codec.poses_to_msg(stamp_ns, objects))
             self._last_truth = t_s
 
     def publish_status(self, state: int, message: str = "") -> None:

@@ -41,3 +41,23 @@ def test_images_are_built_only_while_someone_subscribes(client_transport: Transp
             driver.step()
         wait_until(lambda: got["color"] >= 3 and got["depth"] >= 3, 5.0, "three colour and depth images")
         assert driver._pub["color"].published == driver._pub["depth"].published == 3
+
+
+def test_truth_is_computed_only_while_someone_scores_against_it(client_transport: TransportConfig) -> None:
+    scenario = load_scenario()
+    cam = scenario.cameras[0].id
+    with Bus(client_transport, CELL) as drv_bus, Bus(client_transport, CELL) as client:
+        source = SimSource(scenario, cam, realtime=False, prerender=1)
+        driver = DriverService(drv_bus, source, cam, MarkerConfig(dictionary=scenario.dictionary), publish_images=False)
+        truth = driver._truth_pubs
+        for _ in range(3):
+            driver.step()
+        assert sum(p.published for p in truth.values()) == 0
+        seen: list[str] = []
+        for what in ("cameras", "markers"):
+            client.subscribe(keys.truth(CELL, what), m.PosesWithCovariance, callback=lambda r, what=what: seen.append(what))
+        wait_until(lambda: truth["cameras"].wanted() and truth["markers"].wanted(), 5.0, "the truth subscribers to be matched")
+        for _ in range(3):
+            driver.step()
+        wait_until(lambda: seen.count("cameras") >= 3 and "markers" in seen, 5.0, "every frame's camera truth and the map's")
+        assert truth["cameras"].published == 3 and truth["markers"].published >= 1
