@@ -128,10 +128,16 @@ class PlaneFits:
 
     @staticmethod
     def of(planes: list[PlaneFit | None]) -> "PlaneFits":
+        """Single fits (None: no plane) stacked; a missing plane's row holds placeholders."""
         fits = [p or PlaneFit(np.array([0.0, 0.0, -1.0]), -1.0, 0, 0.0, 0.0) for p in planes]
-        arrays = (np.array([getattr(p, k) for p in fits], dtype=float).reshape(len(fits), -1) for k in ("normal", "d", "n_points", "rms_m", "extent_m"))
-        normal, d, n, rms, extent = arrays
-        return PlaneFits(normal, d[:, 0], n[:, 0], rms[:, 0], extent[:, 0], np.array([p is not None for p in planes], bool))
+        return PlaneFits(
+            np.array([p.normal for p in fits], dtype=float).reshape(-1, 3),
+            np.array([p.d for p in fits], dtype=float),
+            np.array([p.n_points for p in fits], dtype=float),
+            np.array([p.rms_m for p in fits], dtype=float),
+            np.array([p.extent_m for p in fits], dtype=float),
+            np.array([p is not None for p in planes], dtype=bool),
+        )
 
     def __getitem__(self, i: int) -> PlaneFit | None:
         if not self.ok[i]:
