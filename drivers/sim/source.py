@@ -64,7 +64,8 @@ class SimSource:
         shown = (int(round(t_s * self.camera.rate_hz)) % len(self._loop)) / self.camera.rate_hz
         if (shown, with_map) not in self._truth_cache:
             self._truth_cache[(shown, with_map)] = self._truth_at(shown, with_map, 0)
-        return tuple([replace(p, stamp_ns=stamp) for p in group] for group in self._truth_cache[(shown, with_map)])  # type: ignore[return-value]
+        cams, markers, objects = ([replace(p, stamp_ns=stamp) for p in group] for group in self._truth_cache[(shown, with_map)])
+        return cams, markers, objects
 
     def _truth_at(self, t_s: float, with_map: bool, stamp: int) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
         s = self.scenario
