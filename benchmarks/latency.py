@@ -4,7 +4,8 @@
 with every camera's frames pre-rendered (``prerender_frames``: rendered once, looped with live
 stamps at 30 Hz), so marker detection runs in the driver processes, messages cross the router and
 the estimator updates as frames arrive, with no renderer competing for the 2 cores. Recognition and
-the recorder are off. This process subscribes like a robot: latency = arrival of each published
+the recorder are off, so nobody subscribes to images or to the simulator's truth and the drivers
+build neither (as on a camera host whose images nobody reads). This process subscribes like a robot: latency = arrival of each published
 camera pose minus its stamp (the capture time of the newest frame in that estimate), localized
 cameras only, after a 10 s warm-up. Drops: frames the drivers skipped (detection fell behind the
 sensor's rate) over frames due. CPU per camera: the driver processes' CPU seconds per second,
