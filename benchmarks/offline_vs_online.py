@@ -80,7 +80,7 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
             w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]), stamp)
         if k == 0:
             truth = [codec.StampedPose("world", keys.marker_frame(mk.id), stamp, scenario.world_T_marker(mk, 0.0)) for mk in scenario.markers if mk.object is None]
-            w.write(keys.truth(CELL, "markers"), codec.poses_to_msg(stamp, truth), stamp)
+            w.write(keys.truth(CELL, "marker_poses"), codec.poses_to_msg(stamp, truth), stamp)
         if stamp >= next_update:
             online.update(stamp)
             est = online.estimate(stamp)

@@ -128,7 +128,7 @@ def load_run(log_path: Path, cell: str) -> RunData:
     d = RunData(*(Timeline.empty() for _ in range(6)), defaultdict(list), ReadReport())
     routes = {
         keys.estimate_cameras(cell): d.est_cameras, keys.estimate_markers(cell): d.est_markers,
-        keys.truth(cell, "cameras"): d.truth_cameras, keys.truth(cell, "markers"): d.truth_markers,
+        keys.truth(cell, "cameras"): d.truth_cameras, keys.truth(cell, "marker_poses"): d.truth_markers,
         keys.truth(cell, "objects"): d.truth_objects,
     }  # fmt: skip
     wanted = set(routes) | {keys.estimate_status(cell), keys.objects(cell)}
@@ -240,7 +240,7 @@ class LogEvidence:
             self.keep(self.online_objects, lm.msg, self.object_frames)
         elif topic == "truth/cameras":
             self.keep(self.truth_cameras, lm.msg)
-        elif topic == "truth/markers":
+        elif topic == "truth/marker_poses":
             self.truth_markers.update(codec.poses_from_msg(lm.msg))
             if self.object_frames:
                 self.keep(self.truth_objects, lm.msg, self.object_frames)

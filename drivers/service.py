@@ -43,7 +43,7 @@ class DriverService:
         }
         self._truth_pubs = None
         if hasattr(source, "truth"):
-            self._truth_pubs = {w: bus.publisher(keys.truth(cell, w)) for w in ("cameras", "markers", "objects")}
+            self._truth_pubs = {w: bus.publisher(keys.truth(cell, w)) for w in ("cameras", "marker_poses", "objects")}
         self.frames = 0
         self.failed = 0
         self._window: list[float] = []
@@ -86,17 +86,16 @@ class DriverService:
     def _publish_truth(self, stamp_ns: int) -> None:
         """The simulator's truth, to whoever scores against it (tests, benchmarks, a recording); none
         computed while nobody subscribes (~1 ms a frame)."""
-        pubs = self._truth_pubs
-        want_map = pubs["markers"].wanted() or pubs["objects"].wanted()
-        if not (want_map or pubs["cameras"].wanted()):
-            return
+        wanted = {w: p.wanted() for w, p in self._truth_pubs.items()}
         t_s = self.source.t_s  # scenario time of the frame just published
-        with_map = want_map and t_s - self._last_truth >= TRUTH_PERIOD_S
+        with_map = (wanted["marker_poses"] or wanted["objects"]) and t_s - self._last_truth >= TRUTH_PERIOD_S
+        if not (with_map or wanted["cameras"]):
+            return
         cams, markers, objects = self.source.truth(t_s, with_map)
-        pubs["cameras"].put(codec.poses_to_msg(stamp_ns, cams))
+        for what, poses in (("cameras", cams), ("marker_poses", markers), ("objects", objects)):
+            if wanted[what] and (what == "cameras" or with_map):
+                self._truth_pubs[what].put(codec.poses_to_msg(stamp_ns, poses))
         if with_map:
-            pubs["markers"].put(codec.poses_to_msg(stamp_ns, markers))
-            pubs["objects"].put(codec.poses_to_msg(stamp_ns, objects))
             self._last_truth = t_s
 
     def publish_status(self, state: int, message: str = "") -> None:

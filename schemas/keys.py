@@ -39,7 +39,9 @@ CELL_TOPICS: dict[str, type[Message]] = {
     "objects/scene": m.SceneUpdate,
     "points": m.PointCloud,
     "truth/cameras": m.PosesWithCovariance,
-    "truth/markers": m.PosesWithCovariance,
+    # Not "truth/markers": every camera's observations, ``<cell>/*/markers`` (the estimator's
+    # subscription), would match it, and drivers would compute the truth for a reader that drops it.
+    "truth/marker_poses": m.PosesWithCovariance,
     "truth/objects": m.PosesWithCovariance,
 }
 # Names a camera may not take, because they would collide with cell-wide topics.
@@ -135,9 +137,9 @@ def points(cell: str) -> str:
 
 
 def truth(cell: str, what: str) -> str:
-    """Simulator ground truth: ``what`` is cameras, markers or objects. Tests and benchmarks only."""
+    """Simulator ground truth: ``what`` is cameras, marker_poses or objects. Tests and benchmarks only."""
     if f"truth/{what}" not in CELL_TOPICS:
-        raise KeyError_(f"unknown truth topic {what!r}; use cameras, markers or objects")
+        raise KeyError_(f"unknown truth topic {what!r}; use cameras, marker_poses or objects")
     return _cell(cell, f"truth/{what}")
 
 

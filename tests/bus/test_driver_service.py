@@ -53,11 +53,17 @@ def test_truth_is_computed_only_while_someone_scores_against_it(client_transport
         for _ in range(3):
             driver.step()
         assert sum(p.published for p in truth.values()) == 0
-        seen: list[str] = []
-        for what in ("cameras", "markers"):
-            client.subscribe(keys.truth(CELL, what), m.PosesWithCovariance, callback=lambda r, what=what: seen.append(what))
-        wait_until(lambda: truth["cameras"].wanted() and truth["markers"].wanted(), 5.0, "the truth subscribers to be matched")
+        # The estimator's subscription to every camera's markers wants none of the truth.
+        client.subscribe(keys.all_cameras(CELL, "markers"), m.MarkerObservations)
+        wait_until(lambda: driver._pub["markers"].wanted(), 5.0, "the markers subscriber to be matched")
         for _ in range(3):
             driver.step()
-        wait_until(lambda: seen.count("cameras") >= 3 and "markers" in seen, 5.0, "every frame's camera truth and the map's")
-        assert truth["cameras"].published == 3 and truth["markers"].published >= 1
+        assert sum(p.published for p in truth.values()) == 0
+        seen: list[str] = []
+        for what in ("cameras", "marker_poses"):
+            client.subscribe(keys.truth(CELL, what), m.PosesWithCovariance, callback=lambda r, what=what: seen.append(what))
+        wait_until(lambda: truth["cameras"].wanted() and truth["marker_poses"].wanted(), 5.0, "the truth subscribers to be matched")
+        for _ in range(3):
+            driver.step()
+        wait_until(lambda: seen.count("cameras") >= 3 and "marker_poses" in seen, 5.0, "every frame's camera truth and the map's")
+        assert truth["cameras"].published == 3 and truth["marker_poses"].published >= 1 and truth["objects"].published == 0

@@ -174,6 +174,23 @@ def test_keys_build_parse_and_reject() -> None:
         keys.parse("cellsight/demo/cam1/nonsense")
 
 
+def test_only_the_public_estimate_topics_fall_under_a_per_camera_wildcard() -> None:
+    """A subscriber to every camera's topic (the estimator's ``<cell>/*/markers``) matches any
+    cell-wide key of the same shape, and zenoh then reports that key as wanted: drivers computed
+    the simulator's truth for an estimator that drops it. ``estimate/markers`` and
+    ``estimate/status`` are the wire contract robots read, so they stay (subscribers skip them by
+    type); no other cell-wide topic may be matched."""
+    import zenoh
+
+    matched = {
+        topic
+        for topic in keys.CELL_TOPICS
+        for cam_topic in keys.CAMERA_TOPICS
+        if zenoh.KeyExpr(keys.all_cameras("demo", cam_topic)).intersects(zenoh.KeyExpr(f"cellsight/demo/{topic}"))
+    }
+    assert matched == {"estimate/markers", "estimate/status"}
+
+
 def test_covariances_read_from_the_packed_bytes_equal_the_values_one_by_one() -> None:
     """Marker covariances are taken from the serialised message where the layout allows (much
     faster); a covariance whose bytes contain the field's own header, or a marker with another

@@ -54,7 +54,7 @@ def write_log(path: Path, s: Scenario, seconds: float, flip_rate: float = 0.05) 
                 w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, truth), stamp)
         if k % 3 == 0 and s.objects:
             moving = [codec.StampedPose("world", f"marker_{mk.id}", stamp, s.world_T_marker(mk, t)) for mk in s.markers if mk.role == "object"]
-            w.write(keys.truth(CELL, "markers"), codec.poses_to_msg(stamp, moving), stamp)
+            w.write(keys.truth(CELL, "marker_poses"), codec.poses_to_msg(stamp, moving), stamp)
     w.close()
     return cfg
 
