@@ -68,6 +68,9 @@ PIECE_FITNESS = 0.2
 #: A part of a split cluster with fewer points than this share of the smallest model's is no whole
 #: object (a view shows about half a surface): it may be a fragment of one (``Recognizer._fragments``).
 SMALL_PART = 0.5
+#: Pixels another camera must be able to judge (on or in front of its measured surface) for its
+#: frame to contradict a detection (``Recognizer.seen_through``): fewer say little either way.
+CROSS_VIEW_PIXELS = 50
 #: A removed plane is a support objects stand on if its normal is within this of world up.
 SUPPORT_COS = float(np.cos(np.radians(20.0)))
 
@@ -177,12 +180,14 @@ class Recognizer:
         return SceneCloud(pts[ok], normals[ok], graph, planes)
 
     def recognize(
-        self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None
+        self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None,
+        view: DepthView | None = None,
     ) -> list[Detection]:
         """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), at most one
         per object and one per cluster.
 
-        world_T_camera (4, 4), when known, crops the scene to the configured workspace.
+        world_T_camera (4, 4), when known, crops the scene to the configured workspace. view: the
+        cloud's ``DepthView``, when the caller has it (else built when a hypothesis is judged).
         """
         scene = self.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
@@ -252,7 +257,7 @@ class Recognizer:
         # contradicts never takes a part, and a pixel explains one object.
         candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
         # Judged only when it could be taken: most frames hold candidates for objects already found.
-        view = DepthView.of(cloud) if c.verify and candidates else None
+        view = (view or DepthView.of(cloud)) if c.verify and candidates else None
         found: dict[str, Detection] = {}
         cluster_found: dict[str, int | None] = {}  # object -> the cluster its part came from (None: a prior's)
         taken: set[int] = set()
@@ -296,6 +301,16 @@ class Recognizer:
                           oid, 100 * det.coverage)  # fmt: skip
                 del found[oid]
         return sorted(found.values(), key=lambda d: d.object_id)
+
+    def seen_through(self, view: DepthView, object_id: str, camera_T_object: np.ndarray) -> Verdict | None:
+        """Another camera's judgement of a detection: the verdict of the object posed in that camera's
+        frame (camera_T_object (4, 4)) against its depth view, if it contradicts the detection (the
+        camera measured surfaces behind where the object would be: under ``min_cross_view_fitness``
+        of the ``CROSS_VIEW_PIXELS`` or more it could judge), else None."""
+        model, c = self.db.models[object_id], self.config
+        v = verdict(view, model.points, model.normals, camera_T_object, c.icp_distance_m, c.plane_noise_per_m2)
+        judged = v.inliers + v.violations
+        return v if judged >= CROSS_VIEW_PIXELS and v.fitness < c.min_cross_view_fitness else None
 
     def _verdict(self, view: DepthView, det: Detection, planes: np.ndarray) -> Verdict:
         """A hypothesis judged against the frame's depth and the supports removed from it

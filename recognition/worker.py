@@ -3,9 +3,10 @@
 Owns the zenoh side: the newest depth frame per camera (ring inboxes), intrinsics, ``tf`` and
 camera states from the estimator, object-marker observations for priors; publishes ``objects``,
 ``objects/scene`` and the fused cloud on ``points``. Recognition itself is
-``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``. A camera is used once the
-estimator has localized it (detections are only useful in world frame), and its detections are
-dropped while the estimator says it is moving or unanchored.
+``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``, and ``cross_checked`` holds
+back a fused object another camera's frame saw through. A camera is used once the estimator has
+localized it (detections are only useful in world frame), and its detections are dropped while the
+estimator says it is moving or unanchored.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -21,6 +23,7 @@ from recognition.config import RecognitionConfig
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Prior, Recognizer
 from recognition.cloud import depth_to_cloud, finite_points, voxel_downsample
+from recognition.verify import DepthView, Verdict
 from schemas import codec, keys
 from schemas import geometry
 from schemas import messages as m
@@ -95,6 +98,58 @@ def fuse(detections: list[WorldDetection]) -> list[FusedObject]:
     return out
 
 
+@dataclass(frozen=True)
+class CameraView:
+    """One camera's last recognised frame, judge of the other cameras' detections: its depth view,
+    the frame's stamp (ns) and the world pose (4, 4) it was taken from."""
+
+    camera_id: str
+    stamp_ns: int
+    view: DepthView
+    world_T_camera: np.ndarray
+
+
+@dataclass(frozen=True)
+class Contradiction:
+    """A fused object held back: ``camera_id``'s frame saw through where ``detected_by`` put it."""
+
+    object_id: str
+    detected_by: list[str]
+    camera_id: str
+    verdict: Verdict
+
+
+#: judge(view, object_id, camera_T_object): the verdict when that view contradicts the object there, else None.
+Judge = Callable[[DepthView, str, np.ndarray], Verdict | None]
+
+
+def cross_checked(detections: list[WorldDetection], views: list[CameraView], judge: Judge,
+                  max_age_ns: int) -> tuple[list[FusedObject], list[Contradiction]]:  # fmt: skip
+    """The fused objects (``fuse``) that no other camera's frame contradicts, and those held back.
+
+    A fused object is judged by the view of every camera not among those that agree on it, taken
+    within ``max_age_ns`` of it: one camera may fit an object to a surface that another, looking
+    from elsewhere, sees lying behind where the object would be. A contradicted object's detections
+    are dropped and the rest fused again, so that a camera outvoted by a wrong pose is heard.
+    """
+    left, held = list(detections), []
+    while True:
+        objects = fuse(left)
+        wrong: set[tuple[str, str]] = set()
+        for o in objects:
+            for cv in views:
+                if cv.camera_id in o.camera_ids or abs(cv.stamp_ns - o.stamp_ns) > max_age_ns:
+                    continue
+                v = judge(cv.view, o.object_id, geometry.invert_pose(cv.world_T_camera) @ o.world_T_object)
+                if v is not None:
+                    held.append(Contradiction(o.object_id, o.camera_ids, cv.camera_id, v))
+                    wrong |= {(c, o.object_id) for c in o.camera_ids}
+                    break
+        if not wrong:
+            return objects, held
+        left = [d for d in left if (d.camera_id, d.detection.object_id) not in wrong]
+
+
 def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The cameras' points (camera frame, (N, 3) each) in world frame as one cloud: xyz (M, 3)
     float32 and a colour per camera, rgba (M, 4) uint8.
@@ -110,6 +165,13 @@ def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndar
     if not xyz:
         return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.uint8)
     return np.concatenate(xyz), np.concatenate(rgba)
+
+
+def _still_at(then: np.ndarray, now: np.ndarray) -> bool:
+    """Whether a camera's world pose ``now`` (4, 4) is within ``MOVED_M`` / ``MOVED_DEG`` of ``then``:
+    refined by the estimator, not moved."""
+    step = geometry.invert_pose(then) @ now
+    return bool(np.linalg.norm(step[:3, 3]) <= MOVED_M and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= MOVED_DEG)
 
 
 def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDetections:
@@ -200,6 +262,8 @@ class RecognitionWorker:
         self.frames: dict[str, m.RawImage] = {}
         self.marker_msgs: dict[str, m.MarkerObservations] = {}
         self.latest: dict[tuple[str, str], WorldDetection] = {}  # (camera, object) -> newest detection
+        self.views: dict[str, CameraView] = {}  # camera -> its last recognised frame, judge of the others'
+        self.held_back = 0  # fused objects another camera's frame contradicted
         self.clouds: dict[str, np.ndarray] = {}  # camera -> its newest frame's points, voxel-thinned, camera frame
         self.last_run: dict[str, float] = {}
         self.errors = 0
@@ -272,7 +336,9 @@ class RecognitionWorker:
             pts = finite_points(cloud)
             pts = pts[pts[:, 2] <= self.config.max_range_m]
             self.clouds[camera_id] = voxel_downsample(pts, self.config.cloud_voxel_m) if len(pts) else pts
-        found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera)
+        view = DepthView.of(cloud)
+        self.views[camera_id] = CameraView(camera_id, stamp_ns, view, world_T_camera)
+        found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view)
         for key in [k for k in self.latest if k[0] == camera_id]:
             del self.latest[key]  # what this camera no longer sees is no longer reported by it
         out = [WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d, world_T_camera) for d in found]
@@ -292,7 +358,7 @@ class RecognitionWorker:
             self.errors += 1
             log.warning("%s: frame skipped: %s", cam, exc)
             return None
-        objects = fuse(self.current_detections())
+        objects = self.fused()
         stamp = max((o.stamp_ns for o in objects), default=0)
         detections = detections_to_msg(stamp, objects)
         cloud = fused_cloud(self.clouds, self.world_T_camera) if self.config.cloud_voxel_m > 0 else None
@@ -302,6 +368,19 @@ class RecognitionWorker:
             self._pub_points.put(codec.points_to_msg(stamp, "world", *cloud))
         if self.ros2 is not None:
             self.ros2.publish(detections, cloud)
+        return objects
+
+    def fused(self) -> list[FusedObject]:
+        """The cameras' current detections fused, less what another camera's frame contradicts."""
+        c = self.config
+        if c.min_cross_view_fitness <= 0:
+            return fuse(self.current_detections())
+        views = [v for v in self.views.values() if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])]
+        objects, held = cross_checked(self.current_detections(), views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))
+        for h in held:  # what a robot is not told, and why
+            log.debug("%s from %s held back: %s saw through it (%d of %d judged pixels on its surface)", h.object_id,
+                      ", ".join(h.detected_by), h.camera_id, h.verdict.inliers, h.verdict.inliers + h.verdict.violations)  # fmt: skip
+        self.held_back += len(held)
         return objects
 
     def current_detections(self) -> list[WorldDetection]:
@@ -317,8 +396,7 @@ class RecognitionWorker:
             if not self.placed(d.camera_id):
                 continue
             T = self.world_T_camera[d.camera_id]
-            step = geometry.invert_pose(d.world_T_camera) @ T
-            if np.linalg.norm(step[:3, 3]) <= MOVED_M and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= MOVED_DEG:
+            if _still_at(d.world_T_camera, T):
                 out.append(replace(d, world_T_object=T @ d.detection.camera_T_object, world_T_camera=T))
         return out
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -305,11 +305,10 @@ class Layout:
         return np.flatnonzero(np.asarray(scene.compute_point_cloud_distance(surface)) < 0.01)
 
 
-def demo_layout(where: dict[str, tuple[float, float, float]], camera: str, seed: int) -> Layout:
-    """The demo cell with each object at ``where`` (x, y in m on the table, yaw in deg), static,
-    rendered by ``camera`` with noise seed ``seed``; recognised with the benchmark's workspace."""
+def static_demo(where: dict[str, tuple[float, float, float]]):
+    """The demo cell's scenario with each object standing still at ``where`` (x, y in m on the
+    table, yaw in deg), and a recogniser of its objects with the benchmark's workspace."""
     from cellsight.model_build import database_from_scenario
-    from drivers.sim.render import SimCell
     from drivers.sim.scenario import apart, footprint, load_scenario
     from schemas.spec import PoseSpec
 
@@ -320,11 +319,19 @@ def demo_layout(where: dict[str, tuple[float, float, float]], camera: str, seed:
                                     "motion": o.motion.model_copy(update={"kind": "static"})}) for o in scenario.objects]  # fmt: skip
     scenario = scenario.model_copy(update={"objects": objects})
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
-    recognizer = Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
+    return scenario, Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
+
+
+def demo_layout(where: dict[str, tuple[float, float, float]], camera: str, seed: int) -> Layout:
+    """The demo cell with each object at ``where`` (``static_demo``), rendered by ``camera`` with
+    noise seed ``seed``; recognised with the benchmark's workspace."""
+    from drivers.sim.render import SimCell
+
+    scenario, recognizer = static_demo(where)
     frame = SimCell(scenario).render(camera, 0.0, seed)
     cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
-    truth = {o.id: invert_pose(frame.world_T_camera) @ o.world_T_object(0.0) for o in objects}
-    return Layout(recognizer, cfg, cloud, frame.world_T_camera, truth, recognizer.prepare(cloud, frame.world_T_camera))
+    truth = {o.id: invert_pose(frame.world_T_camera) @ o.world_T_object(0.0) for o in scenario.objects}
+    return Layout(recognizer, recognizer.config, cloud, frame.world_T_camera, truth, recognizer.prepare(cloud, frame.world_T_camera))
 
 
 @pytest.mark.slow
@@ -415,6 +422,45 @@ def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
     assert not recognizer._rests(tote_up, [posed("can", world_T["can"])], support)  # not under it
     down = world_T["tote"] @ make_pose(t=(0.0, 0.0, -0.14))
     assert recognizer._rests(posed("tote", down), [], support)
+
+
+@pytest.mark.slow
+def test_a_detection_another_camera_sees_through_is_held_back() -> None:
+    """The demo cell's four cameras on one layout. What cam2 finds, no other camera contradicts.
+    The same objects 20 cm up, over where they stand (a pose no surface there supports): the
+    other cameras see the objects and the table behind where they would be, so none is reported; frames older than the age limit judge nothing. A wrong pose outvoting a right one
+    (cam2's lifted crate against cam3's true one) is held back and the right one reported."""
+    from drivers.sim.render import SimCell
+    from recognition.verify import DepthView
+    from recognition.worker import CameraView, WorldDetection, cross_checked
+
+    scenario, recognizer = static_demo({"crate": (-0.15, -0.05, 10.0), "can": (0.18, -0.12, 0.0), "tote": (0.12, 0.2, 80.0)})
+    cell = SimCell(scenario)
+    frames = {cam.id: cell.render(cam.id, 0.0, 1) for cam in scenario.cameras}
+    views = [CameraView(c, 0, DepthView.of(depth_to_cloud(f.depth_mm, f.info.K)), f.world_T_camera) for c, f in frames.items()]
+    f2 = frames["cam2"]
+    found = recognizer.recognize(depth_to_cloud(f2.depth_mm, f2.info.K), world_T_camera=f2.world_T_camera)
+    assert len(found) >= 2, f"cam2 found {[d.object_id for d in found]}"
+
+    def world(dets, lift: float = 0.0, camera: str = "cam2") -> list[WorldDetection]:
+        up = make_pose(t=(0.0, 0.0, lift))
+        return [WorldDetection(camera, 0, up @ frames[camera].world_T_camera @ d.camera_T_object, d, frames[camera].world_T_camera) for d in dets]
+
+    objects, held = cross_checked(world(found), views, recognizer.seen_through, 10**9)
+    assert held == [] and sorted(o.object_id for o in objects) == sorted(d.object_id for d in found)
+    objects, held = cross_checked(world(found, 0.2), views, recognizer.seen_through, 10**9)
+    assert objects == [] and sorted(h.object_id for h in held) == sorted(d.object_id for d in found)
+    assert all(h.camera_id != "cam2" and h.detected_by == ["cam2"] for h in held)
+    stale = [replace(v, stamp_ns=3 * 10**9) for v in views]
+    assert len(cross_checked(world(found, 0.2), stale, recognizer.seen_through, 2 * 10**9)[0]) == len(found)
+    # cam3's crate where it stands, but scored below cam2's lifted one: fused alone, the lifted one wins.
+    truth = next(o for o in scenario.objects if o.id == "crate").world_T_object(0.0)
+    lifted = next(d for d in world(found, 0.2) if d.detection.object_id == "crate")
+    right = WorldDetection("cam3", 0, truth, replace(lifted.detection, rmse_m=2 * lifted.detection.rmse_m), frames["cam3"].world_T_camera)
+    objects, held = cross_checked([lifted, right], views, recognizer.seen_through, 10**9)
+    assert [h.detected_by for h in held] == [["cam2"]]
+    assert [o.camera_ids for o in objects] == [["cam3"]]
+    np.testing.assert_allclose(objects[0].world_T_object, truth)
 
 
 def test_standing_starts_put_the_base_on_the_support_below_the_piece() -> None:
