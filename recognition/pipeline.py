@@ -274,12 +274,13 @@ class Recognizer:
                     waiting.append((p, det))
                     continue
                 v = self._verdict(view, det, scene.planes) if view is not None else None
-                if v is not None and not (v.fitness >= c.min_visible_fitness and explained.support(v) >= c.min_visible_support
+                seen = explained.support(v) if v is not None else 1.0
+                if v is not None and not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
                                           and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
                                           and v.penetration <= c.max_penetration and explained.admit(v)):  # fmt: skip
                     log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
                               "pixels, %d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a "
-                              "support %.3f", det.object_id, v.fitness, explained.support(v), v.inliers, v.visible, v.violations,
+                              "support %.3f", det.object_id, v.fitness, seen, v.inliers, v.visible, v.violations,
                               v.clutter, v.outline_seen, v.outline, v.penetration)  # fmt: skip
                     continue
                 taken.add(p)
