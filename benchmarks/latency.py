@@ -9,7 +9,8 @@ build neither (as on a camera host whose images nobody reads). This process subs
 camera pose minus its stamp (the capture time of the newest frame in that estimate), localized
 cameras only, after a 10 s warm-up. Drops: frames the drivers skipped (detection fell behind the
 sensor's rate) over frames due. CPU per camera: the driver processes' CPU seconds per second,
-per camera. The camera count is scanned upward; ``max_cameras_at_30hz`` is the largest count
+per camera; the estimator's and the router's CPU seconds per second beside them (where the rest
+of the 2 cores goes). The camera count is scanned upward; ``max_cameras_at_30hz`` is the largest count
 whose p99 stays within 100 ms with under 1 % of frames dropped.
 """
 
@@ -51,6 +52,8 @@ class Trial:
     frames: int  # published by the drivers in the window
     dropped: int  # skipped by the drivers in the window
     driver_cpu_s_per_s: float  # all driver processes together
+    estimator_cpu_s_per_s: float
+    router_cpu_s_per_s: float
 
     @property
     def drop_rate(self) -> float:
@@ -66,15 +69,15 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def driver_pids(parent: int) -> list[int]:
-    """The ``cellsight driver`` children of the launcher ``parent``."""
+def child_pids(parent: int, command: str) -> list[int]:
+    """The children of the launcher ``parent`` running ``cellsight <command>`` (driver, estimator, router)."""
     pids = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
         try:
             stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            if int(stat[1]) == parent and b"driver" in (entry / "cmdline").read_bytes():
+            if int(stat[1]) == parent and command.encode() in (entry / "cmdline").read_bytes().split(b"\0"):
                 pids.append(int(entry.name))
         except (OSError, IndexError):  # exited meanwhile
             continue
@@ -118,12 +121,12 @@ def trial(n_cams: int, seconds: float, detector_params: Path | None = None) -> T
                 time.sleep(0.5)
             time.sleep(WARMUP_S)
             before = {c: (s.frames, s.dropped) for c, s in status.items()}
-            pids = driver_pids(proc.pid)
-            cpu0, t0 = sum(cpu_seconds(p) for p in pids), time.monotonic()
+            pids = {c: child_pids(proc.pid, c) for c in ("driver", "estimator", "router")}
+            cpu0, t0 = {c: sum(cpu_seconds(p) for p in ps) for c, ps in pids.items()}, time.monotonic()
             measuring = True
             time.sleep(seconds)
             measuring = False
-            cpu1, t1 = sum(cpu_seconds(p) for p in pids), time.monotonic()
+            cpu1, t1 = {c: sum(cpu_seconds(p) for p in ps) for c, ps in pids.items()}, time.monotonic()
             after = {c: (s.frames, s.dropped) for c, s in status.items()}
             bus.close()
         finally:
@@ -134,7 +137,8 @@ def trial(n_cams: int, seconds: float, detector_params: Path | None = None) -> T
                 proc.kill()
     frames = sum(after[c][0] - before.get(c, (0, 0))[0] for c in after)
     dropped = sum(after[c][1] - before.get(c, (0, 0))[1] for c in after)
-    return Trial(n_cams, t1 - t0, np.array(latency), frames, dropped, (cpu1 - cpu0) / (t1 - t0))
+    rate = {c: (cpu1[c] - cpu0[c]) / (t1 - t0) for c in cpu0}
+    return Trial(n_cams, t1 - t0, np.array(latency), frames, dropped, rate["driver"], rate["estimator"], rate["router"])
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
@@ -151,6 +155,8 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
         "stamp_to_pose_ms_p99": four.p(99),
         "drop_rate": four.drop_rate,
         "driver_cpu_per_camera": four.driver_cpu_s_per_s / 4,
+        "estimator_cpu_s_per_s": four.estimator_cpu_s_per_s,
+        "router_cpu_s_per_s": four.router_cpu_s_per_s,
     }
     if not quick:
         out["max_cameras_at_30hz"] = float(max(held, default=0))
