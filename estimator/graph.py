@@ -415,7 +415,10 @@ class Estimator:
             return False
         D = s.poses[:, :3, 3] - expected[:, :3, 3]
         shifts = np.linalg.norm(D, axis=1)
-        last = s.frame == s.frame.max()
+        # The last frame's rows by marker id: a detector lists the same markers in a different order
+        # from frame to frame, and the screen belongs to the view (which markers), not to the order.
+        last = np.flatnonzero(s.frame == s.frame.max())
+        last = last[np.argsort(s.ids[last], kind="stable")]
         p, R, covs = expected[last, :3, 3], expected[last, :3, :3], s.covariances[last, :3, :3]
         if track.screen is None or not np.array_equal(track.screen.ids, s.ids[last]):
             track.screen = RigidScreen.of(s.ids[last], p, R @ covs @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3))

@@ -16,6 +16,7 @@ from estimator.keyframes import MovingFrame, place_frame
 from estimator.links import ObjectLinks, Sighting, add_links
 from estimator.observation import observation_rows, observations_of
 from schemas import codec
+from schemas import messages as m
 from schemas.geometry import invert_pose, make_pose
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
@@ -37,7 +38,8 @@ def scene() -> Scenario:
 def test_batched_frames_fold_in_like_one_at_a_time() -> None:
     """``Estimator.add_frames`` (the offline fast path) against ``add_frame`` per frame, on the demo
     cell with 5 % planar flips, cam1's tilt and cam2's bump (both brought forward to keep it short):
-    same segments, same pairs, same means."""
+    same segments, same pairs, same means. The batched path gets each frame's markers in a shuffled
+    order, as a detector lists them differently from frame to frame."""
     s = demo()
     s.camera("cam1").motion = [CameraMotion(kind="tilt", amplitude_deg=-10.0, start_s=2.0, end_s=4.0)]
     s.camera("cam2").motion = [CameraMotion(kind="bump", start_s=6.0, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))]
@@ -51,7 +53,11 @@ def test_batched_frames_fold_in_like_one_at_a_time() -> None:
         for cam in s.cameras:
             msg = observations_msg(cam.id, stamp, frame_observations(s, cam.id, t, stamp, rng, NoiseSettings(flip_rate=0.05)))
             one.add_frame(cam.id, stamp, observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg))))
-            pending[cam.id].append(msg)
+            shuffled = m.MarkerObservations()
+            shuffled.CopyFrom(msg)
+            del shuffled.markers[:]
+            shuffled.markers.extend(msg.markers[i] for i in rng.permutation(len(msg.markers)))
+            pending[cam.id].append(shuffled)
             if len(pending[cam.id]) == 30:
                 msgs = pending.pop(cam.id)
                 pending[cam.id] = []
