@@ -92,10 +92,12 @@ class DriverService:
         if not (with_map or wanted["cameras"]):
             return
         cams, markers, objects = self.source.truth(t_s, with_map)
-        for what, poses in (("cameras", cams), ("marker_poses", markers), ("objects", objects)):
-            if wanted[what] and (what == "cameras" or with_map):
-                self._truth_pubs[what].put(codec.poses_to_msg(stamp_ns, poses))
+        if wanted["cameras"]:
+            self._truth_pubs["cameras"].put(codec.poses_to_msg(stamp_ns, cams))
         if with_map:
+            for what, poses in (("marker_poses", markers), ("objects", objects)):
+                if wanted[what]:
+                    self._truth_pubs[what].put(codec.poses_to_msg(stamp_ns, poses))
             self._last_truth = t_s
 
     def publish_status(self, state: int, message: str = "") -> None:
