@@ -17,6 +17,8 @@ observations whose normalised error is under the chi-square 6-dof 95 % bound, 12
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
+from typing import Iterator
 
 import cv2
 import gtsam
@@ -32,30 +34,51 @@ from schemas.geometry import invert_pose
 from schemas.spec import PoseSpec
 
 
-def timing(quick: bool) -> dict[str, float]:
+@contextmanager
+def apriltag_detector(family: str = "tag36h11") -> Iterator:
+    """A one-thread ``pupil_apriltags.Detector``, freed detector first, then its tag family.
+
+    pupil-apriltags' own ``__del__`` frees the family before the detector, whose destructor then
+    reads the freed family: an intermittent SIGSEGV that killed whole benchmark runs here
+    (pupil-labs/apriltags#46)."""
     import pupil_apriltags
 
+    tags = pupil_apriltags.Detector(families=family, nthreads=1)
+    try:
+        yield tags
+    finally:
+        lib = tags.libc
+        lib.apriltag_detector_destroy.restype = None
+        lib.apriltag_detector_destroy(tags.tag_detector_ptr)
+        destroy = getattr(lib, f"{family}_destroy")
+        destroy.restype = None
+        for tf in tags.tag_families.values():
+            destroy(tf)
+        tags.tag_detector_ptr = None  # its __del__ then frees nothing
+
+
+def timing(quick: bool) -> dict[str, float]:
     s = load_scenario()
     cell = SimCell(s)
     rendered = [cell.render(c.id, 1.0 + k / 30, k) for k in range(2 if quick else 6) for c in s.cameras]
     frames = [cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY) for f in rendered]
     ours = MarkerDetector(MarkerConfig(dictionary=s.dictionary))
-    tags = pupil_apriltags.Detector(families="tag36h11", nthreads=1)
     t_ours, t_tag, n_ours, n_tag = [], [], 0, 0
     cores = CoresUsed().start()
-    for _ in range(3 if quick else 10):
-        # Each detector over all frames in turn: alternating frame by frame, each would start with
-        # the other's caches (about twice the time for ours).
-        for g in frames:
-            t0 = time.perf_counter()
-            ids, _ = ours.find(g)
-            t_ours.append(time.perf_counter() - t0)
-            n_ours += len(ids)
-        for g in frames:
-            t0 = time.perf_counter()
-            dets = tags.detect(g)
-            t_tag.append(time.perf_counter() - t0)
-            n_tag += len(dets)
+    with apriltag_detector() as tags:
+        for _ in range(3 if quick else 10):
+            # Each detector over all frames in turn: alternating frame by frame, each would start with
+            # the other's caches (about twice the time for ours).
+            for g in frames:
+                t0 = time.perf_counter()
+                ids, _ = ours.find(g)
+                t_ours.append(time.perf_counter() - t0)
+                n_ours += len(ids)
+            for g in frames:
+                t0 = time.perf_counter()
+                dets = tags.detect(g)
+                t_tag.append(time.perf_counter() - t0)
+                n_tag += len(dets)
     t_front = []
     for _ in range(3 if quick else 10):
         for f in rendered:
