@@ -336,8 +336,11 @@ class RecognitionWorker:
             pts = finite_points(cloud)
             pts = pts[pts[:, 2] <= self.config.max_range_m]
             self.clouds[camera_id] = voxel_downsample(pts, self.config.cloud_voxel_m) if len(pts) else pts
-        view = DepthView.of(cloud)
-        self.views[camera_id] = CameraView(camera_id, stamp_ns, view, world_T_camera)
+        # Kept to judge the other cameras' detections; without that check, the recogniser builds
+        # one only for a frame with a hypothesis to verify.
+        view = DepthView.of(cloud) if self.config.min_cross_view_fitness > 0 else None
+        if view is not None:
+            self.views[camera_id] = CameraView(camera_id, stamp_ns, view, world_T_camera)
         found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view)
         for key in [k for k in self.latest if k[0] == camera_id]:
             del self.latest[key]  # what this camera no longer sees is no longer reported by it
