@@ -12,6 +12,11 @@ sensor's rate) over frames due. CPU per camera: the driver processes' CPU second
 per camera; the estimator's and the router's CPU seconds per second beside them (where the rest
 of the 2 cores goes). The camera count is scanned upward; ``max_cameras_at_30hz`` is the largest count
 whose p99 stays within 100 ms with under 1 % of frames dropped.
+
+This machine's speed drifts by tens of percent within an hour, so the run also times the same
+front-end in this process on one pinned core, on demo frames, before and after the trials
+(``frontend_ms_reference``): a driver's CPU a frame over it (``driver_ms_per_frame_over_reference``)
+separates what the pipeline costs from how fast the machine was.
 """
 
 from __future__ import annotations
@@ -29,6 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import main
+from drivers.config import MarkerConfig
+from drivers.frames import observations_to_msg
+from drivers.markers import MarkerDetector
+from drivers.sim.render import SimCell
 from benchmarks.load import EXTRA, scenario_toml
 from cellsight.config import load_config
 from cellsight.launch import wait_for_router
@@ -141,11 +150,39 @@ def trial(n_cams: int, seconds: float, detector_params: Path | None = None) -> T
     return Trial(n_cams, t1 - t0, np.array(latency), frames, dropped, rate["driver"], rate["estimator"], rate["router"])
 
 
+def frontend_reference_ms(detector_params: Path | None, reps: int = 5) -> float:
+    """Median ms of a driver's front-end (detection, poses, depth planes, the message) on the demo
+    cameras' frames, in this process on one pinned core (restored after)."""
+    import cv2
+
+    s = load_scenario()
+    cell = SimCell(s)
+    frames = [cell.render(c.id, 1.0 + k / 30, k) for k in range(2) for c in s.cameras]
+    detector = MarkerDetector(MarkerConfig(dictionary=s.dictionary, detector_params=detector_params))
+    affinity, threads = os.sched_getaffinity(0), cv2.getNumThreads()
+    os.sched_setaffinity(0, {min(affinity)})
+    cv2.setNumThreads(1)
+    try:
+        times = []
+        for _ in range(reps):
+            for f in frames:
+                t0 = time.perf_counter()
+                observations_to_msg("cam", 0, f.info, detector.detect(f.rgb, f.info, f.depth_mm), s.dictionary)
+                times.append(time.perf_counter() - t0)
+    finally:
+        os.sched_setaffinity(0, affinity)
+        cv2.setNumThreads(threads)
+    return 1e3 * float(np.median(times))
+
+
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     seconds = 15.0 if quick else 30.0
     counts = [4] if quick else [1, 2, 4, 6, 4 + len(EXTRA)]
+    before = frontend_reference_ms(args.detector_params)
     trials = {n: trial(n, seconds, args.detector_params) for n in counts}
+    reference = 0.5 * (before + frontend_reference_ms(args.detector_params))
     four = trials[4]
+    driver_ms = 1e3 * four.driver_cpu_s_per_s / max(four.frames / four.seconds, 1e-9)
     held = [n for n, t in trials.items() if t.p(99) <= TARGET_P99_MS and t.drop_rate < MAX_DROP]
     out = {
         "cameras": 4.0,
@@ -157,6 +194,9 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
         "driver_cpu_per_camera": four.driver_cpu_s_per_s / 4,
         "estimator_cpu_s_per_s": four.estimator_cpu_s_per_s,
         "router_cpu_s_per_s": four.router_cpu_s_per_s,
+        "driver_ms_per_frame": driver_ms,
+        "frontend_ms_reference": reference,
+        "driver_ms_per_frame_over_reference": driver_ms / reference,
     }
     if not quick:
         out["max_cameras_at_30hz"] = float(max(held, default=0))
