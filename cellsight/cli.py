@@ -118,8 +118,9 @@ def _load_cell(cell_config: Path | None, scenario: Path | None = None):
 def _drive(cfg, publish_images: bool, camera: str, make_source, transport: TransportFlags, duration: float | None) -> None:
     """Serve one camera on the bus until its source ends, ``duration`` or Ctrl-C / SIGTERM.
     ``make_source(bus)`` gives the frame source (a ROS 2 camera's reads the same session)."""
-    from drivers.service import DriverService
+    from drivers.service import DriverService, use_opencv_threads
 
+    use_opencv_threads(cfg.markers.opencv_threads)
     stop = _stop_event()
     with _bus(cfg, None, transport) as bus:
         DriverService(bus, make_source(bus), camera, cfg.markers, publish_images=publish_images).run(stop, duration)

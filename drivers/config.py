@@ -38,6 +38,11 @@ class MarkerConfig(BaseModel):
     )
     detector_params: Path | None = Field(default=None, description="OpenCV DetectorParameters YAML; the values it gives override ours")
     pixel_sigma: float = Field(default=0.25, gt=0, description="corner noise (px) behind the covariance model")
+    opencv_threads: int = Field(
+        default=1, ge=0,
+        description="OpenCV's threads in each driver process (0: OpenCV's default, a pool over every core). With one, "
+        "a driver's frame cost 10-15 % less CPU at 1, 2 and 4 drivers on 2 cores, and its poses were no later",
+    )
 
 
     def side_for(self, marker_id: int) -> float:

@@ -10,6 +10,8 @@ import logging
 import threading
 import time
 
+import cv2
+
 from drivers.config import MarkerConfig
 from drivers.errors import DriverError, NoDeviceError
 from drivers.frames import Frame, FrameSource, observations_to_msg
@@ -21,6 +23,12 @@ from schemas.bus import Bus
 log = logging.getLogger(__name__)
 STATUS_PERIOD_S = 1.0
 TRUTH_PERIOD_S = 0.1
+
+
+def use_opencv_threads(n: int) -> None:
+    """OpenCV's thread pool for this process: n threads, 0 for OpenCV's default (its own 0 would mean
+    none at all). Process-wide, so a driver process sets it once at start (``markers.opencv_threads``)."""
+    cv2.setNumThreads(n if n > 0 else -1)
 
 
 class DriverService:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import cv2
+
 from drivers.config import MarkerConfig
-from drivers.service import DriverService
+from drivers.service import DriverService, use_opencv_threads
 from drivers.sim.scenario import load_scenario
 from drivers.sim.source import SimSource
 from schemas import keys
@@ -67,3 +69,16 @@ def test_truth_is_computed_only_while_someone_scores_against_it(client_transport
             driver.step()
         wait_until(lambda: seen.count("cameras") >= 3 and "marker_poses" in seen, 5.0, "every frame's camera truth and the map's")
         assert truth["cameras"].published == 3 and truth["marker_poses"].published >= 1 and truth["objects"].published == 0
+
+
+def test_opencv_threads_zero_is_opencvs_default_pool_not_none() -> None:
+    """``markers.opencv_threads``: 1 is one thread; 0 is OpenCV's pool over every core (OpenCV's own
+    setNumThreads(0) would switch threading off)."""
+    before = cv2.getNumThreads()
+    try:
+        use_opencv_threads(1)
+        assert cv2.getNumThreads() == 1
+        use_opencv_threads(0)
+        assert cv2.getNumThreads() == cv2.getNumberOfCPUs()
+    finally:
+        cv2.setNumThreads(before)
