@@ -281,15 +281,29 @@ def transforms_to_msg(stamp_ns: int, transforms: Iterable[tuple[str, str, np.nda
 
 
 def transforms_from_msg(msg: m.FrameTransforms) -> dict[tuple[str, str], np.ndarray]:
-    """{(parent, child): parent_T_child} of a ``FrameTransforms``."""
-    out = {}
-    for tr in msg.transforms:
-        p = m.Pose(
-            x=tr.translation.x, y=tr.translation.y, z=tr.translation.z,
-            qx=tr.rotation.x, qy=tr.rotation.y, qz=tr.rotation.z, qw=tr.rotation.w,
-        )  # fmt: skip
-        out[(tr.parent_frame_id, tr.child_frame_id)] = pose_from_msg(p, f"transform {tr.child_frame_id}")
-    return out
+    """{(parent, child): parent_T_child} of a ``FrameTransforms``, each checked as ``pose_from_msg``
+    checks one, all in one batch (a map's tf holds every marker, and subscribers read it at the
+    estimator's rate)."""
+    trs = msg.transforms
+    t = np.array([(tr.translation.x, tr.translation.y, tr.translation.z) for tr in trs], dtype=np.float64).reshape(-1, 3)
+    q = np.array([(tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w) for tr in trs], dtype=np.float64).reshape(-1, 4)
+    T = _poses_from_arrays(t, q, [f"transform {tr.child_frame_id}" for tr in trs])
+    return {(tr.parent_frame_id, tr.child_frame_id): pose for tr, pose in zip(trs, T)}
+
+
+def _poses_from_arrays(t: np.ndarray, q: np.ndarray, what: Sequence[str]) -> np.ndarray:
+    """Poses (N, 4, 4) from translations (N, 3) and quaternions (N, 4; x y z w) as received; the first
+    pose that ``pose_from_msg`` would reject raises the same ``DecodeError`` (named by ``what``)."""
+    finite = np.isfinite(t).all(axis=1) & np.isfinite(q).all(axis=1)
+    norm = np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=1)
+    bad = ~finite | (np.abs(norm - 1.0) > 1e-3)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DecodeError(f"{what[i]}: contains NaN or inf" if not finite[i] else f"{what[i]}: quaternion norm {norm[i]:.4g} is not 1")
+    T = np.zeros((len(t), 4, 4))
+    T[:, :3, :3] = matrices_from_quats(q) if len(q) else np.zeros((0, 3, 3))
+    T[:, :3, 3], T[:, 3, 3] = t, 1.0
+    return T
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,18 @@ def test_transforms_and_pose_lists_round_trip(items) -> None:
         np.testing.assert_allclose(back[f"c{i}"].covariance, random_covariance(i))
 
 
+def test_a_bad_transform_among_good_ones_is_named() -> None:
+    tf = codec.transforms_to_msg(5, [("world", f"c{i}", geometry.make_pose(t=[i, 0, 1])) for i in range(4)])
+    tf.transforms[2].rotation.w = 3.0
+    tf.transforms[3].translation.y = float("nan")
+    with pytest.raises(DecodeError, match="transform c2: quaternion norm 3"):
+        codec.transforms_from_msg(tf)
+    tf.transforms[2].rotation.w = 1.0
+    with pytest.raises(DecodeError, match="transform c3: contains NaN"):
+        codec.transforms_from_msg(tf)
+    assert codec.transforms_from_msg(m.FrameTransforms()) == {}
+
+
 def good_marker_observations() -> m.MarkerObservations:
     msg = m.MarkerObservations(camera_id="cam1", stamp_ns=1, image_width=640, image_height=480)
     obs = msg.markers.add(marker_id=3, dictionary="DICT_APRILTAG_36h11", side_m=0.1)
