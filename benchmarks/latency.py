@@ -34,14 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import main
-from drivers.config import MarkerConfig
-from drivers.frames import observations_to_msg
-from drivers.markers import MarkerDetector
-from drivers.sim.render import SimCell
 from benchmarks.load import EXTRA, scenario_toml
 from cellsight.config import load_config
 from cellsight.launch import wait_for_router
 from cellsight.scenario_config import cell_config_of
+from drivers.config import MarkerConfig
+from drivers.frames import observations_to_msg
+from drivers.markers import MarkerDetector
+from drivers.sim.render import SimCell
 from drivers.sim.scenario import load_scenario
 from schemas import keys
 from schemas import messages as m

@@ -40,8 +40,8 @@ class MarkerConfig(BaseModel):
     pixel_sigma: float = Field(default=0.25, gt=0, description="corner noise (px) behind the covariance model")
     opencv_threads: int = Field(
         default=1, ge=0,
-        description="OpenCV's threads in each driver process (0: OpenCV's default, a pool over every core). With one, "
-        "a driver's frame cost 10-15 % less CPU at 1, 2 and 4 drivers on 2 cores, and its poses were no later",
+        description="OpenCV's threads in each driver process (0: OpenCV's default, a pool over every core). One costs "
+        "the least where drivers share the cores: 2-28 % less CPU a frame at 1, 2 and 4 drivers on 2 cores, poses no later",
     )
 
 
