@@ -15,8 +15,9 @@ whose p99 stays within 100 ms with under 1 % of frames dropped.
 
 This machine's speed drifts by tens of percent within an hour, so the run also times the same
 front-end in this process on one pinned core, on demo frames, before and after the trials
-(``frontend_ms_reference``): a driver's CPU a frame over it (``driver_ms_per_frame_over_reference``)
-separates what the pipeline costs from how fast the machine was.
+(``frontend_ms_reference``: the machine's speed for the front-end alone), and a driver's CPU a
+frame over it (``driver_ms_per_frame_over_reference``: what running in the cell adds, which moves
+between runs too: waking cold and sharing the cores depend on the machine as well).
 """
 
 from __future__ import annotations
