@@ -69,8 +69,7 @@ from recognition.models import model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from recognition.verify import DepthView  # noqa: E402
 from recognition.worker import CameraView, WorldDetection, cross_checked  # noqa: E402
-from schemas.codec import make_pose  # noqa: E402
-from schemas.geometry import invert_pose
+from schemas.geometry import invert_pose, make_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
 
 

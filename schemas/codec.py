@@ -19,7 +19,7 @@ from google.protobuf.message import Message
 
 from schemas import messages as m
 from schemas.errors import DecodeError
-from schemas.geometry import make_pose, matrices_from_quats, matrix_from_quat, quats_from_matrices
+from schemas.geometry import matrices_from_quats, quats_from_matrices
 
 Msg = TypeVar("Msg", bound=Message)
 _EYE3, _LAST_ROW = np.eye(3), np.array([0.0, 0.0, 0.0, 1.0])
@@ -80,14 +80,9 @@ def foxglove_pose(T: np.ndarray, out) -> None:
 
 def pose_from_msg(msg: m.Pose, what: str = "pose") -> np.ndarray:
     """4x4 pose from a ``Pose`` message; rejects non-finite values and non-unit quaternions."""
-    t = np.array([msg.x, msg.y, msg.z])
-    q = np.array([msg.qx, msg.qy, msg.qz, msg.qw])
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
-        raise DecodeError(f"{what}: contains NaN or inf")
-    n = np.linalg.norm(q)
-    if abs(n - 1.0) > 1e-3:
-        raise DecodeError(f"{what}: quaternion norm {n:.4g} is not 1")
-    return make_pose(matrix_from_quat(q), t)
+    t = np.array([[msg.x, msg.y, msg.z]])
+    q = np.array([[msg.qx, msg.qy, msg.qz, msg.qw]])
+    return _poses_from_arrays(t, q, [what])[0]
 
 
 # ---------------------------------------------------------------- covariances
@@ -292,8 +287,9 @@ def transforms_from_msg(msg: m.FrameTransforms) -> dict[tuple[str, str], np.ndar
 
 
 def _poses_from_arrays(t: np.ndarray, q: np.ndarray, what: Sequence[str]) -> np.ndarray:
-    """Poses (N, 4, 4) from translations (N, 3) and quaternions (N, 4; x y z w) as received; the first
-    pose that ``pose_from_msg`` would reject raises the same ``DecodeError`` (named by ``what``)."""
+    """Poses (N, 4, 4) from translations (N, 3) and quaternions (N, 4; x y z w) as received, rejecting
+    non-finite values and non-unit quaternions: the first bad pose raises ``DecodeError`` named by
+    ``what``."""
     finite = np.isfinite(t).all(axis=1) & np.isfinite(q).all(axis=1)
     norm = np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=1)
     bad = ~finite | (np.abs(norm - 1.0) > 1e-3)
