@@ -36,11 +36,11 @@ import numpy as np
 
 from benchmarks.common import main
 from benchmarks.load import EXTRA, scenario_toml
+from benchmarks.markers import frontend_seconds
 from cellsight.config import load_config
 from cellsight.launch import wait_for_router
 from cellsight.scenario_config import cell_config_of
 from drivers.config import MarkerConfig
-from drivers.frames import observations_to_msg
 from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import load_scenario
@@ -164,12 +164,7 @@ def frontend_reference_ms(detector_params: Path | None, reps: int = 5) -> float:
     os.sched_setaffinity(0, {min(affinity)})
     cv2.setNumThreads(1)
     try:
-        times = []
-        for _ in range(reps):
-            for f in frames:
-                t0 = time.perf_counter()
-                observations_to_msg("cam", 0, f.info, detector.detect(f.rgb, f.info, f.depth_mm), s.dictionary)
-                times.append(time.perf_counter() - t0)
+        times = frontend_seconds(detector, frames, s.dictionary, reps)
     finally:
         os.sched_setaffinity(0, affinity)
         cv2.setNumThreads(threads)
