@@ -1,8 +1,9 @@
 """The recognition worker: depth frames and camera poses in, object poses in world coordinates out.
 
-Owns the zenoh side: the newest depth frame per camera (ring inboxes), intrinsics, ``tf`` and
-camera states from the estimator, object-marker observations for priors; publishes ``objects``,
-``objects/scene`` and the fused cloud on ``points``. Recognition itself is
+Owns the zenoh side: a camera's depth, subscribed only while a frame of it is due (a driver
+builds images only for a subscriber, and the worker uses about one of each camera's 30 a second),
+intrinsics, ``tf`` and camera states from the estimator, object-marker observations for priors;
+publishes ``objects``, ``objects/scene`` and the fused cloud on ``points``. Recognition itself is
 ``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``, and ``cross_checked`` holds
 back a fused object another camera's frame saw through. A camera is used once the estimator has
 localized it (detections are only useful in world frame), and its detections are dropped while the
@@ -27,7 +28,7 @@ from recognition.verify import DepthView, Verdict
 from schemas import codec, keys
 from schemas import geometry
 from schemas import messages as m
-from schemas.bus import Bus
+from schemas.bus import Bus, Subscription
 from schemas.errors import DecodeError, KeyError_
 from schemas.rmw_zenoh import NodeName, Ros2Node
 from schemas.ros2 import CLOUD, DETECTIONS, Ros2Config, ros2_types
@@ -259,7 +260,7 @@ class RecognitionWorker:
         self.recognizer = Recognizer(database, config)
         self.boxes = model_boxes(database)
         cell = bus.cell
-        self._depth = bus.subscribe(keys.all_cameras(cell, "depth/image_raw"), m.RawImage, capacity=16, ring=True)
+        self._depth: dict[str, Subscription[m.RawImage]] = {}  # camera -> its depth, while a frame of it is due
         self._info = bus.subscribe(keys.all_cameras(cell, "camera_info"), m.CameraCalibration, capacity=64, ring=True)
         self._tf = bus.subscribe(keys.tf(cell), m.FrameTransforms, capacity=16, ring=True)
         self._markers = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=256, ring=True)
@@ -296,8 +297,9 @@ class RecognitionWorker:
         for item in self._status.drain():
             for cam in item.msg.cameras:
                 self.camera_state[cam.camera_id] = cam.state
-        for item in self._depth.drain():
-            self.frames[keys.parse(item.key).camera] = item.msg
+        for camera_id, sub in self._depth.items():
+            for item in sub.drain():
+                self.frames[camera_id] = item.msg
         for item in self._markers.drain():
             self.marker_msgs[item.msg.camera_id] = item.msg
 
@@ -310,14 +312,23 @@ class RecognitionWorker:
         """The camera has a world pose and the estimator does not say it is moving or unanchored."""
         return camera_id in self.world_T_camera and self.camera_state.get(camera_id) not in UNUSABLE_STATES
 
-    def _next_camera(self) -> str | None:
-        """The ready camera whose last run is oldest, if its period has elapsed."""
+    def _request_frames(self) -> None:
+        """Subscribe to the depth of each placed camera whose next run is due, until that run takes
+        a frame (``process``); drop the subscription of a camera no longer placed."""
         now = time.monotonic()
-        ready = [c for c in self.frames if c in self.intrinsics and self.placed(c)
-                 and now - self.last_run.get(c, -np.inf) >= 1.0 / self.config.rate_hz]
-        for c in self.frames:
-            if c not in self.world_T_camera:
-                self._warn_once(f"unlocalized/{c}", f"{c}: waiting for the estimator to localize it")
+        for c in self.intrinsics:
+            if not self.placed(c):
+                if c not in self.world_T_camera:
+                    self._warn_once(f"unlocalized/{c}", f"{c}: waiting for the estimator to localize it")
+                if c in self._depth:
+                    self._depth.pop(c).close()
+                    self.frames.pop(c, None)
+            elif c not in self._depth and now - self.last_run.get(c, -np.inf) >= 1.0 / self.config.rate_hz:
+                self._depth[c] = self.bus.subscribe(keys.depth(self.bus.cell, c), m.RawImage, capacity=1, ring=True)
+
+    def _next_camera(self) -> str | None:
+        """The camera with a due frame whose last run is oldest."""
+        ready = [c for c in self.frames if self.placed(c)]
         return min(ready, key=lambda c: self.last_run.get(c, -np.inf)) if ready else None
 
     def priors(self, camera_id: str, stamp_ns: int) -> list[Prior]:
@@ -335,6 +346,8 @@ class RecognitionWorker:
     def process(self, camera_id: str) -> list[WorldDetection]:
         """Recognise the newest frame of one camera; remember and return its world-frame detections."""
         frame = self.frames.pop(camera_id)
+        if camera_id in self._depth:  # the next frame is due a period from now
+            self._depth.pop(camera_id).close()
         self.last_run[camera_id] = time.monotonic()
         stamp_ns = codec.timestamp_to_stamp(frame.timestamp)
         if frame.encoding != "16UC1":
@@ -364,6 +377,7 @@ class RecognitionWorker:
     def step(self) -> list[FusedObject] | None:
         """Absorb what arrived, recognise one camera if one is due, publish the fused objects."""
         self._absorb()
+        self._request_frames()
         cam = self._next_camera()
         if cam is None:
             return None

@@ -59,27 +59,46 @@ def test_worker_publishes_world_poses_from_frames_and_tf(client_transport: Trans
     got: list[m.ObjectDetections] = []
     scenes: list[m.SceneUpdate] = []
     clouds: list[m.PointCloud] = []
+    # One frame every 5 s: room to see the worker's depth subscription end between its frames.
+    config = cfg.recognition.model_copy(update={"rate_hz": 0.2})
     with Bus(client_transport, CELL) as worker_bus, Bus(client_transport, CELL) as client:
-        worker = RecognitionWorker(worker_bus, cfg.recognition, db)
+        worker = RecognitionWorker(worker_bus, config, db)
         client.subscribe(keys.objects(CELL), m.ObjectDetections, callback=lambda r: got.append(r.msg))
         client.subscribe(keys.objects_scene(CELL), m.SceneUpdate, callback=lambda r: scenes.append(r.msg))
         client.subscribe(keys.points(CELL), m.PointCloud, callback=lambda r: clouds.append(r.msg))
-        stop = threading.Event()
+        stop, sensor_off = threading.Event(), threading.Event()
         thread = threading.Thread(target=worker.run, args=(stop,))
         thread.start()
+        depth_pub = client.publisher(keys.depth(CELL, "cam2"), frames=True)
+        # A frame that does not match camera_info first: skipped, the worker carries on.
+        depth = [codec.image_to_msg(frame.depth_mm[:100], frame.stamp_ns, "cam2", "16UC1")]
+        built = [0]
+
+        def sensor() -> None:  # a driver at 30 Hz: a frame built and sent only while someone subscribes
+            while not sensor_off.wait(1 / 30):
+                if depth_pub.wanted():
+                    depth_pub.put(depth[0])
+                    built[0] += 1
+
+        feeder = threading.Thread(target=sensor)
+        feeder.start()
         try:
             time.sleep(0.5)  # routes
-            depth_pub = client.publisher(keys.depth(CELL, "cam2"), frames=True)
             client.publisher(keys.camera_info(CELL, "cam2")).put(frame.info.to_msg(frame.stamp_ns, "cam2"))
             # The estimator's part, here from the simulator: where cam2 is.
             client.publisher(keys.tf(CELL)).put(codec.transforms_to_msg(frame.stamp_ns, [("world", "cam2", frame.world_T_camera)]))
-            # A frame that does not match camera_info first: skipped, the worker carries on.
-            depth_pub.put(codec.image_to_msg(frame.depth_mm[:100], frame.stamp_ns, "cam2", "16UC1"))
             wait_until(lambda: worker.errors == 1, 10.0, "the bad frame to be rejected")
+            depth[0] = codec.image_to_msg(frame.depth_mm, frame.stamp_ns, "cam2", "16UC1")
             worker.last_run.clear()
-            depth_pub.put(codec.image_to_msg(frame.depth_mm, frame.stamp_ns, "cam2", "16UC1"))
             wait_until(lambda: got and scenes and clouds, 20.0, "object detections, their 3-D scene and the cloud")
+            # Between its frames the worker subscribes to no depth: the sensor builds none.
+            wait_until(lambda: not depth_pub.wanted(), 2.0, "the worker's depth subscription to end after its frame")
+            built_before = built[0]
+            time.sleep(1.0)
+            assert built[0] == built_before, "frames built for nobody while no frame of cam2 was due"
         finally:
+            sensor_off.set()
+            feeder.join()
             stop.set()
             thread.join()
     assert thread.is_alive() is False and worker.errors == 1
