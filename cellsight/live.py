@@ -6,7 +6,8 @@ through untouched. Images (RawImage and camera_info share the camera id as frame
 world -> camera), so the 3-D panel shows camera frustums, marker axes and camera poses; with the
 recognition worker running it also shows the fused world cloud (``points``, a colour per camera)
 and the objects' boxes (``objects/scene``).
-Images are thinned to ``max_image_hz`` per camera to spare the WebSocket.
+Images come at most ``max_image_hz`` per camera (to spare the WebSocket, the drivers and any link
+between hosts: ``schemas.bus.CellTap``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import foxglove
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from schemas import keys
-from schemas import messages as m
 from schemas.bus import Bus
 from schemas.errors import SchemaError
 
@@ -32,10 +32,9 @@ class FoxgloveBridge:
         self.max_image_hz = max_image_hz
         self._channels: dict[str, foxglove.Channel] = {}
         self._schemas: dict[str, foxglove.Schema] = {}
-        self._last_image: dict[str, int] = {}
         self._lock = threading.Lock()
         self.forwarded = 0
-        self._sub = bus.subscribe_raw(keys.everything(bus.cell), self._on_sample)
+        self._sub = bus.tap_cell(self._on_sample, max_image_hz) if max_image_hz else bus.subscribe_raw(keys.everything(bus.cell), self._on_sample)
         log.info("Foxglove live view on ws://%s:%d (open it in the Foxglove app)", host, self.port)
 
     def _channel(self, key: str, msg_type) -> foxglove.Channel:
@@ -52,11 +51,6 @@ class FoxgloveBridge:
             msg_type = keys.message_type(key)
         except SchemaError:
             return
-        if self.max_image_hz and msg_type is m.RawImage:
-            last = self._last_image.get(key)
-            if last is not None and receive_ns - last < 1e9 / self.max_image_hz:
-                return
-            self._last_image[key] = receive_ns
         with self._lock:
             self._channel(key, msg_type).log(payload, log_time=receive_ns)
             self.forwarded += 1

@@ -1,7 +1,8 @@
 """The recorder: every key of a cell (or the ones asked for) into MCAP logs.
 
 Payloads are validated before they are written (the log holds only what decodes), images can be
-thinned to ``max_image_hz`` per key so a long run stays a reasonable size. A recording is never
+thinned to ``max_image_hz`` per key so a long run stays a reasonable size (recording the whole
+cell, images are subscribed only when one is due: ``schemas.bus.CellTap``). A recording is never
 overwritten: a restarted recorder writes ``NAME.1.mcap``, ``NAME.2.mcap``, ... beside the first
 part. A failing disk ends the current part (readable up to its last complete chunk); every
 ``retry_s`` the recorder tries a new part, so recording resumes once there is space again.
@@ -67,7 +68,11 @@ class Recorder:
         self._lock = threading.Lock()
         if not self._new_part():
             raise RunError(f"cannot record to {path}: {self.failures[-1]}")
-        self._subs = [bus.subscribe_raw(k, self._on_sample) for k in (key_exprs or [keys.everything(bus.cell)])]
+        tapped = bool(max_image_hz) and not key_exprs  # images subscribed only when one is due
+        if tapped:
+            self._subs = [bus.tap_cell(self._on_sample, max_image_hz)]
+        else:
+            self._subs = [bus.subscribe_raw(k, self._on_sample) for k in (key_exprs or [keys.everything(bus.cell)])]
         bus.declare_alive("recorder", "main")
 
     def _new_part(self) -> bool:
@@ -86,7 +91,8 @@ class Recorder:
         self.parts.append(path)
         return True
 
-    def _on_sample(self, key: str, payload: bytes, receive_ns: int) -> None:
+    def _on_sample(self, key: str, payload: bytes, receive_ns: int) -> bool | None:
+        """Record one message; False: an image refused, stamped too soon after the last kept one."""
         try:
             parsed = keys.parse(key)
             msg_type = parsed.message_type
@@ -101,7 +107,7 @@ class Recorder:
             last = self._last_image.get(key)
             if last is not None and stamp - last < 1e9 / self.max_image_hz:
                 self.thinned += 1
-                return
+                return False
             self._last_image[key] = stamp
         with self._lock:
             if parsed.camera is not None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import resource
 import threading
 import time
@@ -29,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import keys
 from schemas.codec import decode
-from schemas.errors import BusError, SchemaError
+from schemas.errors import BusError, KeyError_, SchemaError
 
 log = logging.getLogger(__name__)
 
@@ -304,6 +305,90 @@ class Publisher(Generic[Msg]):
         self._pub.undeclare()
 
 
+@dataclass
+class _DueImage:
+    """An image key's subscription while an image of it is due; ``taken`` once one arrived."""
+
+    sub: zenoh.Subscriber | None = None
+    taken: bool = False
+
+
+class CellTap:
+    """Every key of a cell, each camera's images at most ``max_image_hz`` per key (recorder, live view).
+
+    An image key is subscribed only while an image of it is due, from the tap's thread: a driver
+    builds images only while someone subscribes, and a link between hosts carries only what a
+    subscriber on its far side asked for, so a recorder keeping one image in 15 costs the drivers
+    and the link about one in 15 too instead of all 30 a second. Cameras are learned from their
+    other keys (status comes every second). A callback that returns False for an image refuses it
+    (the recorder thins by stamp, which a driver running late moves against arrival): the
+    subscription then waits for the next one.
+    """
+
+    def __init__(self, bus: "Bus", callback: Callable[[str, bytes, int], bool | None], max_image_hz: float) -> None:
+        if max_image_hz <= 0:
+            raise BusError(f"max_image_hz must be positive, not {max_image_hz}")
+        self._bus = bus
+        self._callback = callback
+        self._period_s = 1.0 / max_image_hz
+        self._lock = threading.Lock()
+        self._cameras: set[str] = set()
+        self._due: dict[str, _DueImage] = {}  # image key -> its subscription while an image is due
+        self._taken: dict[str, float] = {}  # image key -> monotonic s its last image arrived
+        self._subs = [bus.subscribe_raw(k, self._on_sample) for k in keys.everything_but_images(bus.cell)]
+        self._stop = threading.Event()
+        self._wake = threading.Event()  # an image arrived: its subscription goes before the camera's next frame
+        self._thread = threading.Thread(target=self._pull, name="cell-tap", daemon=True)
+        self._thread.start()
+
+    def _on_sample(self, key: str, payload: bytes, receive_ns: int) -> None:
+        try:
+            camera = keys.parse(key).camera
+        except KeyError_:
+            camera = None
+        if camera is not None and camera not in self._cameras:
+            with self._lock:
+                self._cameras.add(camera)
+        self._callback(key, payload, receive_ns)
+
+    def _on_image(self, key: str, payload: bytes, receive_ns: int) -> None:
+        with self._lock:
+            due = self._due.get(key)
+            if due is None or due.taken:
+                return  # one image per due time; the woken thread ends the subscription
+            due.taken = True
+        if self._callback(key, payload, receive_ns) is False:  # refused (e.g. stamped too soon after the last): the next
+            due.taken = False
+            return
+        self._taken[key] = time.monotonic()
+        self._wake.set()
+
+    def _pull(self) -> None:
+        tick = min(0.05, self._period_s / 4)
+        while not self._stop.is_set():
+            self._wake.wait(tick)
+            self._wake.clear()
+            now = time.monotonic()
+            with self._lock:
+                image_keys = [k for c in sorted(self._cameras) for k in keys.images(self._bus.cell, c)]
+                done = [self._due.pop(k).sub for k in image_keys if k in self._due and self._due[k].taken]
+                due = {k: _DueImage() for k in image_keys if k not in self._due and now - self._taken.get(k, -math.inf) >= self._period_s}
+                self._due.update(due)
+            for sub in done:  # outside the lock: undeclaring waits for the subscriber's running callback
+                sub.undeclare()
+            for k, d in due.items():
+                d.sub = self._bus.subscribe_raw(k, self._on_image)
+
+    def undeclare(self) -> None:
+        """Stop, as a zenoh subscriber's ``undeclare``."""
+        self._stop.set()
+        self._wake.set()
+        self._thread.join()
+        for sub in self._subs + [d.sub for d in self._due.values()]:
+            sub.undeclare()
+        self._due.clear()
+
+
 class Bus:
     """A zenoh session bound to one cell. Close it (or use ``with``) to leave the network."""
 
@@ -356,6 +441,11 @@ class Bus:
                 log.exception("raw handler for %s raised", key)
 
         return self.session.declare_subscriber(key_expr, on_sample)
+
+    def tap_cell(self, callback: Callable[[str, bytes, int], bool | None], max_image_hz: float) -> "CellTap":
+        """Every key of the cell, undecoded, into ``callback(key, payload, receive_ns)``, each
+        camera's images at most ``max_image_hz`` (``CellTap``)."""
+        return CellTap(self, callback, max_image_hz)
 
     def declare_alive(self, component: str, ident: str) -> str:
         """Hold a liveliness token ``cellsight/<cell>/alive/<component>/<id>`` until close."""

@@ -157,6 +157,20 @@ def everything(cell: str) -> str:
     return _cell(cell, "**")
 
 
+def everything_but_images(cell: str) -> list[str]:
+    """Key expressions for every key of one cell but the cameras' images, no two matching one key
+    (a message arrives once): the per-camera wildcards, and the cell-wide topics none of them covers
+    (``*/status`` is ``estimate/status`` too)."""
+    per_camera = [t for t, msg_type in CAMERA_TOPICS.items() if msg_type is not m.RawImage]
+    covered = [t for t in CELL_TOPICS if t.count("/") == 1 and t.split("/")[1] in per_camera]
+    return [all_cameras(cell, t) for t in per_camera] + [_cell(cell, t) for t in CELL_TOPICS if t not in covered]
+
+
+def images(cell: str, camera: str) -> list[str]:
+    """The camera's image keys (colour, depth)."""
+    return [_camera(cell, camera, t) for t, msg_type in CAMERA_TOPICS.items() if msg_type is m.RawImage]
+
+
 @dataclass(frozen=True)
 class ParsedKey:
     """A concrete key split into its parts; ``camera`` is None for cell-wide topics."""

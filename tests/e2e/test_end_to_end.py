@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cellsight.evaluation import STATE_NAMES, load_run
@@ -77,8 +78,11 @@ def test_demo_reports_the_objects_near_truth(demo_run: Path) -> None:
 def test_demo_log_decodes_with_plain_mcap_readers(demo_run: Path) -> None:
     """No project code: mcap + mcap-protobuf-support, with Foxglove's schema names for images and tf."""
     types: dict[str, str] = {}
+    images: dict[str, list[int]] = {}
     for topic, msg in logged_messages(demo_run / "log.mcap", log_time_order=False):
         types.setdefault(topic, msg.DESCRIPTOR.full_name)
+        if topic.endswith("image_raw"):
+            images.setdefault(topic, []).append(msg.timestamp.seconds * 10**9 + msg.timestamp.nanos)
     assert types["cellsight/demo/cam1/color/image_raw"] == "foxglove.RawImage"
     assert types["cellsight/demo/cam1/depth/image_raw"] == "foxglove.RawImage"
     assert types["cellsight/demo/cam1/camera_info"] == "foxglove.CameraCalibration"
@@ -86,6 +90,11 @@ def test_demo_log_decodes_with_plain_mcap_readers(demo_run: Path) -> None:
     assert types["cellsight/demo/estimate/status"] == "cellsight.EstimatorStatus"
     assert types["cellsight/demo/cam4/markers"] == "cellsight.MarkerObservations"
     assert types["cellsight/demo/points"] == "foxglove.PointCloud"
+    # --max-image-hz 0.5 over 12 s (the first once the recorder has heard the camera): every
+    # camera's colour and depth, stamped 2 s or more apart.
+    assert len(images) == 8, sorted(images)
+    for topic, stamps in images.items():
+        assert 3 <= len(stamps) <= 7 and min(np.diff(sorted(stamps))) >= 2e9, (topic, stamps)
 
 
 def test_demo_leaves_no_process_behind(demo_run: Path) -> None:
