@@ -93,14 +93,35 @@ def check_covariance(cov: np.ndarray, what: str = "covariance") -> np.ndarray:
     cov = np.asarray(cov, dtype=np.float64)
     if cov.size != 36:
         raise DecodeError(f"{what}: expected 36 values, got {cov.size}")
-    cov = cov.reshape(6, 6)
-    if not np.all(np.isfinite(cov)):
-        raise DecodeError(f"{what}: contains NaN or inf")
-    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
-        raise DecodeError(f"{what}: not symmetric")
-    if np.linalg.eigvalsh(cov).min() <= 0:
-        raise DecodeError(f"{what}: not positive definite")
-    return cov
+    return _checked_covariances(cov.reshape(1, 36), [what])[0]
+
+
+def covariance_problems(rows: np.ndarray) -> list[tuple[int, str]]:
+    """(row, what is wrong) for each bad covariance of ``rows`` (N, 36), in row order: non-finite,
+    not symmetric, not positive definite (the first of these per row). Empty when all are good."""
+    cov = rows.reshape(-1, 6, 6)
+    finite = np.all(np.isfinite(rows), axis=1)
+    c = np.where(finite[:, None, None], cov, np.eye(6))  # rows already flagged are checked as identity
+    asym = np.abs(c - c.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-6 * np.abs(c).max(axis=(1, 2)) + 1e-12
+    c = np.where(asym[:, None, None], np.eye(6), c)
+    not_pd = np.zeros(len(c), bool)
+    try:
+        np.linalg.cholesky(c)  # one batched factorisation; only on failure a per-row look
+    except np.linalg.LinAlgError:
+        smallest = np.linalg.eigvalsh(c).min(axis=1)
+        not_pd = smallest <= 0
+        not_pd[int(np.argmin(smallest))] = True  # Cholesky failed: at least the least definite one
+    why = [(~finite, "contains NaN or inf"), (asym, "not symmetric"), (not_pd, "not positive definite")]
+    return [(i, next(say for mask, say in why if mask[i])) for i in np.flatnonzero(~finite | asym | not_pd).tolist()]
+
+
+def _checked_covariances(rows: np.ndarray, what: Sequence[str]) -> np.ndarray:
+    """Covariances (N, 6, 6) from ``rows`` (N, 36); the first bad one raises ``DecodeError`` named by ``what``."""
+    problems = covariance_problems(rows)
+    if problems:
+        i, why = problems[0]
+        raise DecodeError(f"{what[i]}: {why}")
+    return rows.reshape(-1, 6, 6)
 
 
 def covariance_to_list(cov: np.ndarray) -> list[float]:
@@ -327,13 +348,19 @@ def poses_to_msg(stamp_ns: int, poses: Iterable[StampedPose]) -> m.PosesWithCova
 
 def poses_from_msg(msg: m.PosesWithCovariance) -> dict[str, StampedPose]:
     """{child_frame: StampedPose}; raises ``DecodeError`` on any bad pose or covariance."""
-    out = {}
-    for item in msg.poses:
-        what = f"pose of {item.child_frame_id!r}"
-        T = pose_from_msg(item.pose, what)
-        cov = check_covariance(np.array(item.covariance), what) if len(item.covariance) else None
-        out[item.child_frame_id] = StampedPose(item.parent_frame_id, item.child_frame_id, item.stamp_ns, T, cov)
-    return out
+    items = msg.poses
+    what = [f"pose of {item.child_frame_id!r}" for item in items]
+    t = np.array([(i.pose.x, i.pose.y, i.pose.z) for i in items], dtype=np.float64).reshape(-1, 3)
+    q = np.array([(i.pose.qx, i.pose.qy, i.pose.qz, i.pose.qw) for i in items], dtype=np.float64).reshape(-1, 4)
+    T = _poses_from_arrays(t, q, what)
+    given = [k for k, item in enumerate(items) if len(item.covariance)]
+    for k in given:
+        if len(items[k].covariance) != 36:
+            raise DecodeError(f"{what[k]}: expected 36 values, got {len(items[k].covariance)}")
+    rows = np.array([items[k].covariance for k in given], dtype=np.float64).reshape(-1, 36)
+    covs = dict(zip(given, _checked_covariances(rows, [what[k] for k in given])))
+    return {item.child_frame_id: StampedPose(item.parent_frame_id, item.child_frame_id, item.stamp_ns, T[k], covs.get(k))
+            for k, item in enumerate(items)}  # fmt: skip
 
 
 # ---------------------------------------------------------------- untrusted payloads
@@ -453,20 +480,8 @@ def marker_problems(f: MarkerFields) -> list[tuple[int, str]]:
         norms = np.linalg.norm(quat, axis=1)
         flag(~np.all(np.isfinite(values), axis=1), lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf")
         flag(np.abs(norms - 1.0) > 1e-3, lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")
-    cov = f.covariances.reshape(-1, 6, 6)
-    finite = np.all(np.isfinite(f.covariances), axis=1)
-    flag(~finite & (r[:, 5] == 36), lambda i: f"marker {ids[i]} covariance: contains NaN or inf")
-    c = np.where(finite[:, None, None], cov, np.eye(6))  # rows already flagged are checked as identity
-    asym = np.abs(c - c.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-6 * np.abs(c).max(axis=(1, 2)) + 1e-12
-    flag(asym, lambda i: f"marker {ids[i]} covariance: not symmetric")
-    c = np.where(asym[:, None, None], np.eye(6), c)
-    try:
-        np.linalg.cholesky(c)  # one batched factorisation; only on failure a per-row look
-    except np.linalg.LinAlgError:
-        smallest = np.linalg.eigvalsh(c).min(axis=1)
-        not_pd = smallest <= 0
-        not_pd[int(np.argmin(smallest))] = True  # Cholesky failed: at least the least definite one
-        flag(not_pd, lambda i: f"marker {ids[i]} covariance: not positive definite")
+    for i, why in covariance_problems(f.covariances):
+        found.setdefault(i, f"marker {ids[i]} covariance: {why}")
     return sorted(found.items())
 
 

@@ -119,6 +119,21 @@ def test_a_bad_transform_among_good_ones_is_named() -> None:
     assert codec.transforms_from_msg(m.FrameTransforms()) == {}
 
 
+def test_a_bad_covariance_among_good_poses_is_named() -> None:
+    msg = codec.poses_to_msg(5, [codec.StampedPose("world", f"c{i}", 5, geometry.make_pose(t=[i, 0, 1]), random_covariance(i)) for i in range(4)])
+    msg.poses.add(parent_frame_id="world", child_frame_id="no_cov", stamp_ns=5).pose.qw = 1.0
+    assert codec.poses_from_msg(msg)["no_cov"].covariance is None
+    for k, value, why in ((1, -1.0, "not positive definite"), (2, 7.0, "not symmetric"), (3, float("inf"), "contains NaN or inf")):
+        bad = m.PosesWithCovariance()
+        bad.CopyFrom(msg)
+        bad.poses[k].covariance[1 if why == "not symmetric" else 0] = value
+        with pytest.raises(DecodeError, match=f"pose of 'c{k}': {why}"):
+            codec.poses_from_msg(bad)
+    del msg.poses[2].covariance[30:]
+    with pytest.raises(DecodeError, match="pose of 'c2': expected 36 values, got 30"):
+        codec.poses_from_msg(msg)
+
+
 def good_marker_observations() -> m.MarkerObservations:
     msg = m.MarkerObservations(camera_id="cam1", stamp_ns=1, image_width=640, image_height=480)
     obs = msg.markers.add(marker_id=3, dictionary="DICT_APRILTAG_36h11", side_m=0.1)
