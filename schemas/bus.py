@@ -307,10 +307,11 @@ class Publisher(Generic[Msg]):
 
 @dataclass
 class _DueImage:
-    """An image key's subscription while an image of it is due; ``taken`` once one arrived."""
+    """An image key's subscription while an image of it is due: ``waiting``, ``offered`` (the
+    callback has one and may refuse it) or ``taken``."""
 
     sub: zenoh.Subscriber | None = None
-    taken: bool = False
+    state: Literal["waiting", "offered", "taken"] = "waiting"
 
 
 class CellTap:
@@ -333,6 +334,7 @@ class CellTap:
         self._period_s = 1.0 / max_image_hz
         self._lock = threading.Lock()
         self._cameras: set[str] = set()
+        self._image_keys: list[str] = []  # of every camera heard
         self._due: dict[str, _DueImage] = {}  # image key -> its subscription while an image is due
         self._taken: dict[str, float] = {}  # image key -> monotonic s its last image arrived
         self._subs = [bus.subscribe_raw(k, self._on_sample) for k in keys.everything_but_images(bus.cell)]
@@ -348,19 +350,23 @@ class CellTap:
             camera = None
         if camera is not None and camera not in self._cameras:
             with self._lock:
-                self._cameras.add(camera)
+                if camera not in self._cameras:
+                    self._cameras.add(camera)
+                    self._image_keys += keys.images(self._bus.cell, camera)
         self._callback(key, payload, receive_ns)
 
     def _on_image(self, key: str, payload: bytes, receive_ns: int) -> None:
         with self._lock:
             due = self._due.get(key)
-            if due is None or due.taken:
+            if due is None or due.state != "waiting":
                 return  # one image per due time; the woken thread ends the subscription
-            due.taken = True
-        if self._callback(key, payload, receive_ns) is False:  # refused (e.g. stamped too soon after the last): the next
-            due.taken = False
+            due.state = "offered"
+        if self._callback(key, payload, receive_ns) is False:  # refused (stamped too soon after the last, say)
+            with self._lock:
+                due.state = "waiting"
             return
-        self._taken[key] = time.monotonic()
+        with self._lock:
+            due.state, self._taken[key] = "taken", time.monotonic()
         self._wake.set()
 
     def _pull(self) -> None:
@@ -370,9 +376,8 @@ class CellTap:
             self._wake.clear()
             now = time.monotonic()
             with self._lock:
-                image_keys = [k for c in sorted(self._cameras) for k in keys.images(self._bus.cell, c)]
-                done = [self._due.pop(k).sub for k in image_keys if k in self._due and self._due[k].taken]
-                due = {k: _DueImage() for k in image_keys if k not in self._due and now - self._taken.get(k, -math.inf) >= self._period_s}
+                done = [self._due.pop(k).sub for k in self._image_keys if k in self._due and self._due[k].state == "taken"]
+                due = {k: _DueImage() for k in self._image_keys if k not in self._due and now - self._taken.get(k, -math.inf) >= self._period_s}
                 self._due.update(due)
             for sub in done:  # outside the lock: undeclaring waits for the subscriber's running callback
                 sub.undeclare()
