@@ -11,8 +11,9 @@ import json
 import os
 import platform
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from rich.console import Console
 from rich.table import Table
@@ -31,6 +32,20 @@ def pin_one_core() -> int:
 
     cv2.setNumThreads(1)
     return cpu
+
+
+@contextmanager
+def one_core() -> Iterator[int]:
+    """``pin_one_core`` for a stretch of work, then this process's affinity and OpenCV's pool as they
+    were (processes started after it must not inherit the pin)."""
+    import cv2
+
+    affinity, threads = os.sched_getaffinity(0), cv2.getNumThreads()
+    try:
+        yield pin_one_core()
+    finally:
+        os.sched_setaffinity(0, affinity)
+        cv2.setNumThreads(threads)
 
 
 class CoresUsed:

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import main
+from benchmarks.common import main, one_core
 from benchmarks.load import EXTRA, scenario_toml
 from benchmarks.markers import frontend_seconds
 from cellsight.config import load_config
@@ -154,20 +154,12 @@ def trial(n_cams: int, seconds: float, detector_params: Path | None = None) -> T
 def frontend_reference_ms(detector_params: Path | None, reps: int = 5) -> float:
     """Median ms of a driver's front-end (detection, poses, depth planes, the message) on the demo
     cameras' frames, in this process on one pinned core (restored after)."""
-    import cv2
-
     s = load_scenario()
     cell = SimCell(s)
     frames = [cell.render(c.id, 1.0 + k / 30, k) for k in range(2) for c in s.cameras]
     detector = MarkerDetector(MarkerConfig(dictionary=s.dictionary, detector_params=detector_params))
-    affinity, threads = os.sched_getaffinity(0), cv2.getNumThreads()
-    os.sched_setaffinity(0, {min(affinity)})
-    cv2.setNumThreads(1)
-    try:
+    with one_core():
         times = frontend_seconds(detector, frames, s.dictionary, reps)
-    finally:
-        os.sched_setaffinity(0, affinity)
-        cv2.setNumThreads(threads)
     return 1e3 * float(np.median(times))
 
 
