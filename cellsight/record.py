@@ -1,6 +1,9 @@
 """The recorder: every key of a cell (or the ones asked for) into MCAP logs.
 
-Payloads are validated before they are written (the log holds only what decodes), images can be
+A payload is written if it parses as its key's message type (the log holds nothing but its
+channels' schemas); its content (finite poses, definite covariances, image sizes) is checked by
+whoever reads the log, as every subscriber checks it on the bus (``schemas.log`` skips and counts
+what fails), so a recording keeps what a faulty producer sent. Images can be
 thinned to ``max_image_hz`` per key so a long run stays a reasonable size (recording the whole
 cell, images are subscribed only when one is due: ``schemas.bus.CellTap``). A recording is never
 overwritten: a restarted recorder writes ``NAME.1.mcap``, ``NAME.2.mcap``, ... beside the first
@@ -96,7 +99,7 @@ class Recorder:
         try:
             parsed = keys.parse(key)
             msg_type = parsed.message_type
-            msg = codec.decode(payload, msg_type)
+            msg = codec.decode(payload, msg_type, semantic=False)  # content: the reader's (~0.5 ms a message)
         except SchemaError as exc:
             self.bad[key] += 1
             if self.bad[key] == 1:

@@ -45,6 +45,32 @@ def test_recorder_writes_what_decodes_and_skips_garbage(client_transport: Transp
     assert rec.bad[keys.status(CELL, "cam1")] == 50
 
 
+def test_recorder_keeps_what_a_faulty_producer_sent_and_the_reader_skips_it(client_transport: TransportConfig, tmp_path: Path) -> None:
+    """The recorder checks a payload against its key's schema only: a pose message with a NaN in it
+    parses, so it is recorded as sent, and reading the log skips and counts it as every subscriber
+    would."""
+    path = tmp_path / "log.mcap"
+    key = keys.estimate_cameras(CELL)
+    good = codec.poses_to_msg(5, [codec.StampedPose("world", "cam1", 5, np.eye(4))])
+    bad = m.PosesWithCovariance()
+    bad.CopyFrom(good)
+    bad.poses[0].pose.x = float("nan")
+    with Bus(client_transport, CELL) as rec_bus, Bus(client_transport, CELL) as pub_bus:
+        rec = Recorder(rec_bus, path)
+        pub = pub_bus.publisher(key)
+        wait_until(lambda: (pub.put(good), rec.messages > 0)[1], 5.0, "the recorder to subscribe")
+        n0 = rec.messages
+        pub.put(bad)
+        pub.put(good)
+        wait_until(lambda: rec.messages >= n0 + 2, 5.0, "both recorded")
+        rec.close()
+    assert not rec.bad
+    report = ReadReport()
+    read = [r.msg for r in read_log(path, report=report)]
+    assert report.undecodable == 1 and len(read) == rec.messages - 1
+    assert all(np.isfinite(msg.poses[0].pose.x) for msg in read)
+
+
 def test_replay_republishes_in_order_and_skips_estimates(client_transport: TransportConfig, tmp_path: Path) -> None:
     path = tmp_path / "log.mcap"
     w = LogWriter(path)
