@@ -56,14 +56,12 @@ def matrices_from_quats(q: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotation matrices of (N, 4) quaternions (x, y, z, w), normalised first."""
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
     x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
+    xx, yy, zz, xy, xz, yz, xw, yw, zw = x * x, y * y, z * z, x * y, x * z, y * z, x * w, y * w, z * w
+    R = np.empty((len(q), 3, 3))  # filled in place: nested np.stack cost more than the arithmetic
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = 1 - 2 * (yy + zz), 2 * (xy - zw), 2 * (xz + yw)
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = 2 * (xy + zw), 1 - 2 * (xx + zz), 2 * (yz - xw)
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = 2 * (xz - yw), 2 * (yz + xw), 1 - 2 * (xx + yy)
+    return R
 
 
 def matrix_from_quat(q: Iterable[float]) -> np.ndarray:
