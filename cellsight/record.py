@@ -1,7 +1,7 @@
 """The recorder: every key of a cell (or the ones asked for) into MCAP logs.
 
-A payload is written if it parses as its key's message type (the log holds nothing but its
-channels' schemas); its content (finite poses, definite covariances, image sizes) is checked by
+A payload is written if it parses as its key's message type (every message in the log parses as
+its channel's schema); its content (finite poses, definite covariances, image sizes) is checked by
 whoever reads the log, as every subscriber checks it on the bus (``schemas.log`` skips and counts
 what fails), so a recording keeps what a faulty producer sent. Images can be
 thinned to ``max_image_hz`` per key so a long run stays a reasonable size (recording the whole
