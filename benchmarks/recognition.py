@@ -51,8 +51,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 import itertools  # noqa: E402
+import re  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
@@ -190,7 +192,14 @@ def visible_share(cell: SimCell, s: Scenario, cam_id: str, obj: ObjectSpec) -> f
 
 #: PCL's real Kinect scenes: the one the milk carton is in, and ones holding none of the objects.
 MILK_SCENE = "milk_cartoon_all_small_clorox.pcd"
-EMPTY_SCENES = ("office1.pcd", "five_people.pcd", "sac_plane_test.pcd", "table_scene_mug_stereo_textured.pcd")
+EMPTY_SCENES = ("office1.pcd", "five_people.pcd", "sac_plane_test.pcd", "table_scene_mug_stereo_textured.pcd",
+                *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))
+
+
+def scene_key(name: str) -> str:
+    """The figure's name for a scene's false detections: ``false_positives_office1``,
+    ``false_positives_frame_20121214T142255_814212``."""
+    return "false_positives_" + re.sub(r"\W", "_", Path(name).stem)
 
 
 def real_scenes() -> dict[str, float]:
@@ -207,8 +216,8 @@ def real_scenes() -> dict[str, float]:
     rmse = model_to_scene_rmse(milk, hits[0].camera_T_object, finite_points(scene)) if hits else float("inf")
     out = {"milk_found": float(bool(hits)), "milk_rmse_m": rmse, "false_positives_real": float(len(found) - len(hits))}
     for name in EMPTY_SCENES:
-        out[f"false_positives_{name.removesuffix('.pcd')}"] = float(len(rec.recognize(read_cloud(PCL_DATA / name, organised=True))))
-    out["false_positives_real_scenes"] = out["false_positives_real"] + sum(out[f"false_positives_{n.removesuffix('.pcd')}"] for n in EMPTY_SCENES)
+        out[scene_key(name)] = float(len(rec.recognize(read_cloud(PCL_DATA / name, organised=True))))
+    out["false_positives_real_scenes"] = out["false_positives_real"] + sum(out[scene_key(n)] for n in EMPTY_SCENES)
     return out
 
 

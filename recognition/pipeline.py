@@ -345,7 +345,8 @@ class Recognizer:
         for oid, (rows, rolls) in chosen.items():
             camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
                                            np.array(rolls))
-            match = self._score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], up)
+            match = self._score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], up,
+                                turns=True)
             if match is not None:
                 matches.append(match)
         return sorted(matches, key=lambda m: _rank(m[0]), reverse=True)
@@ -358,11 +359,13 @@ class Recognizer:
         up: np.ndarray | None,
         from_prior: bool = False,
         fitness_to_verify: float | None = None,
+        turns: bool = False,
     ) -> tuple[Detection, np.ndarray] | None:
         """Coarse ICP from each start onto the cluster, fine ICP from the best few; the best result if
         it passes the acceptance tests, with the mask of the cluster points it explains.
 
-        up: world up in the camera frame (None: no upright test). Accepted: fitness, coverage and RMSE
+        up: world up in the camera frame (None: no upright test). turns: with ``up``, also try the start
+        that overlaps the target best turned about its upright axis (``_turned``). Accepted: fitness, coverage and RMSE
         within bounds; or, for a cluster several objects share, a fitness of at least
         min_fitness_shared (``fitness_to_verify``, when given) with enough explained points to be a
         cluster itself.
@@ -374,8 +377,16 @@ class Recognizer:
         if up is not None:
             poses = _stand_up(poses, up, self._centre[model.object_id])
         facings = facing_camera(sparse_points, sparse_normals, poses)
-        if len(poses) > ICP_STARTS:
-            keep = self._overlap_ranked(sparse_points, facings, poses, target.index)[:ICP_STARTS]
+        if turns and up is not None:
+            shares = self._overlap(sparse_points, facings, poses, target.index)
+            turned = _turned(poses[np.argmax(shares)], self._centre[model.object_id])
+            turned_facings = facing_camera(sparse_points, sparse_normals, turned)
+            shares = np.r_[shares, self._overlap(sparse_points, turned_facings, turned, target.index)]
+            poses, facings = np.concatenate([poses, turned]), np.concatenate([facings, turned_facings])
+            keep = np.argsort(-shares, kind="stable")[:ICP_STARTS]
+            poses, facings = poses[keep], facings[keep]
+        elif len(poses) > ICP_STARTS:
+            keep = np.argsort(-self._overlap(sparse_points, facings, poses, target.index), kind="stable")[:ICP_STARTS]
             poses, facings = poses[keep], facings[keep]
         screened: list[IcpResult] = []
         for start, facing in zip(poses, facings):
@@ -456,12 +467,12 @@ class Recognizer:
                 out[oid] = np.array(centres)
         return out
 
-    def _overlap_ranked(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
-        """Start indices, best first, by the share of facing model points (N, 3; ``facing`` (S, N))
-        within the coarse ICP's distance of the target's points at each pose (S, 4, 4)."""
+    def _overlap(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
+        """Per start pose (S, 4, 4): the share (S,) of its facing model points (N, 3; ``facing`` (S, N))
+        within the coarse ICP's distance of the target's points."""
         placed = (points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3])[facing]  # only facing ones count
         hits = np.bincount(np.nonzero(facing)[0], target.within(placed, 2.0 * self.config.icp_distance_m), len(poses))
-        return np.argsort(-hits / np.maximum(facing.sum(axis=1), 1), kind="stable")
+        return hits / np.maximum(facing.sum(axis=1), 1)
 
     def _rests(self, det: Detection, found: Iterable[Detection], support: np.ndarray) -> bool:
         """Whether a detection's lowest point is within max_float_m of the support plane (a, b, c, d;
@@ -554,6 +565,19 @@ def _upright(camera_T_object: np.ndarray, up: np.ndarray | None) -> bool:
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two poses (4, 4) are within SAME_POSE_M and SAME_POSE_RAD of each other."""
     return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and rotation_angle(a[:3, :3], b[:3, :3]) <= SAME_POSE_RAD)
+
+
+def _turned(camera_T_object: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The upright pose (4, 4) turned about the object's own z axis through its centre (object
+    frame, m) by every YAW_STEP_DEG but 0: (S, 4, 4).
+
+    A view's descriptor and roll pin a box's yaw poorly: a 30 x 22 cm tote turned by 90 deg
+    overhangs its own footprint by 4 cm, and ICP from there stays there."""
+    R = rot_z(np.radians(np.arange(YAW_STEP_DEG, 360.0, YAW_STEP_DEG)))  # (S, 3, 3)
+    out = np.tile(camera_T_object, (len(R), 1, 1))
+    out[:, :3, :3] = camera_T_object[:3, :3] @ R
+    out[:, :3, 3] = (centre - R @ centre) @ camera_T_object[:3, :3].T + camera_T_object[:3, 3]
+    return out
 
 
 def _stand_up(camera_T_objects: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
