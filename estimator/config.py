@@ -67,8 +67,9 @@ class LinkConfig(BaseModel):
     max_links: int = Field(default=2000, ge=1, description="past this, every other instant is dropped and the gap doubles")
     online: bool = Field(
         default=False,
-        description="the daemon links cameras too, over its newest max_live instants that are new views (off: on the "
-        "rendered demo it helped the worst camera 7 % and left the others within 0.07 mm; docs/performance.md)",
+        description="the daemon links cameras too, over its newest max_live instants that are new views (off: where "
+        "static markers already hold every camera, as on the rendered demo, they add little and move one camera the wrong "
+        "way; measured: see docs/performance.md, online_links_over_without_max)",
     )
     max_live: int = Field(
         default=100, ge=1, description="linked instants in the daemon's graph; older ones leave it (a fixed lag)"
