@@ -23,7 +23,7 @@ from recognition.pipeline import Recognizer, SceneCloud
 from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
 from schemas.codec import CameraInfo
-from schemas.geometry import invert_pose, look_at_matrix, make_pose
+from schemas.geometry import invert_pose, look_at_matrix, make_pose, rotation_angle
 from tests.helpers import assert_pose_close
 
 PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
@@ -384,6 +384,24 @@ def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(
         posed = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points @ P[:3, :3].T + P[:3, 3])) for P in (det.camera_T_object, lay.truth[oid])]
         adds = float(np.mean(np.asarray(posed[0].compute_point_cloud_distance(posed[1]))))
         assert adds < 0.1 * model.diameter_m, f"{oid}: ADD-S {1e3 * adds:.1f} mm"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("where", "camera", "seed"), [
+    ({"crate": (0.0654, 0.1829, 17.58), "can": (0.0777, -0.0731, 230.8), "tote": (0.3944, -0.241, 62.36)}, "cam3", 10),
+    ({"crate": (0.0242, -0.124, 174.22), "can": (0.1875, 0.0938, 84.78), "tote": (-0.1599, 0.1196, 225.36)}, "cam1", 9),
+])  # fmt: skip
+def test_a_box_is_found_at_its_yaw_not_turned_a_quarter(where: dict, camera: str, seed: int) -> None:
+    """Two layouts of the recognition benchmark (layout seed 7, trials 10 and 9), the tote in full
+    view 2.2-2.3 m away: none of its descriptor's starts was near its yaw, and it was found turned by
+    ~90 deg, overhanging its footprint by 4 cm (yet within ADD-S's 0.1 d). Turned starts find it
+    where it stands (2 cm, 10 deg; a box looks the same turned by a half turn)."""
+    lay = demo_layout(where, camera, seed)
+    found = {d.object_id: d for d in lay.recognizer.recognize(lay.cloud, world_T_camera=lay.world_T_camera)}
+    assert "tote" in found
+    T, truth = found["tote"].camera_T_object, lay.truth["tote"]
+    turn = np.degrees(rotation_angle(T[:3, :3], truth[:3, :3]))
+    assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.02 and min(turn, 180.0 - turn) < 10.0, f"{turn:.1f} deg"
 
 
 def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
