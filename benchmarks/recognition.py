@@ -190,7 +190,7 @@ def visible_share(cell: SimCell, s: Scenario, cam_id: str, obj: ObjectSpec) -> f
     return float(np.mean(np.abs(layer.z.reshape(-1)[mine] - z[mine]) < 0.002))
 
 
-#: PCL's real Kinect scenes: the one the milk carton is in, and ones holding none of the objects.
+#: PCL's real scenes (Kinect frames, one stereo): the one the milk carton is in, and ones holding none of the objects.
 MILK_SCENE = "milk_cartoon_all_small_clorox.pcd"
 EMPTY_SCENES = ("office1.pcd", "five_people.pcd", "sac_plane_test.pcd", "table_scene_mug_stereo_textured.pcd",
                 *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))

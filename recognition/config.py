@@ -100,9 +100,8 @@ class RecognitionConfig(BaseModel):
     min_visible_fitness: float = Field(
         default=0.85, ge=0, le=1,
         description="verification: share of the judgeable visible model on the measured surface, not in front of it "
-        "(simulated detections within 2 cm and 10 deg of the rendered pose: min 0.94; a tote fitted over a smaller box in PCL's "
-        "grabber frames: 0.75, 0.76, the highest of the real scenes' false hypotheses that pass the other tests; "
-        "between the two; simulated poses 2-5 cm or 90 deg off: 0.83-0.95)",
+        "(midway between the simulated hypotheses within 2 cm and 10 deg of the rendered pose, min 0.94, and the real "
+        "scenes' false ones that pass the other tests, max 0.76: a tote fitted over a smaller box in PCL's grabber frames)",
     )
     min_visible_support: float = Field(
         default=0.6, ge=0, le=1, description="verification: share of the visible model found on the measured surface (simulated true detections: min 0.67)"

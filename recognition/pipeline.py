@@ -365,8 +365,8 @@ class Recognizer:
         it passes the acceptance tests, with the mask of the cluster points it explains.
 
         up: world up in the camera frame (None: no upright test). turns: with ``up``, also try the start
-        that overlaps the target best turned about its upright axis (``_turned``). Accepted: fitness, coverage and RMSE
-        within bounds; or, for a cluster several objects share, a fitness of at least
+        that overlaps the target best turned about its upright axis (``_turned``). Accepted: fitness,
+        coverage and RMSE within bounds; or, for a cluster several objects share, a fitness of at least
         min_fitness_shared (``fitness_to_verify``, when given) with enough explained points to be a
         cluster itself.
         """
