@@ -404,6 +404,23 @@ def test_a_box_is_found_at_its_yaw_not_turned_a_quarter(where: dict, camera: str
     assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.02 and min(turn, 180.0 - turn) < 10.0, f"{turn:.1f} deg"
 
 
+@pytest.mark.slow
+def test_verification_keeps_the_box_where_it_stands_and_turns_it_down_a_quarter_turned() -> None:
+    """The first layout above: the tote posed where it stands agrees with the frame (visible fitness
+    well over min_visible_fitness); turned a quarter about its upright axis through its centre, it
+    overhangs its footprint, the sensor sees the table through that part, and it falls below."""
+    from recognition.verify import DepthView, verdict
+
+    lay = demo_layout({"crate": (0.0654, 0.1829, 17.58), "can": (0.0777, -0.0731, 230.8), "tote": (0.3944, -0.241, 62.36)}, "cam3", 10)
+    model, cfg = lay.recognizer.db.models["tote"], lay.config
+    view = DepthView.of(lay.cloud)
+    centre = 0.5 * (model.points.min(axis=0) + model.points.max(axis=0))
+    quarter = make_pose(rot_z(np.pi / 2), centre - rot_z(np.pi / 2) @ centre)  # about the object's z through its centre
+    fitness = {name: verdict(view, model.points, model.normals, T, cfg.icp_distance_m, cfg.plane_noise_per_m2).fitness
+               for name, T in (("standing", lay.truth["tote"]), ("turned", lay.truth["tote"] @ quarter))}  # fmt: skip
+    assert fitness["standing"] >= 0.94 and fitness["turned"] < cfg.min_visible_fitness, fitness
+
+
 def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
     """Nothing in a cell hovers. The tote stacked on the crate is found with it (it rests on the
     found crate); the same tote pose with nothing found under it, 14 cm above the table, is
