@@ -12,6 +12,12 @@ was not worse, by how much it was behind in its worst run and on average (with a
 upper bound over the runs: a non-inferiority margin is met when the bound is under it), and how
 far each side moves between seeds. For a camera with two segments the median over both can
 favour the side whose errors are spread: offline has one value per segment.
+
+Online options (``VARIANTS``: links, moving frames, both) are judged against the default online
+estimator on the same frames, ``{camera}_online_{variant}_over_without``, on two update
+schedules: after every camera's frame of an instant (as the log's estimator) and ``_staggered``,
+after the first camera's. iSAM2's answer depends on when it updates, and on these frames by as
+much as the options move it.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from drivers.frames import observations_to_msg
 from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import load_scenario
-from estimator.graph import CameraState, Estimator
+from estimator.graph import CameraEstimate, CameraState, Estimator
 from estimator.observation import observation_rows, observations_of
 from schemas import codec, keys
 from schemas.log import LogWriter
@@ -45,13 +51,20 @@ UPDATE_NS = 100_000_000  # the daemon's 10 Hz
 #: Online estimators fed the same frames beside the daemon's default one: object-marker links
 #: (``[estimator.links] online``), moving frames (``[estimator.keyframes] online``), both.
 VARIANTS = {"links": ("links",), "keyframes": ("keyframes",), "links_keyframes": ("links", "keyframes")}
+#: When the 10 Hz update runs against the frames of one instant: after every camera's (the log's
+#: estimator) or after the first camera's, the others' waiting for the next update ("staggered",
+#: as the daemon's updates triggered by arriving frames meet the cameras' frames). Each variant is
+#: compared with a default estimator on its own schedule.
+STAGGERED = "_staggered"
 
 
 def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[dict[str, dict[str, list[tuple[float, float]]]], dict[str, int]]:
     """Render, detect and estimate online, frame by frame in capture order, into one log. Beside
-    it, an online estimator per ``VARIANTS`` is fed the same frames: per variant and camera,
-    (default, variant) position errors (mm) at each update; and what entered the variants' graphs
-    (object-marker instants and moving frames), so a ratio of 1 is not mistaken for no effect."""
+    it, an online estimator per ``VARIANTS`` is fed the same frames, and the default and every
+    variant again on the staggered schedule (``STAGGERED``): per variant (and ``name + STAGGERED``)
+    and camera, (default, variant) position errors (mm) at each update; and what entered the
+    variants' graphs (object-marker instants and moving frames), so a ratio of 1 is not mistaken
+    for no effect."""
     scenario = load_scenario().model_copy(update={"seed": seed})
     cfg = cell_config_of(scenario, base=CellConfig.model_validate({"cell": {"name": CELL}}))
     cell = SimCell(scenario)
@@ -61,23 +74,29 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
     e = cfg.estimator
     variants = {name: Estimator(e.model_copy(update={part: getattr(e, part).model_copy(update={"online": True}) for part in parts}))
                 for name, parts in VARIANTS.items()}  # fmt: skip
-    paired: dict[str, dict[str, list[tuple[float, float]]]] = {name: {} for name in VARIANTS}
+    staggered = {name + STAGGERED: Estimator(v.config) for name, v in variants.items()}
+    staggered_default = Estimator(e)
+    paired: dict[str, dict[str, list[tuple[float, float]]]] = {name: {} for name in [*variants, *staggered]}
     truth_now: dict[str, np.ndarray] = {}
     w = LogWriter(path, metadata={"config": cfg.to_toml()})
-    next_update = EPOCH_NS
+    next_update, next_staggered = EPOCH_NS, EPOCH_NS
     for k in range(int(seconds * rate_hz)):
         t = k / rate_hz
         stamp = EPOCH_NS + round(t * 1e9)
-        for cam in scenario.cameras:
+        for i, cam in enumerate(scenario.cameras):
             f = cell.render(cam.id, t, k)
             msg = observations_to_msg(cam.id, stamp, f.info, detector.detect(f.rgb, f.info, f.depth_mm), scenario.dictionary)
             w.write(keys.markers(CELL, cam.id), msg, stamp)
             obs = observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg)))
-            online.add_frame(cam.id, stamp, obs)
-            for v in variants.values():
-                v.add_frame(cam.id, stamp, obs)
+            for est in (online, *variants.values(), staggered_default, *staggered.values()):
+                est.add_frame(cam.id, stamp, obs)
             truth_now[cam.id] = f.world_T_camera
             w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]), stamp)
+            if i == 0 and stamp >= next_staggered:
+                staggered_default.update(stamp)
+                ours = staggered_default.estimate(stamp, with_covariance=False).cameras
+                compare(ours, staggered, stamp, truth_now, paired)
+                next_staggered += UPDATE_NS
         if k == 0:
             truth = [codec.StampedPose("world", keys.marker_frame(mk.id), stamp, scenario.world_T_marker(mk, 0.0)) for mk in scenario.markers if mk.object is None]
             w.write(keys.truth(CELL, "marker_poses"), codec.poses_to_msg(stamp, truth), stamp)
@@ -87,18 +106,27 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
             cams = [codec.StampedPose("world", c.camera_id, stamp, c.pose.T, c.pose.covariance)
                     for c in est.cameras.values() if c.pose is not None and c.state is CameraState.LOCALIZED]  # fmt: skip
             w.write(keys.estimate_cameras(CELL), codec.poses_to_msg(stamp, cams), stamp)
-            for name, v in variants.items():
-                v.update(stamp)
-                theirs = v.estimate(stamp, with_covariance=False)
-                for c in cams:
-                    other = theirs.cameras.get(c.child)
-                    if other is not None and other.pose is not None and other.state is CameraState.LOCALIZED:
-                        paired[name].setdefault(c.child, []).append((pose_error(c.T, truth_now[c.child])[0], pose_error(other.pose.T, truth_now[c.child])[0]))
+            compare(est.cameras, variants, stamp, truth_now, paired)
             next_update += UPDATE_NS
     w.close()
-    entered = {f"{name}_links_entered": v.counters.links for name, v in variants.items()}
-    entered |= {f"{name}_keyframes_entered": v.counters.keyframes for name, v in variants.items()}
+    every = variants | staggered
+    entered = {f"{name}_links_entered": v.counters.links for name, v in every.items()}
+    entered |= {f"{name}_keyframes_entered": v.counters.keyframes for name, v in every.items()}
     return paired, entered
+
+
+def compare(ours: dict[str, CameraEstimate], variants: dict[str, Estimator], stamp: int, truth: dict[str, np.ndarray],
+            paired: dict[str, dict[str, list[tuple[float, float]]]]) -> None:  # fmt: skip
+    """Update each variant at ``stamp`` (ns) and add, per camera localized in both it and the default
+    estimate ``ours``, (default, variant) position errors (mm) against ``truth`` (world_T_camera)."""
+    for name, v in variants.items():
+        v.update(stamp)
+        theirs = v.estimate(stamp, with_covariance=False).cameras
+        for cid, c in ours.items():
+            other = theirs.get(cid)
+            if c.pose is not None and c.state is CameraState.LOCALIZED and other is not None and other.pose is not None \
+                    and other.state is CameraState.LOCALIZED:
+                paired[name].setdefault(cid, []).append((pose_error(c.pose.T, truth[cid])[0], pose_error(other.pose.T, truth[cid])[0]))
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
@@ -108,7 +136,8 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     moving: list[int] = []
     per_segment: dict[str, list[tuple[float, float]]] = {}
     markers: list[float] = []
-    variants: dict[str, dict[str, list[tuple[float, float]]]] = {name: {} for name in VARIANTS}  # camera -> per run (default, variant) median mm
+    variants: dict[str, dict[str, list[tuple[float, float]]]] = {  # camera -> per run (default, variant) median mm
+        name: {} for name in [*VARIANTS, *(n + STAGGERED for n in VARIANTS)]}
     for seed in range(1 if quick else seeds):
         with tempfile.TemporaryDirectory(prefix="offline-vs-online-") as d:
             log = Path(d) / "log.mcap"

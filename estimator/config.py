@@ -68,8 +68,8 @@ class LinkConfig(BaseModel):
     online: bool = Field(
         default=False,
         description="the daemon links cameras too, over its newest max_live instants that are new views (off: where "
-        "static markers already hold every camera, as on the rendered demo, they add little and move one camera the wrong "
-        "way; measured: see docs/performance.md, online_links_over_without_max)",
+        "static markers already hold every camera, as on the rendered demo, they add little, and whether every camera gains "
+        "there depends on when iSAM2 updates; measured: see docs/performance.md, online_links_*over_without_max)",
     )
     max_live: int = Field(
         default=100, ge=1, description="linked instants in the daemon's graph; older ones leave it (a fixed lag)"
