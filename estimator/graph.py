@@ -43,7 +43,7 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
 from estimator.keyframes import LiveKeyframes, MovingFrame
-from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors
+from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors, instant_gain
 from estimator.motion import RIGID_CHI2, RigidScreen, rigid_motion
 from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.pairs import YOUNG_PAIR, Pair, factors_current, fold_rows, pair_means
@@ -168,6 +168,7 @@ class Counters:
     last_update_cpu_ms: float = 0.0  # CPU time this thread spent in it: wall minus this is waiting (CPU, GIL)
     last_update_rebuilt: int = 0  # pair factors that call rebuilt
     links: int = 0  # object-marker instants that entered the graph (``LiveLinks``)
+    links_refused: int = 0  # those left out: they would add too little (``LinkConfig.min_gain``)
     keyframes: int = 0  # moving frames that entered the graph (``LiveKeyframes``)
     reorders: int = 0  # updates in which iSAM2 re-ordered every variable (``reorder_fill``)
 
@@ -719,6 +720,14 @@ class Estimator:
             made = instant_factors(key, solved, keys, [self._pose(k) for k in keys], repeats, self._robust)
             if made is None or not links.is_new_view(mk, made[0]):
                 continue
+            if links.min_gain > 0:
+                index = {id(s): i for i, s in enumerate(solved)}
+                chosen = [index[id(s)] for s, _ in made[1]]
+                gain = self._instant_gain([solved[i] for i in chosen], [keys[i] for i in chosen], [repeats[i] for i in chosen])
+                if gain < links.min_gain:
+                    log.debug("marker %d: an instant left out, it would remove %.2f of what the graph does not know", mk, gain)
+                    self.counters.links_refused += 1
+                    continue
             values.insert(key, gtsam.Pose3(made[0]))
             owners = []
             for s, factor in made[1]:
@@ -731,6 +740,12 @@ class Estimator:
         for key in links.trim(remove):
             self.in_graph.discard(key)
         return added
+
+    def _instant_gain(self, sightings: list[Sighting], keys: list[int], repeats: list[float]) -> float:
+        """``instant_gain`` of a linked instant against the cameras' joint covariance now."""
+        joint = self.isam.jointMarginalCovariance(gtsam.KeyVector(keys))
+        full = np.block([[joint.at(a, b) for b in keys] for a in keys])
+        return instant_gain(np.stack([self._pose(k) for k in keys]), sightings, repeats, full)
 
     def _keyframes(self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int],
                    slotted: list) -> set[int]:  # fmt: skip

@@ -168,6 +168,38 @@ def instant_factors(
     return world_T_marker, factors
 
 
+def instant_gain(world_T_cameras: np.ndarray, sightings: list[Sighting], repeats: list[float], joint_covariance: np.ndarray) -> float:
+    """The largest share of predicted variance an instant removes: over every two of its sightings,
+    1 - trace(posterior) / trace(prior) of the difference between the marker positions their
+    cameras imply, the prior from the cameras' joint covariance (6K, 6K; gtsam's tangent order per
+    camera, body frame, in the order of ``world_T_cameras`` (K, 4, 4)), the measurement from the
+    sightings' position covariances (times ``repeats`` where above 1, as ``instant_factors``).
+
+    0 where the graph already knows the cameras' relative position at the marker far better than
+    one frame tells it, 1 where it knows nothing of it.
+    """
+    K = len(sightings)
+    J = np.zeros((K, 3, 6))  # d(world position of the marker) / d(camera perturbation)
+    M = np.zeros((K, 3, 3))  # the sighting's position covariance, world frame
+    for i, (T, s) in enumerate(zip(world_T_cameras, sightings)):
+        R, p = T[:3, :3], s.pose[:3, 3]
+        J[i, :, :3] = -R @ np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+        J[i, :, 3:] = R
+        Rw = R @ s.pose[:3, :3]
+        M[i] = Rw @ s.covariance[:3, :3] @ Rw.T * max(1.0, repeats[i])
+    best = 0.0
+    for i in range(K):
+        for j in range(i + 1, K):
+            D = np.zeros((3, 6 * K))
+            D[:, 6 * i:6 * i + 6], D[:, 6 * j:6 * j + 6] = J[i], -J[j]
+            prior = D @ joint_covariance @ D.T
+            if np.trace(prior) <= 0.0:
+                continue  # the cameras move as one: nothing to learn of their relative position
+            posterior = prior - prior @ np.linalg.solve(prior + M[i] + M[j], prior)
+            best = max(best, 1.0 - float(np.trace(posterior) / np.trace(prior)))
+    return best
+
+
 @dataclass
 class LinkFactor:
     """A live instant's factor from one camera segment; ``slot``: its index in iSAM2 once added."""
@@ -187,8 +219,9 @@ class LiveLinks:
     """Online links (the daemon's graph): the same instants as offline, in a fixed lag.
 
     An instant is complete ``LINK_DELAY_NS`` after its grid time (every camera's frame of it has
-    arrived); then, if two or more of its cameras' segments are in the graph and agree, it enters
-    iSAM2 as offline's do, against the cameras' current estimates. The newest ``max_live`` stay;
+    arrived); then, if two or more of its cameras' segments are in the graph and agree, and it
+    would remove at least ``min_gain`` of what the graph does not know of their relative position
+    (``instant_gain``), it enters iSAM2 as offline's do, against the cameras' current estimates. The newest ``max_live`` stay;
     older ones leave (their factors removed: iSAM2 drops a variable with none), and a segment that
     ends takes its instants with it (its history keeps static pairs only). So the graph holds at
     most ``max_live`` extra variables, and what links give, a moving object's fresh views, counts
@@ -198,6 +231,7 @@ class LiveLinks:
     def __init__(self, config: LinkConfig) -> None:
         self.gather = ObjectLinks(config)
         self.max_live = config.max_live
+        self.min_gain = config.min_gain
         self.live: deque[LiveInstant] = deque()
         self.repeats: Counter[tuple[str, int]] = Counter()  # live instants per (camera id, marker)
         self.last_position: dict[int, np.ndarray] = {}  # marker -> where the last instant that entered had it (world, m)

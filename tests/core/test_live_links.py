@@ -5,7 +5,8 @@ cameras a and b 0.6 m apart) plus marker 9 on an object sliding in front of them
 on the same frame clock; b sees two wall markers only. Known answers: with links b's rotation is
 better determined (the object's positions at different instants constrain it) and both cameras
 still agree with the truth within their covariance; the graph holds at most ``max_live``
-instants; a camera that moves takes its segment's instants out with it.
+instants; a camera that moves takes its segment's instants out with it. Those take every instant
+(``min_gain`` 0); the gate's own tests come last.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from estimator.config import LinkConfig
 from estimator.graph import Estimator
+from estimator.links import Sighting, instant_gain
 from estimator.observation import Observation
 from estimator.symbols import camera_symbol
 from schemas.geometry import invert_pose, make_pose, rpy_matrix
@@ -60,7 +62,7 @@ def test_links_enter_the_graph_bounded_and_tighten_the_cameras() -> None:
     poses = {"a": cam_pose(0.3), "b": cam_pose(0.9)}
     results = {}
     for online in (True, False):
-        est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=online, max_live=20)))
+        est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=online, max_live=20, min_gain=0.0)))
         run(est, 8.0, poses, np.random.default_rng(5))
         results[online] = est
     linked, plain = results[True], results[False]
@@ -84,7 +86,7 @@ def test_links_enter_the_graph_bounded_and_tighten_the_cameras() -> None:
 def test_a_camera_that_moves_takes_its_links_with_it() -> None:
     poses = {"a": cam_pose(0.3), "b": cam_pose(0.9)}
     rng = np.random.default_rng(7)
-    est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True, max_live=50)))
+    est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True, max_live=50, min_gain=0.0)))
     k = run(est, 4.0, poses, rng)
     assert est.live_links.live and all(f.segment == ("a", 0) for i in est.live_links.live for f in i.factors if f.segment[0] == "a")
     poses["a"] = cam_pose(0.3, make_pose(rpy_matrix(0.0, np.radians(1.0), 0.0), [0.03, 0.0, 0.0]))
@@ -102,6 +104,54 @@ def test_a_still_object_links_once() -> None:
     """Instants of an object that stands still repeat one view: its noise would average over them
     but a bias would not, so only the first enters (then one per NEW_VIEW_M the object moves)."""
     poses = {"a": cam_pose(0.3), "b": cam_pose(0.9)}
-    est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True)))
+    est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True, min_gain=0.0)))
     run(est, 4.0, poses, np.random.default_rng(3), object_at=lambda t_s: object_marker(0.0))
     assert est.counters.links == 1
+
+
+def sighting(camera_T_marker: np.ndarray, position_sigma_m: float) -> Sighting:
+    cov = np.diag([position_sigma_m**2] * 3 + [0.01] * 3)
+    return Sighting("x", 0, 0, camera_T_marker, camera_T_marker, cov)
+
+
+def test_instant_gain_known_answers() -> None:
+    """Two cameras whose positions are independent with sigma p each, sightings of sigma m each:
+    the difference of where they put the marker has variance 2 p^2 per axis and the instant
+    measures it with 2 m^2, so it removes 2 p^2 / (2 p^2 + 2 m^2) of it; cameras that move as one
+    (fully correlated) leave nothing to learn; a third, unknown, camera makes it ~1."""
+    T = np.stack([make_pose(rpy_matrix(0.1, 0.2, 0.3), [0.0, 0.0, 0.0]), make_pose(rpy_matrix(-0.2, 0.0, 1.0), [1.0, 0.0, 0.0])])
+    s = [sighting(make_pose(np.eye(3), [0.0, 0.0, 0.0]), 0.002)] * 2  # at each camera's origin: rotation plays no part
+    p = 0.003
+    joint = np.zeros((12, 12))
+    joint[3:6, 3:6] = joint[9:12, 9:12] = np.eye(3) * p**2  # gtsam order: rotation, then translation
+    assert abs(instant_gain(T, s, [1.0, 1.0], joint) - 2 * p**2 / (2 * p**2 + 2 * 0.002**2)) < 1e-12
+    assert abs(instant_gain(T, s, [4.0, 4.0], joint) - 2 * p**2 / (2 * p**2 + 8 * 0.002**2)) < 1e-12  # repeats weigh in
+    # camera poses perturbed in their own frames: identical perturbations mean one world offset only if
+    # the rotations agree, so take equal rotations for the correlated case
+    same = np.stack([T[0], T[0]])
+    correlated = np.tile(np.eye(6) * p**2, (2, 2))
+    assert instant_gain(same, s, [1.0, 1.0], correlated) == 0.0
+    three = np.zeros((18, 18))
+    three[:12, :12] = joint
+    three[12:, 12:] = np.eye(6) * 1e6
+    assert instant_gain(np.concatenate([T, T[:1]]), [s[0]] * 3, [1.0] * 3, three) > 0.999
+
+
+def test_links_enter_only_where_they_add() -> None:
+    """b seeing two wall markers (its rotation about the line through them weak): the first
+    instant removes most of what the graph does not know and enters, and the later ones, which
+    would add little, stay out; b seeing all four: none enters. What enters still tightens b."""
+    poses = {"a": cam_pose(0.3), "b": cam_pose(0.9)}
+    for seen_b, entered in (([0, 3], (1, 3)), ([0, 1, 2, 3], (0, 0))):
+        SEEN["b"] = seen_b
+        try:
+            gated = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True)))
+            run(gated, 8.0, poses, np.random.default_rng(5))
+            plain = Estimator(config(object_markers=[OBJECT]))
+            run(plain, 8.0, poses, np.random.default_rng(5))
+        finally:
+            SEEN["b"] = [0, 3]
+        assert entered[0] <= gated.counters.links <= entered[1], (seen_b, gated.counters)
+        assert gated.counters.links_refused > 25, (seen_b, gated.counters)  # of the ~35 new views
+        if gated.counters.links:
+            assert rotation_variance(gated, "b") < 0.9 * rotation_variance(plain, "b")
