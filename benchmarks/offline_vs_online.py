@@ -4,8 +4,8 @@
 frames/s and cam1's 2 s tilt leaves the offline solve 1-3 moving frames. Here every frame is
 rendered (not in real time): the demo cell's 4 cameras at 30 Hz for 20 s (cam1 tilts at 8-10 s,
 cam2 is bumped at 14 s), each through the marker front-end, into an MCAP log with ground truth.
-The online estimate is the daemon's core fed the same frames in capture order, updated and
-published at 10 Hz; ``cellsight resolve``'s pipeline then solves the log. Figures: per camera,
+The online estimate is the daemon's core (its online options off) fed the same frames in
+capture order, updated and published at 10 Hz; ``cellsight resolve``'s pipeline then solves the log. Figures: per camera,
 the median and RMS position / rotation error of both at the same instants (``paired``), averaged
 over ``--seeds`` noise seeds (``--quick``: one seed, 12 s at 15 Hz), in how many runs offline
 was not worse, by how much it was behind in its worst run and on average (with a one-sided 95 %
@@ -13,11 +13,12 @@ upper bound over the runs: a non-inferiority margin is met when the bound is und
 far each side moves between seeds. For a camera with two segments the median over both can
 favour the side whose errors are spread: offline has one value per segment.
 
-Online options (``VARIANTS``: links, moving frames, both) are judged against the default online
-estimator on the same frames, ``{camera}_online_{variant}_over_without``, on two update
-schedules: after every camera's frame of an instant (as the log's estimator) and ``_staggered``,
-after the first camera's. iSAM2's answer depends on when it updates, and on these frames by as
-much as the options move it.
+Online options (``VARIANTS``: links, moving frames, both) are judged against that estimator on
+the same frames, ``{camera}_online_{variant}_over_without``, on two update schedules: after every
+camera's frame of an instant (as the log's estimator) and ``_staggered``, after the first
+camera's. With markers relinearised at 0.005 the online answer was not converged and depended on
+the schedule by as much as the options moved it; both schedules stay as the check that it no
+longer does.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from drivers.frames import observations_to_msg
 from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import load_scenario
+from estimator.config import EstimatorConfig
 from estimator.graph import CameraEstimate, CameraState, Estimator
 from estimator.observation import observation_rows, observations_of
 from schemas import codec, keys
@@ -70,10 +72,9 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
     cell = SimCell(scenario)
     detector = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m,
                                            sides_m={mk.id: scenario.side_of(mk) for mk in scenario.markers}))  # fmt: skip
-    online = Estimator(cfg.estimator)
-    e = cfg.estimator
-    variants = {name: Estimator(e.model_copy(update={part: getattr(e, part).model_copy(update={"online": True}) for part in parts}))
-                for name, parts in VARIANTS.items()}  # fmt: skip
+    e = with_options(cfg.estimator, ())
+    online = Estimator(e)
+    variants = {name: Estimator(with_options(e, parts)) for name, parts in VARIANTS.items()}
     staggered = {name + STAGGERED: Estimator(v.config) for name, v in variants.items()}
     staggered_default = Estimator(e)
     paired: dict[str, dict[str, list[tuple[float, float]]]] = {name: {} for name in [*variants, *staggered]}
@@ -113,6 +114,11 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
     entered = {f"{name}_links_entered": v.counters.links for name, v in every.items()}
     entered |= {f"{name}_keyframes_entered": v.counters.keyframes for name, v in every.items()}
     return paired, entered
+
+
+def with_options(e: EstimatorConfig, parts: tuple[str, ...]) -> EstimatorConfig:
+    """``e`` with the online options named in ``parts`` on and the others off."""
+    return e.model_copy(update={part: getattr(e, part).model_copy(update={"online": part in parts}) for part in ("links", "keyframes")})
 
 
 def compare(ours: dict[str, CameraEstimate], variants: dict[str, Estimator], stamp: int, truth: dict[str, np.ndarray],

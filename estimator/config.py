@@ -66,10 +66,10 @@ class LinkConfig(BaseModel):
     )
     max_links: int = Field(default=2000, ge=1, description="past this, every other instant is dropped and the gap doubles")
     online: bool = Field(
-        default=False,
-        description="the daemon links cameras too, over its newest max_live instants that are new views (off: where "
-        "static markers already hold every camera, as on the rendered demo, they add little, and whether every camera gains "
-        "there depends on when iSAM2 updates; measured: see docs/performance.md, online_links_*over_without_max)",
+        default=True,
+        description="the daemon links cameras too, over its newest max_live instants that are new views and add at "
+        "least min_gain (where static markers already hold every camera, as on the rendered demo, none do; along a "
+        "weak chain they halve the far cameras' errors: docs/performance.md, online_links_* and chain_links_*)",
     )
     max_live: int = Field(
         default=100, ge=1, description="linked instants in the daemon's graph; older ones leave it (a fixed lag)"

@@ -727,6 +727,7 @@ class Estimator:
                 if gain < links.min_gain:
                     log.debug("marker %d: an instant left out, it would remove %.2f of what the graph does not know", mk, gain)
                     self.counters.links_refused += 1
+                    links.judged(mk, made[0])
                     continue
             values.insert(key, gtsam.Pose3(made[0]))
             owners = []

@@ -255,13 +255,17 @@ class LiveLinks:
         return object_symbol(self._next_key - 1)
 
     def is_new_view(self, marker_id: int, world_T_marker: np.ndarray) -> bool:
-        """Has the marker moved NEW_VIEW_M since its last instant that entered? A still object's
-        instants repeat one view: its noise averages over them, but a bias would not."""
+        """Has the marker moved NEW_VIEW_M since its last instant that entered or was refused? A
+        still object's instants repeat one view: its noise averages over them, but a bias would not."""
         last = self.last_position.get(marker_id)
         return last is None or float(np.linalg.norm(world_T_marker[:3, 3] - last)) >= NEW_VIEW_M
 
+    def judged(self, marker_id: int, world_T_marker: np.ndarray) -> None:
+        """An instant of the marker was weighed here (entered or not): the next must be a new view of it."""
+        self.last_position[marker_id] = world_T_marker[:3, 3].copy()
+
     def enter(self, instant: LiveInstant, world_T_marker: np.ndarray) -> None:
-        self.last_position[instant.marker_id] = world_T_marker[:3, 3].copy()
+        self.judged(instant.marker_id, world_T_marker)
         self.live.append(instant)
         for f in instant.factors:
             self.repeats[(f.segment[0], instant.marker_id)] += 1

@@ -107,6 +107,14 @@ def test_a_still_object_links_once() -> None:
     est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True, min_gain=0.0)))
     run(est, 4.0, poses, np.random.default_rng(3), object_at=lambda t_s: object_marker(0.0))
     assert est.counters.links == 1
+    # Refused ones count as judged: a still object is weighed once, not at every instant (b sees all four markers)
+    SEEN["b"] = [0, 1, 2, 3]
+    try:
+        gated = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True)))
+        run(gated, 4.0, poses, np.random.default_rng(3), object_at=lambda t_s: object_marker(0.0))
+    finally:
+        SEEN["b"] = [0, 3]
+    assert (gated.counters.links, gated.counters.links_refused) == (0, 1), gated.counters
 
 
 def sighting(camera_T_marker: np.ndarray, position_sigma_m: float) -> Sighting:
@@ -147,7 +155,7 @@ def test_links_enter_only_where_they_add() -> None:
         try:
             gated = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True)))
             run(gated, 8.0, poses, np.random.default_rng(5))
-            plain = Estimator(config(object_markers=[OBJECT]))
+            plain = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=False)))
             run(plain, 8.0, poses, np.random.default_rng(5))
         finally:
             SEEN["b"] = [0, 3]
