@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 FORMAT = 1
 #: Fewest points a view needs to describe anything.
 MIN_VIEW_POINTS = 30
+#: Sizes (m, bounding-box diagonal) an object a cell's cameras recognise can have: outside them a
+#: model file is in other units (libraries ship millimetres too), not a smaller or larger object.
+OBJECT_SIZE_M = (0.005, 5.0)
 
 
 @dataclass(frozen=True)
@@ -189,6 +192,18 @@ def describe_views(
     return Views(np.stack(vfhs), np.stack(rolls), np.stack(cents), np.stack(poses))
 
 
+def check_size(object_id: str, points: np.ndarray) -> None:
+    """A ModelError naming the likely unit if the points (N, 3) span no object size in metres."""
+    lo, hi = OBJECT_SIZE_M
+    size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+    if lo <= size <= hi:
+        return
+    hint = next((f": in {unit}? scale it by {factor:g}" for unit, factor in (("millimetres", 1e-3), ("centimetres", 1e-2))
+                 if lo <= size * factor <= hi), "")  # fmt: skip
+    raise ModelError(f"object {object_id!r} is {size:.4g} across, and models are in metres (an object here is "
+                     f"{lo:g}-{hi:g} m){hint}")  # fmt: skip
+
+
 def model_from_mesh(
     object_id: str,
     mesh: o3d.geometry.TriangleMesh,
@@ -206,6 +221,7 @@ def model_from_mesh(
     """
     if len(mesh.triangles) == 0:
         raise ModelError(f"object {object_id!r}: the mesh has no triangles")
+    check_size(object_id, np.asarray(mesh.vertices))
     camera = camera or CameraInfo.kinect_v1()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
@@ -256,6 +272,7 @@ def model_from_cloud(
     pts = finite_points(points).astype(np.float64)
     if len(pts) < MIN_VIEW_POINTS:
         raise ModelError(f"object {object_id!r}: the cloud has {len(pts)} finite points, need {MIN_VIEW_POINTS}")
+    check_size(object_id, pts)
     vp = np.asarray(viewpoint, dtype=np.float64)
     model_pts = voxel_downsample(pts, params.voxel_m)
     model_normals, _ = estimate_normals(model_pts, params.normal_radius_m, vp)
@@ -289,6 +306,7 @@ def model_from_points(
     pts = finite_points(points).astype(np.float64)
     if len(pts) < MIN_VIEW_POINTS:
         raise ModelError(f"object {object_id!r}: the points have {len(pts)} finite ones, need {MIN_VIEW_POINTS}")
+    check_size(object_id, pts)
     centre = pts.mean(axis=0)
     model_pts = voxel_downsample(pts, params.voxel_m)
     inward, _ = estimate_normals(model_pts, params.normal_radius_m, centre)  # faced to the centroid ...

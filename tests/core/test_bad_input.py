@@ -27,7 +27,8 @@ from estimator.errors import StateFileError
 from estimator.state import SavedMarker, load_state, save_state
 from recognition.cloud import read_cloud
 from recognition.errors import CloudError, ModelError
-from recognition.models import read_mesh
+from recognition.config import DescriptorConfig
+from recognition.models import model_from_cloud, model_from_mesh, model_from_points, read_mesh
 from tests.core.test_config import EXAMPLE
 
 PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
@@ -179,6 +180,19 @@ def test_a_mesh_that_kills_open3d_is_a_model_error(tmp_path: Path) -> None:
         read_mesh(bad)
     mesh = read_mesh(tmp_path / "box.ply")  # the intact file still reads, whole
     assert len(mesh.triangles) == 12 and np.allclose(mesh.get_max_bound(), [0.1, 0.2, 0.3])
+
+
+def test_a_model_in_millimetres_is_named_as_such() -> None:
+    """A 10 x 20 x 30 cm box given in millimetres (as model libraries also ship them) or in metres:
+    the first is an error naming the unit, from each model source; the second builds."""
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.2, 0.3)
+    points = np.asarray(box.sample_points_uniformly(3000).points)
+    params = DescriptorConfig()
+    for build in (lambda k: model_from_points("box", points * k, params), lambda k: model_from_cloud("box", points * k, params),
+                  lambda k: model_from_mesh("box", o3d.geometry.TriangleMesh(box).scale(k, np.zeros(3)), params)):  # fmt: skip
+        with pytest.raises(ModelError, match=r"'box' is 37[0-9.]+ across.*millimetres\? scale it by 0.001"):
+            build(1000.0)
+    assert len(model_from_points("box", points, params).views) > 0
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
