@@ -18,6 +18,9 @@ from recognition.pipeline import Detection, Recognizer
 from schemas.codec import CameraInfo
 
 
+MAX_SCENE_RANGE_M = 20.0  # a scene cloud's median range beyond this is in other units (millimetres)
+
+
 @dataclass(frozen=True)
 class RecognizeResult:
     """What ``cellsight recognize`` found in one scene, in the camera frame."""
@@ -56,7 +59,14 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
     """A camera-frame cloud from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
     (Kinect v1 defaults for any that are not given)."""
     if scene.suffix.lower() in (".pcd", ".ply"):
-        return read_cloud(scene, organised=scene.suffix.lower() == ".pcd")
+        cloud = read_cloud(scene, organised=scene.suffix.lower() == ".pcd")
+        pts = cloud.reshape(-1, 3)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        median = float(np.median(np.linalg.norm(pts, axis=1))) if len(pts) else 0.0
+        if median > MAX_SCENE_RANGE_M:
+            raise CloudError(f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
+                             f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? scale it by 0.001")
+        return cloud
     depth = cv2.imread(str(scene), cv2.IMREAD_UNCHANGED)
     if depth is None or depth.ndim != 2:
         raise CloudError(f"{scene}: not a PCD/PLY cloud nor a single-channel depth image")

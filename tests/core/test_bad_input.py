@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from cellsight.config import CellConfig, load_config
 from cellsight.errors import ConfigError
+from cellsight.recognize_cmd import load_scene
 from drivers.errors import ScenarioError
 from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
 from estimator.errors import StateFileError
@@ -193,6 +194,18 @@ def test_a_model_in_millimetres_is_named_as_such() -> None:
         with pytest.raises(ModelError, match=r"'box' is 37[0-9.]+ across.*millimetres\? scale it by 0.001"):
             build(1000.0)
     assert len(model_from_points("box", points, params).views) > 0
+
+
+def test_a_scene_in_millimetres_is_named_as_such(tmp_path: Path) -> None:
+    """PCL's real milk scene written in millimetres: ``cellsight recognize`` says so instead of
+    finding nothing; in metres (as PCL ships it) it loads."""
+    scene = PCL / "milk_cartoon_all_small_clorox.pcd"
+    cloud = load_scene(scene)
+    pts = cloud.reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    o3d.io.write_point_cloud(str(tmp_path / "mm.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts * 1000.0)))
+    with pytest.raises(CloudError, match=r"mm.ply: its points lie [0-9.]+ from the camera.*millimetres"):
+        load_scene(tmp_path / "mm.ply")
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
