@@ -13,9 +13,9 @@ Links (``links_*``): the demo's objects moving, online with object-marker links 
 the same frames, per camera RMS position error (an instant enters where it adds ``links.min_gain``;
 in this cell none does); ``chain_links_*``: the same in the weak corridor below (two markers a
 group) with a cart carrying an object marker past every camera, where they do. Moving frames
-(``keyframes_*``) the same where cam1 tilts and cam2 is bumped. These frames carry no per-view bias, so the static pairs are far better
-than their weights claim (``*_position_nees`` far under 3) and extra single-frame evidence can only
-cost here. ``*_biased_*``: the same on frames whose every view carries a bias drawn from the
+(``keyframes_*``) the same where cam1 tilts and cam2 is bumped. These frames carry no per-view
+bias, so the static pairs are far better than their weights claim (``*_position_nees`` far under
+3) and extra single-frame evidence can only cost here. ``*_biased_*``: the same on frames whose every view carries a bias drawn from the
 factor model (``biased_frames``: a camera or object that moves shows new views, each with its own),
 the world the estimator's weights describe. There each option's worth is the position sigma iSAM2
 predicts with it over without (``*_sigma_over_plain``, the information it adds); the errors of a few

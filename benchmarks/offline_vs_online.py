@@ -4,21 +4,21 @@
 frames/s and cam1's 2 s tilt leaves the offline solve 1-3 moving frames. Here every frame is
 rendered (not in real time): the demo cell's 4 cameras at 30 Hz for 20 s (cam1 tilts at 8-10 s,
 cam2 is bumped at 14 s), each through the marker front-end, into an MCAP log with ground truth.
-The online estimate is the daemon's core (its online options off) fed the same frames in
-capture order, updated and published at 10 Hz; ``cellsight resolve``'s pipeline then solves the log. Figures: per camera,
-the median and RMS position / rotation error of both at the same instants (``paired``), averaged
-over ``--seeds`` noise seeds (``--quick``: one seed, 12 s at 15 Hz), in how many runs offline
-was not worse, by how much it was behind in its worst run and on average (with a one-sided 95 %
-upper bound over the runs: a non-inferiority margin is met when the bound is under it), and how
-far each side moves between seeds. For a camera with two segments the median over both can
-favour the side whose errors are spread: offline has one value per segment.
+The online estimate is the daemon's core (its online options off) fed the same frames in capture
+order, updated and published at 10 Hz; ``cellsight resolve``'s pipeline then solves the log.
+Figures: per camera, the median and RMS position / rotation error of both at the same instants
+(``paired``), averaged over ``--seeds`` noise seeds (``--quick``: one seed, 12 s at 15 Hz), in how
+many runs offline was not worse, by how much it was behind in its worst run and on average (with a
+one-sided 95 % upper bound over the runs: a non-inferiority margin is met when the bound is under
+it), and how far each side moves between seeds. For a camera with two segments the median over both
+can favour the side whose errors are spread: offline has one value per segment.
 
 Online options (``VARIANTS``: links, moving frames, both) are judged against that estimator on
 the same frames, ``{camera}_online_{variant}_over_without``, on two update schedules: after every
 camera's frame of an instant (as the log's estimator) and ``_staggered``, after the first
-camera's. With markers relinearised at 0.005 the online answer was not converged and depended on
-the schedule by as much as the options moved it; both schedules stay as the check that it no
-longer does.
+camera's. An online answer short of convergence depends on when iSAM2 updates, by as much as the
+options move it (markers relinearised at 0.005 did that); the two schedules check that the
+verdict does not.
 """
 
 from __future__ import annotations

@@ -221,8 +221,8 @@ class LiveLinks:
     An instant is complete ``LINK_DELAY_NS`` after its grid time (every camera's frame of it has
     arrived); then, if two or more of its cameras' segments are in the graph and agree, and it
     would remove at least ``min_gain`` of what the graph does not know of their relative position
-    (``instant_gain``), it enters iSAM2 as offline's do, against the cameras' current estimates. The newest ``max_live`` stay;
-    older ones leave (their factors removed: iSAM2 drops a variable with none), and a segment that
+    (``instant_gain``), it enters iSAM2 as offline's do, against the cameras' current estimates.
+    The newest ``max_live`` stay; older ones leave (their factors removed: iSAM2 drops a variable with none), and a segment that
     ends takes its instants with it (its history keeps static pairs only). So the graph holds at
     most ``max_live`` extra variables, and what links give, a moving object's fresh views, counts
     while it is recent. Repeats of one view are weighted as offline, over the live instants.
@@ -234,7 +234,7 @@ class LiveLinks:
         self.min_gain = config.min_gain
         self.live: deque[LiveInstant] = deque()
         self.repeats: Counter[tuple[str, int]] = Counter()  # live instants per (camera id, marker)
-        self.last_position: dict[int, np.ndarray] = {}  # marker -> where the last instant that entered had it (world, m)
+        self.last_position: dict[int, np.ndarray] = {}  # marker -> where its last weighed instant had it (world, m)
         self._next_key = 0
 
     def complete(self, now_ns: int) -> list[tuple[int, list[Sighting]]]:
