@@ -30,7 +30,7 @@ from estimator.config import LinkConfig
 from estimator.observation import ObservationRows
 from estimator.symbols import object_symbol
 from estimator.keyframes import consensus
-from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame
+from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, skew
 
 FREE_ROTATION_RAD = 0.5  # a link's rotation sigma: loose enough to carry no rotation, finite for the solver
 LINK_DELAY_NS = 500_000_000  # online, an instant is complete this long after its time (every camera's frame is in)
@@ -182,8 +182,8 @@ def instant_gain(world_T_cameras: np.ndarray, sightings: list[Sighting], repeats
     J = np.zeros((K, 3, 6))  # d(world position of the marker) / d(camera perturbation)
     M = np.zeros((K, 3, 3))  # the sighting's position covariance, world frame
     for i, (T, s) in enumerate(zip(world_T_cameras, sightings)):
-        R, p = T[:3, :3], s.pose[:3, 3]
-        J[i, :, :3] = -R @ np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+        R = T[:3, :3]
+        J[i, :, :3] = -R @ skew(s.pose[:3, 3])
         J[i, :, 3:] = R
         Rw = R @ s.pose[:3, :3]
         M[i] = Rw @ s.covariance[:3, :3] @ Rw.T * max(1.0, repeats[i])
