@@ -574,15 +574,17 @@ class Estimator:
                     out.append(cam)
         return out
 
-    def _fold(self, cam: CameraKey, graph: gtsam.NonlinearFactorGraph, remove: list[int], slotted: list) -> None:
+    def _fold(self, cam: CameraKey, remove: list[int]) -> None:
         """Fold an ended segment into its camera's history (see the module docstring).
 
         The segment's pose stays as the history's variable and its pair factors become fixed
         factors at their final means (rebuilt where a pair had observations since its last
         refresh; the others stay in their slots). The camera's previous history factors move onto
         it through the current estimate of the relative pose, fused where both saw a marker; the
-        previous history's variable leaves with its last factor. New factors go into ``graph``
-        (their owners into ``slotted``), replaced slots into ``remove``.
+        previous history's variable leaves with its last factor. Replaced slots go into ``remove``;
+        the new factors wait in the history (no slot) for ``_enter_histories``: a camera that
+        settled only for moments can have two segments fold in one update, and the second moves
+        the first one's new factors on before they ever reach iSAM2.
         """
         ck = self._camera_key(cam)
         if self.live_links is not None:  # the ended segment's links go (its history keeps static pairs)
@@ -600,7 +602,8 @@ class Estimator:
         # Pairs with observations since their factor was built get their final mean (one batched
         # build); the other factors stay in their slots.
         final = [(mk, p) for mk, p in pairs if p.n > 0 and marker_symbol(mk) in self.in_graph and (p.dirty or p.slot is None)]
-        built = dict(zip([mk for mk, _ in final], self._pair_factors([(ck, marker_symbol(mk), p) for mk, p in final])))
+        self._pair_factors([(ck, marker_symbol(mk), p) for mk, p in final])  # each pair now holds its final mean
+        built = {mk for mk, _ in final}
         factors: dict[int, HistoryFactor] = {}
         for mk, pair in pairs:
             if mk in built:
@@ -617,19 +620,21 @@ class Estimator:
             both = [mk for mk in moved if mk in factors]
             remove.extend(factors[mk].slot for mk in both if factors[mk].slot is not None)
             moved.update(zip(both, fuse_measurements([factors[mk] for mk in both], [moved[mk] for mk in both])))
-            for mk in moved:
-                built.pop(mk, None)  # the moved or fused factor replaces it
-            factors.update(moved)
+            factors.update(moved)  # the moved or fused factor replaces the segment's own
             self.in_graph.discard(old.key)  # iSAM2 drops a variable whose factors are all removed
         if not factors:
             self.in_graph.discard(ck)
             self.history.pop(cam[0], None)
             return
-        for mk, f in factors.items():
-            if f.slot is None:
-                slotted.append((graph.size(), f))
-                graph.add(built[mk] if mk in built else self._fixed_factor(ck, marker_symbol(mk), f.mean, f.covariance))
         self.history[cam[0]] = History(ck, factors, (old.segments if old else 0) + 1)
+
+    def _enter_histories(self, camera_ids: set[str], graph: gtsam.NonlinearFactorGraph, slotted: list) -> None:
+        """These cameras' history factors without a slot (this update's folds) into ``graph``."""
+        for h in (self.history[c] for c in camera_ids if c in self.history):
+            for mk, f in h.factors.items():
+                if f.slot is None:
+                    slotted.append((graph.size(), f))
+                    graph.add(self._fixed_factor(h.key, marker_symbol(mk), f.mean, f.covariance))
 
     def _fixed_factor(self, ck: int, mk: int, mean: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
         """A robust between factor camera -> marker holding ``mean`` (4x4) with ``covariance`` (ROS order)."""
@@ -648,8 +653,10 @@ class Estimator:
         slotted: list[tuple[int, Pair | HistoryFactor]] = []  # position in ``graph`` -> what gets that slot
         self._held, entering = self._young_segments(now_ns)
         if not self.keep_history:
-            for cam in self.ended_segments(now_ns):
-                self._fold(cam, graph, remove, slotted)
+            ended = self.ended_segments(now_ns)
+            for cam in ended:
+                self._fold(cam, remove)
+            self._enter_histories({cid for cid, _ in ended}, graph, slotted)
         new_values = gtsam.Values(values)
         placed_keys = self._link(now_ns, graph, new_values, remove, slotted) if self.live_links is not None else set()
         if self.live_keyframes is not None:

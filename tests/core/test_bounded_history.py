@@ -216,3 +216,21 @@ def test_reordering_the_tree_changes_its_cost_not_the_answer() -> None:
         assert_pose_close(on.cameras[cid].pose.T, off.cameras[cid].pose.T, 1e-4, 0.01, cid)
     for mk in off.markers:
         assert_pose_close(on.markers[mk].T, off.markers[mk].T, 1e-4, 0.01, f"marker {mk}")
+
+
+def test_a_camera_that_settles_only_for_moments_leaves_the_graph_bounded() -> None:
+    """Camera a is moved 3 cm and 1 deg every 0.3-1.0 s (an arm pausing between moves): its segments
+    end faster than they fold, several a camera by one update. The graph after 60 s of that must be no
+    larger than after 15 s: a camera's history is one star, however its segments came and went."""
+    cell = Cell(Estimator(config(fold_after_s=2.0)), seed=7)
+    cell.run(2.0)
+    rng, sizes, step = np.random.default_rng(7), {}, 0
+    for until in (15.0, 60.0):
+        while cell.now() < until * 1e9:
+            step += 1
+            sign = 1.0 if step % 2 else -1.0
+            cell.poses["a"] = cam_pose(0.3, make_pose(rpy_matrix(0.0, np.radians(sign), 0.0), [0.03 * sign, 0.0, 0.0]))
+            cell.run(rng.uniform(0.3, 1.0))
+        sizes[until] = (cell.est.factor_count(), cell.est.isam.calculateEstimate().size())
+    assert cell.est.history["a"].segments >= 40, f"only {cell.est.history['a'].segments} segments folded"
+    assert sizes[60.0] <= sizes[15.0], f"(factors, variables) after 15 s {sizes[15.0]}, after 60 s {sizes[60.0]}"
