@@ -97,20 +97,20 @@ def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] |
     (witness, branch) of those that agree with it (within ``AGREE_RAD`` and ``AGREE_M``); None
     unless two witnesses agree."""
     flat = implied.reshape(-1, 4, 4)
-    best, best_votes = None, 0
-    for c in flat:
-        close = (rotation_angles(flat[:, :3, :3], c[:3, :3]) < AGREE_RAD) & (np.linalg.norm(flat[:, :3, 3] - c[:3, 3], axis=1) < AGREE_M)
-        votes = int(close.reshape(-1, 2).any(axis=1).sum())  # witnesses with a branch near this pose
-        if votes > best_votes:
-            best, best_votes = c, votes
-    if best is None or best_votes < 2:
+    # (2K, 2K): does candidate pose c lie near witness branch j? All pairs at once (a camera on an arm
+    # places a frame every tick: a loop over candidates was most of its update's time).
+    close = (rotation_angles(flat[:, None, :3, :3], flat[None, :, :3, :3]) < AGREE_RAD) & (
+        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
+    votes = close.reshape(len(flat), -1, 2).any(axis=2).sum(axis=1)  # witnesses with a branch near each candidate
+    b = int(np.argmax(votes))  # the first of the most agreed
+    if votes[b] < 2:
         return None
-    chosen = []
-    for i, (a, b) in enumerate(implied):
-        gap = rotation_angles(np.stack([a[:3, :3], b[:3, :3]]), best[:3, :3])
-        k = int(np.argmin(gap))
-        if gap[k] < AGREE_RAD and np.linalg.norm((a, b)[k][:3, 3] - best[:3, 3]) < AGREE_M:
-            chosen.append((i, k))
+    best = flat[b]
+    gap = rotation_angles(implied[:, :, :3, :3], best[:3, :3])  # (K, 2)
+    k = np.argmin(gap, axis=1)
+    rows = np.arange(len(implied))
+    ok = (gap[rows, k] < AGREE_RAD) & (np.linalg.norm(implied[rows, k, :3, 3] - best[:3, 3], axis=1) < AGREE_M)
+    chosen = [(int(i), int(k[i])) for i in np.flatnonzero(ok)]
     return best, chosen
 
 
