@@ -21,6 +21,14 @@ the same frames tick by tick, alternately, in the same wall-clock minutes. Laten
 exclude each estimator's first simulated minute (first placement of every camera and marker),
 whose worst update is reported on its own as ``warmup_update_ms_max``. ``--hours`` sets the
 simulated span; the hour windows shrink to half of it when it is shorter than two hours.
+
+``--arm``: one camera (``cam0``) on an arm that never stops, the others bumped in turn as above,
+and the daemon taking a moving camera's frames (``[estimator.keyframes] online``). The arm sweeps
+10 cm and 5 deg about where it was installed (periods of 7, 9 and 11 s, so it never rests); its
+frames enter the graph ``lag_s`` after they were seen, and the newest ``max_live`` stay there.
+Reported: the frames that entered (``keyframes_entered``), the arm's position error at the end
+(``arm_pos_mm_final``, NaN when the estimator gives it no pose) and the other figures as above,
+the bumped cameras' errors without the arm's.
 """
 
 from __future__ import annotations
@@ -35,7 +43,7 @@ from rich.progress import Progress
 from benchmarks.common import main
 from cellsight.synthetic import perturb
 from drivers.markers import PlaneFit, covariance_model
-from estimator.config import AnchorConfig, EstimatorConfig
+from estimator.config import AnchorConfig, EstimatorConfig, KeyframeConfig
 from estimator.graph import Estimator
 from estimator.observation import ObservationRows
 from schemas.codec import CameraInfo
@@ -101,7 +109,7 @@ def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[Observ
 class Mover:
     """Bumps one camera in turn every ``every_ticks`` ticks; moves its pool with it; knows the truth."""
 
-    cams: dict[str, tuple[np.ndarray, list[int]]]  # installed world_T_camera and markers seen
+    cams: dict[str, tuple[np.ndarray, list[int]]]  # installed world_T_camera and markers seen (the bumped ones)
     base: dict[str, list[ObservationRows]]  # the pools at the installed poses
     pools: dict[str, list[ObservationRows]]  # what the runners read (changed in place)
     every_ticks: int
@@ -136,6 +144,34 @@ class Mover:
         return cid
 
 
+@dataclass(frozen=True)
+class Arm:
+    """A camera that never stops: a smooth sweep about its installed pose (``--arm``)."""
+
+    camera_id: str
+    world_T_installed: np.ndarray  # (4, 4)
+    sweep_m: float = 0.10
+    sweep_deg: float = 5.0
+
+    def installed_T_camera(self, t_s: float) -> np.ndarray:
+        """The arm's displacement (4, 4) at t_s seconds, in the installed camera's frame: sideways and
+        up at incommensurate periods, panning at a third, so position and view change all the time."""
+        w = 2 * math.pi * t_s
+        T = np.eye(4)
+        T[:3, :3] = gtsam_rotation(np.array([0.0, math.radians(self.sweep_deg) * math.sin(w / 11.0), 0.0]))
+        T[:3, 3] = [0.5 * self.sweep_m * math.sin(w / 7.0), 0.25 * self.sweep_m * math.sin(w / 9.0), 0.0]
+        return T
+
+    def world_T_camera(self, stamp_ns: int) -> np.ndarray:
+        return self.world_T_installed @ self.installed_T_camera(stamp_ns * 1e-9)
+
+    def moved(self, block: ObservationRows, stamps: np.ndarray) -> ObservationRows:
+        """The installed camera's block as the arm saw it: each frame's rows left-multiplied by its
+        stamp's camera_T_installed (the noise stays what it was in the marker's frame)."""
+        back = np.stack([invert_pose(self.installed_T_camera(t * 1e-9)) for t in stamps])[block.frame]
+        return replace(block, poses=back @ block.poses, alternatives=back @ block.alternatives)
+
+
 def gtsam_rotation(rotvec: np.ndarray) -> np.ndarray:
     """Rotation matrix of a rotation vector (rad)."""
     import gtsam
@@ -158,6 +194,7 @@ class Runner:
     est: Estimator
     pools: dict[str, list[ObservationRows]]
     ticks: int
+    arm: Arm | None = None
     tick: int = 0
     ingest_ms: np.ndarray = field(init=False)
     update_ms: np.ndarray = field(init=False)
@@ -178,6 +215,8 @@ class Runner:
         t0 = time.perf_counter()
         for cid, blocks in self.pools.items():
             block = blocks[k % POOL]
+            if self.arm is not None and cid == self.arm.camera_id:
+                block = self.arm.moved(block, stamps)
             self.est.add_frames(cid, stamps, block)
             n += len(block.ids)
         t1 = time.perf_counter()
@@ -208,7 +247,9 @@ def run(quick: bool, args=None) -> dict[str, float]:
         return scan(0.02 if quick else args.hours if args.hours != 24.0 else 0.05, args.move_every)
     hours = 0.15 if quick else (args.hours if args is not None else 24.0)
     move_every_s = args.move_every if args is not None else 20.0
-    return measure(hours, move_every_s, args.cameras if args is not None else 8, args.markers if args is not None else 16)
+    if args is None:
+        return measure(hours, move_every_s)
+    return measure(hours, move_every_s, args.cameras, args.markers, arm=args.arm)
 
 
 #: (cameras, markers) of ``--scan``: cameras doubling with two markers each, then markers at 64 cameras.
@@ -237,20 +278,24 @@ def growth_exponent(sizes: list[int], values: list[float]) -> float:
     return float(np.polyfit(np.log(sizes), np.log(values), 1)[0])
 
 
-def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16) -> dict[str, float]:
-    """One cell of ``n_cams`` cameras and ``n_markers`` markers for ``hours`` simulated hours."""
+def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16, arm: bool = False) -> dict[str, float]:
+    """One cell of ``n_cams`` cameras and ``n_markers`` markers for ``hours`` simulated hours; with
+    ``arm``, ``cam0`` on an arm and the daemon taking its frames (``Arm``)."""
     markers, cams, anchors = ring_cell(n_cams, n_markers)
     cfg = EstimatorConfig(
-        anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors]
+        anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors],
+        keyframes=KeyframeConfig(online=arm),
     )
     base = tick_pools(markers, cams, np.random.default_rng(0))
     pools = dict(base)
-    mover = Mover(cams, base, pools, int(move_every_s * RATE / UPDATE_EVERY), np.random.default_rng(1))
+    the_arm = Arm("cam0", cams["cam0"][0]) if arm else None
+    bumped = {cid: c for cid, c in cams.items() if the_arm is None or cid != the_arm.camera_id}
+    mover = Mover(bumped, {cid: base[cid] for cid in bumped}, pools, int(move_every_s * RATE / UPDATE_EVERY), np.random.default_rng(1))
     ticks_per_hour = 3600 * RATE // UPDATE_EVERY
     n_ticks = int(hours * ticks_per_hour)
     window = min(ticks_per_hour, n_ticks // 2)  # "an hour"
     warmup = min(60 * RATE // UPDATE_EVERY, n_ticks // 10)  # the first simulated minute
-    aged = Runner(Estimator(cfg), pools, n_ticks + window)
+    aged = Runner(Estimator(cfg), pools, n_ticks + window, the_arm)
     n_obs, rss0, factors_max, errors = 0, float("nan"), 0, {}
     t_start = time.perf_counter()
     with Progress(transient=True) as progress:
@@ -270,11 +315,16 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
                 progress.console.log(f"{k / ticks_per_hour:.3g} of {hours:g} simulated hours, {time.perf_counter() - t_start:.0f} s")
         if not errors:
             errors = camera_errors_mm(aged.est, mover.truth, n_ticks * TICK_NS)
+        arm_mm = float("nan")
+        if the_arm is not None:  # the arm's error at the last tick's newest frame
+            last_ns = (n_ticks - 1) * TICK_NS + (UPDATE_EVERY - 1) * (TICK_NS // UPDATE_EVERY)
+            arm_mm = camera_errors_mm(aged.est, {the_arm.camera_id: the_arm.world_T_camera(last_ns)}, last_ns)[the_arm.camera_id]
+        keyframes = aged.est.counters.keyframes
         wall = time.perf_counter() - t_start
         rss_end = rss_mb()
         reorders = aged.est.counters.reorders
         # Paired: the aged estimator's next hour against a fresh one's first, alternating ticks.
-        young = Runner(Estimator(cfg), pools, window)
+        young = Runner(Estimator(cfg), pools, window, the_arm)
         paired_aged_from = n_ticks
         for k in range(window):
             if mover.due(n_ticks + k):  # both see the same moves
@@ -314,6 +364,9 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
         "factors_max": float(factors_max),
         "factors_in_graph": float(aged.est.factor_count()),
         "camera_pos_mm_max_final": max(errors.values()),
+        "arm": float(arm),
+        "keyframes_entered": float(keyframes),
+        "arm_pos_mm_final": arm_mm,
     }
 
 
@@ -322,6 +375,7 @@ def add_args(parser) -> None:
     parser.add_argument("--move-every", type=float, default=20.0, help="bump one camera, in turn, this often (simulated s; 0: a still cell)")
     parser.add_argument("--cameras", type=int, default=8, help="cameras on the ring (default 8)")
     parser.add_argument("--markers", type=int, default=16, help="markers on the ring (default 16; 4 are anchors)")
+    parser.add_argument("--arm", action="store_true", help="cam0 on an arm that never stops, its frames taken online (keyframes)")
     parser.add_argument("--scan", action="store_true", help="a table over cameras 8..64 and markers up to 1,000 (--hours each, default 0.05)")
 
 
