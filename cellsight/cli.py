@@ -487,6 +487,7 @@ def model_build(
     recording: Annotated[Optional[list[str]], typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board")] = None,
     board: Annotated[Optional[Path], typer.Option("--board", help="marker board TOML of the recordings (see drivers/sim/capture_board.toml)")] = None,
     distance: Annotated[float, typer.Option(help="virtual camera distance for rendered views, m")] = 2.0,
+    scale: Annotated[float, typer.Option(help="metres per unit of the --mesh, --cloud and --points files (0.001: millimetres)")] = 1.0,
     cell_config: CellConfigOpt = None,
 ) -> None:
     """Build a recognition model database (views from a tessellated sphere; descriptors as configured)."""
@@ -515,7 +516,7 @@ def model_build(
     with Progress(console=_stderr(), transient=True) as bar:
         task = bar.add_task("rendering and describing views", total=total)
         db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, points=surfaces, recordings=recordings,
-                            board=board_cfg, distance_m=distance, progress=lambda: bar.advance(task))
+                            board=board_cfg, distance_m=distance, scale=scale, progress=lambda: bar.advance(task))
     db.save(out)
     for oid, mdl in sorted(db.models.items()):
         typer.echo(f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source})")
@@ -525,11 +526,13 @@ def model_build(
 @app.command("recognize")
 def recognize_cmd(
     models: Annotated[Path, typer.Option("--models", help="model database folder (cellsight model build)")],
-    scene: Annotated[Path, typer.Option("--scene", help="scene: PCD/PLY cloud, or 16-bit depth image in mm")],
+    scene: Annotated[Path, typer.Option("--scene", help="scene: PCD/PLY cloud (m), or 16-bit depth image (mm); see --scale")],
     fx: Annotated[Optional[float], typer.Option(help="depth image focal length x, px (default Kinect v1)")] = None,
     fy: Annotated[Optional[float], typer.Option(help="depth image focal length y, px")] = None,
     cx: Annotated[Optional[float], typer.Option(help="depth image principal point x, px")] = None,
     cy: Annotated[Optional[float], typer.Option(help="depth image principal point y, px")] = None,
+    scale: Annotated[Optional[float], typer.Option(
+        help="metres per unit of the scene (default: 1 for a cloud, 0.001 for a depth image in mm; 0.0001 for 0.1 mm depth)")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
     cell_config: CellConfigOpt = None,
     verbose: VerboseOpt = False,
@@ -542,7 +545,7 @@ def recognize_cmd(
     cfg = _load(cell_config)
     db = ModelDatabase.load(models)
     result = recognize_file(scene, db, cfg.recognition.model_copy(update={"descriptor": db.descriptor}),
-                            fx=fx, fy=fy, cx=cx, cy=cy)
+                            fx=fx, fy=fy, cx=cx, cy=cy, scale=scale)
     typer.echo(result.to_json() if as_json else result.to_text())
     if not result.detections:
         raise typer.Exit(1)

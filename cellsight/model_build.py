@@ -7,6 +7,8 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from drivers.sim.render import object_mesh
 from drivers.sim.scenario import Scenario
 from recognition.cloud import read_cloud
@@ -40,20 +42,24 @@ def build_database(
     recordings: dict[str, Path] | None = None,
     board: BoardConfig | None = None,
     distance_m: float = 2.0,
+    scale: float = 1.0,
     progress: Callable[[], None] | None = None,
 ) -> ModelDatabase:
     """One database from any mix of sources; object ids must be unique across them. Recordings
-    (MCAP logs of the object on ``board``) need the board."""
+    (MCAP logs of the object on ``board``) need the board. ``scale``: metres per unit of the mesh,
+    cloud and point files (0.001 for files in millimetres, as many model libraries ship them)."""
+    if not scale > 0:
+        raise ModelError(f"scale {scale:g}: metres per unit of the model files must be positive")
     db = database_from_scenario(scenario, params, progress, distance_m) if scenario else ModelDatabase(params, {})
     for oid, path in (meshes or {}).items():
         _check_new(db, oid)
-        db.add(model_from_mesh(oid, read_mesh(path), params, distance_m=distance_m, progress=progress))
+        db.add(model_from_mesh(oid, read_mesh(path).scale(scale, np.zeros(3)), params, distance_m=distance_m, progress=progress))
     for oid, path in (clouds or {}).items():
         _check_new(db, oid)
-        db.add(model_from_cloud(oid, read_cloud(path), params, progress=progress))
+        db.add(model_from_cloud(oid, read_cloud(path) * scale, params, progress=progress))
     for oid, path in (points or {}).items():
         _check_new(db, oid)
-        db.add(model_from_points(oid, read_cloud(path), params, distance_m=distance_m, progress=progress))
+        db.add(model_from_points(oid, read_cloud(path) * scale, params, distance_m=distance_m, progress=progress))
     if recordings and board is None:
         raise ModelError("a recording needs its marker board: give --board BOARD.toml")
     for oid, path in (recordings or {}).items():

@@ -55,17 +55,22 @@ class RecognizeResult:
 
 
 def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx: float | None = None,
-               cy: float | None = None, depth_scale: float = 0.001) -> np.ndarray:
-    """A camera-frame cloud from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
-    (Kinect v1 defaults for any that are not given)."""
+               cy: float | None = None, scale: float | None = None) -> np.ndarray:
+    """A camera-frame cloud (m) from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
+    (Kinect v1 defaults for any that are not given). ``scale``: metres per unit of the file
+    (default 1 for a cloud, 0.001 for a depth image in millimetres)."""
+    if scale is not None and not scale > 0:
+        raise CloudError(f"scale {scale:g}: metres per unit of the scene must be positive")
     if scene.suffix.lower() in (".pcd", ".ply"):
         cloud = read_cloud(scene, organised=scene.suffix.lower() == ".pcd")
+        if scale is not None:
+            cloud = cloud * np.float32(scale)
         pts = cloud.reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         median = float(np.median(np.linalg.norm(pts, axis=1))) if len(pts) else 0.0
         if median > MAX_SCENE_RANGE_M:
             raise CloudError(f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
-                             f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? scale it by 0.001")
+                             f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? give --scale 0.001")
         return cloud
     depth = cv2.imread(str(scene), cv2.IMREAD_UNCHANGED)
     if depth is None or depth.ndim != 2:
@@ -74,7 +79,7 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
     for (r, c), v in (((0, 0), fx), ((1, 1), fy), ((0, 2), cx), ((1, 2), cy)):
         if v is not None:
             K[r, c] = v
-    return depth_to_cloud(depth, K, depth_scale)
+    return depth_to_cloud(depth, K, 0.001 if scale is None else scale)
 
 
 def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, **intrinsics) -> RecognizeResult:

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from cellsight.config import CellConfig, load_config
 from cellsight.errors import ConfigError
+from cellsight.model_build import build_database
 from cellsight.recognize_cmd import load_scene
 from drivers.errors import ScenarioError
 from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
@@ -204,8 +205,33 @@ def test_a_scene_in_millimetres_is_named_as_such(tmp_path: Path) -> None:
     pts = cloud.reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     o3d.io.write_point_cloud(str(tmp_path / "mm.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts * 1000.0)))
-    with pytest.raises(CloudError, match=r"mm.ply: its points lie [0-9.]+ from the camera.*millimetres"):
+    with pytest.raises(CloudError, match=r"mm.ply: its points lie [0-9.]+ from the camera.*millimetres\? give --scale 0.001"):
         load_scene(tmp_path / "mm.ply")
+    scaled = load_scene(tmp_path / "mm.ply", scale=0.001)  # what the error says to do
+    np.testing.assert_allclose(scaled, pts, atol=1e-6)
+    with pytest.raises(CloudError, match="scale -1"):
+        load_scene(scene, scale=-1.0)
+
+
+def test_model_files_in_millimetres_build_with_their_scale(tmp_path: Path) -> None:
+    """The millimetre box of the test above, as a points file and a mesh file: with ``scale`` 0.001
+    (``cellsight model build --scale``) each builds the model the metre files build."""
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.2, 0.3)
+    o3d.io.write_triangle_mesh(str(tmp_path / "m.ply"), box)
+    o3d.io.write_triangle_mesh(str(tmp_path / "mm.ply"), o3d.geometry.TriangleMesh(box).scale(1000.0, np.zeros(3)))
+    pts = np.asarray(box.sample_points_uniformly(3000).points)
+    np.savetxt(tmp_path / "m.xyz", pts)
+    np.savetxt(tmp_path / "mm.xyz", pts * 1000.0)
+    params = DescriptorConfig()
+    for kind in ("meshes", "points"):
+        suffix = ".ply" if kind == "meshes" else ".xyz"
+        metre = build_database(params, **{kind: {"box": tmp_path / f"m{suffix}"}}).models["box"]
+        with pytest.raises(ModelError, match="millimetres"):
+            build_database(params, **{kind: {"box": tmp_path / f"mm{suffix}"}})
+        milli = build_database(params, **{kind: {"box": tmp_path / f"mm{suffix}"}}, scale=0.001).models["box"]
+        assert milli.diameter_m == pytest.approx(metre.diameter_m, rel=1e-6), kind
+        assert metre.diameter_m == pytest.approx(np.sqrt(0.14), rel=0.05), kind  # the box's diagonal
+        assert len(milli.views) == len(metre.views)
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
