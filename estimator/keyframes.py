@@ -32,7 +32,7 @@ import numpy as np
 
 from estimator.config import KeyframeConfig
 from estimator.symbols import keyframe_symbol, marker_symbol
-from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_pose, rotation_angles
+from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_poses, rotation_angles
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
 AGREE_M = 0.05  # and this distance
@@ -84,7 +84,8 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tu
     rows = [j for j, mk in enumerate(frame.ids.tolist()) if mk in world_T_marker]
     if len(rows) < 2:
         return None
-    implied = np.stack([[world_T_marker[int(frame.ids[j])] @ invert_pose(T) for T in (frame.poses[j], frame.alternatives[j])] for j in rows])
+    world = np.stack([world_T_marker[int(frame.ids[j])] for j in rows])
+    implied = world[:, None] @ invert_poses(np.stack([frame.poses[rows], frame.alternatives[rows]], axis=1))  # (K, 2, 4, 4)
     agreed = consensus(implied)
     if agreed is None:
         return None
@@ -99,8 +100,9 @@ def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] |
     flat = implied.reshape(-1, 4, 4)
     # (2K, 2K): does candidate pose c lie near witness branch j? All pairs at once (a camera on an arm
     # places a frame every tick: a loop over candidates was most of its update's time).
-    close = (rotation_angles(flat[:, None, :3, :3], flat[None, :, :3, :3]) < AGREE_RAD) & (
-        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
+    # Two rotations are within AGREE_RAD when the trace of R_a^T R_b exceeds 1 + 2 cos(AGREE_RAD).
+    trace = np.einsum("iab,jab->ij", flat[:, :3, :3], flat[:, :3, :3])
+    close = (trace > 1.0 + 2.0 * np.cos(AGREE_RAD)) & (np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
     votes = close.reshape(len(flat), -1, 2).any(axis=2).sum(axis=1)  # witnesses with a branch near each candidate
     b = int(np.argmax(votes))  # the first of the most agreed
     if votes[b] < 2:

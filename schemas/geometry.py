@@ -184,6 +184,16 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def invert_poses(T: np.ndarray) -> np.ndarray:
+    """``invert_pose`` over a stack (..., 4, 4)."""
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    Ti = np.zeros(T.shape)
+    Ti[..., :3, :3] = Rt
+    Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    Ti[..., 3, 3] = 1.0
+    return Ti
+
+
 def interpolate_pose(a: np.ndarray, b: np.ndarray, f: float) -> np.ndarray:
     """The pose a fraction ``f`` (0..1) of the way from ``a`` to ``b`` (4, 4): position linear,
     rotation along the geodesic (quaternion slerp)."""

@@ -132,3 +132,14 @@ def test_rotation_angles_match_the_single_rotation_angle_over_a_stack() -> None:
     for Ri, a in zip(R, angles):
         assert abs(a - geometry.rotation_angle(Ri, R[0])) < 1e-9
     assert angles[0] < 1e-6 and geometry.rotation_angles(R, R).max() < 1e-6
+
+
+def test_invert_poses_inverts_every_pose_of_a_stack() -> None:
+    """A (2, 3) stack of random rigid poses: each times its inverse is the identity, and each inverse
+    is what ``invert_pose`` gives alone."""
+    rng = np.random.default_rng(3)
+    T = np.stack([[make_pose(rpy_matrix(*rng.uniform(-np.pi, np.pi, 3)), rng.normal(size=3)) for _ in range(3)] for _ in range(2)])
+    Ti = geometry.invert_poses(T)
+    assert Ti.shape == T.shape
+    np.testing.assert_allclose(T @ Ti, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)
+    np.testing.assert_allclose(Ti[1, 2], geometry.invert_pose(T[1, 2]), atol=1e-15)
