@@ -21,15 +21,15 @@ class AnchorConfig(BaseModel):
 
 
 class KeyframeConfig(BaseModel):
-    """Moving-camera frames as poses of their own: always in the offline solve, opt-in in the daemon."""
+    """Moving-camera frames as poses of their own, in the offline solve and (a fixed lag) in the daemon."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     enabled: bool = Field(default=True, description="add moving cameras' frames as poses of their own to the offline solve")
     online: bool = Field(
-        default=False,
+        default=True,
         description="the daemon adds a move's frames too, once the camera is still again and its new segment is in the graph "
-        "(measured: see docs/performance.md, online_keyframes_over_without_max)",
+        "(measured: see docs/performance.md, online_keyframes_over_without_max and estimator_scale --arm)",
     )
     max_live: int = Field(default=60, ge=1, description="online: the newest this many moving frames stay in the graph, older ones leave it")
     lag_s: float = Field(

@@ -16,7 +16,7 @@ tilt leaves 3-4).
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
 
-Online (``LiveKeyframes``, opt-in) the daemon holds a moving camera's frames (the same gap) until
+Online (``LiveKeyframes``) the daemon holds a moving camera's frames (the same gap) until
 it is still again and its new segment has entered the graph, or until they are ``lag_s`` old for a
 camera that keeps moving; then they join by the same rules, against the current estimates, and
 the newest ``max_live`` stay in the graph.
