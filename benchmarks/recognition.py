@@ -36,6 +36,14 @@ demo cell every object is unoccluded in some camera of its trial, so the same fu
 for every pair of cameras alone, scored for the objects partly occluded in both
 (``adds_recall_fused_pairs``; wrong objects any pair publishes in ``false_positives_fused_pairs``).
 
+Distractors (``false_positives_per_trial_distractors``): the cell with one of its objects taken away
+(each in turn) and four objects that are in no database put on the table with the others: boxes of
+5-12 cm x 5-12 cm x 12-30 cm and cylinders of 3-6 cm radius and 12-30 cm height, every one of them
+shaped like the database's can or crate or like neither. A published object that is not on the
+table is false; ``false_detections_per_frame_distractors`` counts them per camera before fusion.
+A real cell holds many things besides its models: these are what the sensor's depth alone cannot
+tell apart from a model, and what it can.
+
 Latency: one 640x480 frame of the demo cell (3 objects) from depth image to detections
 (``depth_to_cloud`` + ``Recognizer.recognize``), on one core: the process is pinned to one CPU and
 its OpenMP / BLAS pools to one thread before they start.
@@ -222,6 +230,39 @@ def real_scenes() -> dict[str, float]:
     return out
 
 
+def distractor(rng: np.random.Generator, i: int) -> ObjectSpec:
+    """An object of no database: a box or a cylinder of a random size (see the module docstring)."""
+    if rng.random() < 0.5:
+        return ObjectSpec(id=f"distractor{i}", shape="box", size=tuple(rng.uniform([0.05, 0.05, 0.12], [0.12, 0.12, 0.30])), color=(0.5, 0.5, 0.5))
+    r = float(rng.uniform(0.03, 0.06))
+    return ObjectSpec(id=f"distractor{i}", shape="cylinder", size=(r, r, float(rng.uniform(0.12, 0.30))), color=(0.4, 0.5, 0.4))
+
+
+def distractors(rec: Recognizer, trials: int) -> dict[str, float]:
+    """Published and per-camera detections of objects not on the table (module docstring)."""
+    base, rng = load_scenario(), np.random.default_rng(11)
+    published, per_camera, frames = 0, 0, 0
+    for trial in range(trials):
+        absent = base.objects[trial % len(base.objects)].id
+        s = base.model_copy(update={"objects": [o for o in base.objects if o.id != absent] + [distractor(rng, i) for i in range(4)],
+                                    "markers": [mk for mk in base.markers if mk.object != absent]})  # fmt: skip
+        s = random_layout(s, rng, tight=False)
+        cell = SimCell(s)
+        found, views = [], []
+        for cam in s.cameras:
+            frame = cell.render(cam.id, 0.0, trial)
+            cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
+            view = DepthView.of(cloud)
+            views.append(CameraView(cam.id, 0, view, frame.world_T_camera))
+            for det in rec.recognize(cloud, world_T_camera=frame.world_T_camera, view=view):
+                per_camera += det.object_id == absent
+                found.append(WorldDetection(cam.id, 0, frame.world_T_camera @ det.camera_T_object, det, frame.world_T_camera))
+            frames += 1
+        published += sum(f.object_id == absent for f in cross_checked(found, views, rec.seen_through, 10**9)[0])
+    return {"false_positives_per_trial_distractors": published / trials, "false_detections_per_frame_distractors": per_camera / frames,
+            "distractor_trials": float(trials)}  # fmt: skip
+
+
 def run(quick: bool) -> dict[str, float]:
     base = load_scenario()
     shapes = {o.id: shape_of(o) for o in base.objects}
@@ -364,6 +405,7 @@ def run(quick: bool) -> dict[str, float]:
         if sel:
             out[f"ppf_adds_recall_{cls}"] = float(np.mean([r[3] < 0.1 for r in sel]))
     out["frame_time_over_ppf"] = out["frame_ms_p50"] / out["ppf_frame_ms_p50"]
+    out.update(distractors(recognisers["pcl"], 3 if quick else 12))
     return out
 
 
