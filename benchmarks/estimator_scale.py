@@ -22,8 +22,8 @@ exclude each estimator's first simulated minute (first placement of every camera
 whose worst update is reported on its own as ``warmup_update_ms_max``. ``--hours`` sets the
 simulated span; the hour windows shrink to half of it when it is shorter than two hours.
 
-``--arm``: one camera (``cam0``) on an arm that never stops, the others bumped in turn as above,
-and the daemon taking a moving camera's frames (``[estimator.keyframes] online``). The arm sweeps
+``--arm``: one camera (``cam0``) on an arm that never stops, the others bumped in turn as above;
+the daemon takes a moving camera's frames (``[estimator.keyframes] online``, its default). The arm sweeps
 10 cm and 5 deg about where it was installed (periods of 7, 9 and 11 s, so it never rests); its
 frames enter the graph ``lag_s`` after they were seen, and the newest ``max_live`` stay there.
 Reported: the frames that entered (``keyframes_entered``), the arm's position error at the end
@@ -43,7 +43,7 @@ from rich.progress import Progress
 from benchmarks.common import main
 from cellsight.synthetic import perturb
 from drivers.markers import PlaneFit, covariance_model
-from estimator.config import AnchorConfig, EstimatorConfig, KeyframeConfig
+from estimator.config import AnchorConfig, EstimatorConfig
 from estimator.graph import Estimator
 from estimator.observation import ObservationRows
 from schemas.codec import CameraInfo
@@ -279,12 +279,11 @@ def growth_exponent(sizes: list[int], values: list[float]) -> float:
 
 
 def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16, arm: bool = False) -> dict[str, float]:
-    """One cell of ``n_cams`` cameras and ``n_markers`` markers for ``hours`` simulated hours; with
-    ``arm``, ``cam0`` on an arm and the daemon taking its frames (``Arm``)."""
+    """One cell of ``n_cams`` cameras and ``n_markers`` markers for ``hours`` simulated hours, the
+    daemon's default estimator config; with ``arm``, ``cam0`` on an arm (``Arm``)."""
     markers, cams, anchors = ring_cell(n_cams, n_markers)
     cfg = EstimatorConfig(
-        anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors],
-        keyframes=KeyframeConfig(online=arm),
+        anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors]
     )
     base = tick_pools(markers, cams, np.random.default_rng(0))
     pools = dict(base)
@@ -375,7 +374,7 @@ def add_args(parser) -> None:
     parser.add_argument("--move-every", type=float, default=20.0, help="bump one camera, in turn, this often (simulated s; 0: a still cell)")
     parser.add_argument("--cameras", type=int, default=8, help="cameras on the ring (default 8)")
     parser.add_argument("--markers", type=int, default=16, help="markers on the ring (default 16; 4 are anchors)")
-    parser.add_argument("--arm", action="store_true", help="cam0 on an arm that never stops, its frames taken online (keyframes)")
+    parser.add_argument("--arm", action="store_true", help="cam0 on an arm that never stops (its frames join the graph)")
     parser.add_argument("--scan", action="store_true", help="a table over cameras 8..64 and markers up to 1,000 (--hours each, default 0.05)")
 
 
