@@ -98,9 +98,9 @@ def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] |
     (witness, branch) of those that agree with it (within ``AGREE_RAD`` and ``AGREE_M``); None
     unless two witnesses agree."""
     flat = implied.reshape(-1, 4, 4)
-    # (2K, 2K): does candidate pose c lie near witness branch j? All pairs at once (a camera on an arm
-    # places a frame every tick: a loop over candidates was most of its update's time).
-    # Two rotations are within AGREE_RAD when the trace of R_a^T R_b exceeds 1 + 2 cos(AGREE_RAD).
+    # (2K, 2K): does candidate pose c lie near witness branch j? All pairs at once: a camera on an arm
+    # places a frame almost every tick, with K up to 32. Two rotations are within AGREE_RAD when the
+    # trace of R_a^T R_b exceeds 1 + 2 cos(AGREE_RAD).
     trace = np.einsum("iab,jab->ij", flat[:, :3, :3], flat[:, :3, :3])
     close = (trace > 1.0 + 2.0 * np.cos(AGREE_RAD)) & (np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
     votes = close.reshape(len(flat), -1, 2).any(axis=2).sum(axis=1)  # witnesses with a branch near each candidate
