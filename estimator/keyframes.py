@@ -32,7 +32,7 @@ import numpy as np
 
 from estimator.config import KeyframeConfig
 from estimator.symbols import keyframe_symbol, marker_symbol
-from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_poses, rotation_angles
+from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_poses, rotation_angles, rotations_within
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
 AGREE_M = 0.05  # and this distance
@@ -99,10 +99,10 @@ def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] |
     unless two witnesses agree."""
     flat = implied.reshape(-1, 4, 4)
     # (2K, 2K): does candidate pose c lie near witness branch j? All pairs at once: a camera on an arm
-    # places a frame almost every tick, with K up to 32. Two rotations are within AGREE_RAD when the
-    # trace of R_a^T R_b exceeds 1 + 2 cos(AGREE_RAD).
-    trace = np.einsum("iab,jab->ij", flat[:, :3, :3], flat[:, :3, :3])
-    close = (trace > 1.0 + 2.0 * np.cos(AGREE_RAD)) & (np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
+    # places a frame almost every tick, with K up to 32.
+    R = flat[:, :3, :3]
+    close = rotations_within(R[:, None], R[None, :], AGREE_RAD) & (
+        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
     votes = close.reshape(len(flat), -1, 2).any(axis=2).sum(axis=1)  # witnesses with a branch near each candidate
     b = int(np.argmax(votes))  # the first of the most agreed
     if votes[b] < 2:

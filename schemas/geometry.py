@@ -81,6 +81,12 @@ def rotation_angles(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     return np.arctan2(s, c)
 
 
+def rotations_within(R_a: np.ndarray, R_b: np.ndarray, max_rad: float) -> np.ndarray:
+    """Whether R_a^T R_b turns by less than ``max_rad`` (< pi), over stacks (..., 3, 3), broadcast:
+    its trace above 1 + 2 cos(max_rad), without the angle itself (cheap on large pair tables)."""
+    return np.einsum("...ji,...ji->...", R_a, R_b) > 1.0 + 2.0 * np.cos(max_rad)
+
+
 def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (rad) of R_a^T R_b for two rotations (3, 3)."""
     return float(rotation_angles(np.asarray(R_a, np.float64), np.asarray(R_b, np.float64)))

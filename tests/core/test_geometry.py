@@ -143,3 +143,15 @@ def test_invert_poses_inverts_every_pose_of_a_stack() -> None:
     assert Ti.shape == T.shape
     np.testing.assert_allclose(T @ Ti, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)
     np.testing.assert_allclose(Ti[1, 2], geometry.invert_pose(T[1, 2]), atol=1e-15)
+
+
+def test_rotations_within_agrees_with_the_angle_over_a_stack() -> None:
+    """Random rotations against one: within a threshold exactly where ``rotation_angles`` says so
+    (away from the threshold itself, where the two differ only by rounding)."""
+    rng = np.random.default_rng(5)
+    R = np.stack([rpy_matrix(*rng.normal(scale=0.1, size=3)) for _ in range(200)])
+    angles = geometry.rotation_angles(R, R[0])
+    limit = np.radians(5.0)
+    clear = np.abs(angles - limit) > 1e-9
+    assert 20 < clear.sum() and 0 < (angles < limit).sum() < len(R)
+    np.testing.assert_array_equal(geometry.rotations_within(R, R[0], limit)[clear], (angles < limit)[clear])
