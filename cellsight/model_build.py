@@ -11,7 +11,7 @@ import numpy as np
 
 from drivers.sim.render import object_mesh
 from drivers.sim.scenario import Scenario
-from recognition.cloud import read_cloud
+from recognition.cloud import read_coloured_cloud
 from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh, model_from_points, read_mesh
@@ -25,10 +25,12 @@ VIEWS_PER_OBJECT = 42
 def database_from_scenario(
     scenario: Scenario, params: DescriptorConfig, progress: Callable[[], None] | None = None, distance_m: float = 2.0
 ) -> ModelDatabase:
-    """Every object of a scenario, rendered from its shape (box, cylinder, sphere or mesh file)."""
+    """Every object of a scenario, rendered from its shape (box, cylinder, sphere or mesh file), in
+    its colour."""
     db = ModelDatabase(params, {})
     for obj in scenario.objects:
-        db.add(model_from_mesh(obj.id, object_mesh(obj), params, distance_m=distance_m, progress=progress))
+        mesh = object_mesh(obj).paint_uniform_color(obj.color)
+        db.add(model_from_mesh(obj.id, mesh, params, distance_m=distance_m, progress=progress))
     return db
 
 
@@ -56,10 +58,12 @@ def build_database(
         db.add(model_from_mesh(oid, read_mesh(path).scale(scale, np.zeros(3)), params, distance_m=distance_m, progress=progress))
     for oid, path in (clouds or {}).items():
         _check_new(db, oid)
-        db.add(model_from_cloud(oid, read_cloud(path) * scale, params, progress=progress))
+        pts, rgb = read_coloured_cloud(path)
+        db.add(model_from_cloud(oid, pts * scale, params, colours=rgb, progress=progress))
     for oid, path in (points or {}).items():
         _check_new(db, oid)
-        db.add(model_from_points(oid, read_cloud(path) * scale, params, distance_m=distance_m, progress=progress))
+        pts, rgb = read_coloured_cloud(path)
+        db.add(model_from_points(oid, pts * scale, params, distance_m=distance_m, colours=rgb, progress=progress))
     if recordings and board is None:
         raise ModelError("a recording needs its marker board: give --board BOARD.toml")
     for oid, path in (recordings or {}).items():

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from cellsight.detect import pose_json
-from recognition.cloud import depth_to_cloud, read_cloud
+from recognition.cloud import depth_to_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
 from recognition.errors import CloudError
 from recognition.models import ModelDatabase
@@ -55,14 +55,15 @@ class RecognizeResult:
 
 
 def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx: float | None = None,
-               cy: float | None = None, scale: float | None = None) -> np.ndarray:
+               cy: float | None = None, scale: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """A camera-frame cloud (m) from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
-    (Kinect v1 defaults for any that are not given). ``scale``: metres per unit of the file
-    (default 1 for a cloud, 0.001 for a depth image in millimetres)."""
+    (Kinect v1 defaults for any that are not given), and its points' colours (uint8 rgb, the
+    cloud's layout) when the file has them. ``scale``: metres per unit of the file (default 1 for a
+    cloud, 0.001 for a depth image in millimetres)."""
     if scale is not None and not scale > 0:
         raise CloudError(f"scale {scale:g}: metres per unit of the scene must be positive")
     if scene.suffix.lower() in (".pcd", ".ply"):
-        cloud = read_cloud(scene, organised=scene.suffix.lower() == ".pcd")
+        cloud, rgb = read_coloured_cloud(scene, organised=scene.suffix.lower() == ".pcd")
         if scale is not None:
             cloud = cloud * np.float32(scale)
         pts = cloud.reshape(-1, 3)
@@ -71,7 +72,7 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
         if median > MAX_SCENE_RANGE_M:
             raise CloudError(f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
                              f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? give --scale 0.001")
-        return cloud
+        return cloud, rgb
     depth = cv2.imread(str(scene), cv2.IMREAD_UNCHANGED)
     if depth is None or depth.ndim != 2:
         raise CloudError(f"{scene}: not a PCD/PLY cloud nor a single-channel depth image")
@@ -79,10 +80,10 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
     for (r, c), v in (((0, 0), fx), ((1, 1), fy), ((0, 2), cx), ((1, 2), cy)):
         if v is not None:
             K[r, c] = v
-    return depth_to_cloud(depth, K, 0.001 if scale is None else scale)
+    return depth_to_cloud(depth, K, 0.001 if scale is None else scale), None
 
 
 def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, **intrinsics) -> RecognizeResult:
-    cloud = load_scene(scene, **intrinsics)
+    cloud, rgb = load_scene(scene, **intrinsics)
     finite = int(np.all(np.isfinite(cloud.reshape(-1, 3)), axis=1).sum())
-    return RecognizeResult(scene, finite, Recognizer(db, config).recognize(cloud))
+    return RecognizeResult(scene, finite, Recognizer(db, config).recognize(cloud, rgb=rgb))

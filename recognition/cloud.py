@@ -91,6 +91,12 @@ def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
     organised=True keeps a PCD's HEIGHT x WIDTH layout and its NaN points: (H, W, 3). Otherwise the
     finite points only: (N, 3).
     """
+    return read_coloured_cloud(path, organised=organised)[0]
+
+
+def read_coloured_cloud(path: str | Path, *, organised: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """``read_cloud``'s points and their colours, uint8 rgb of the same layout ((H, W, 3) or (N, 3)),
+    or None when the file has none."""
     path = Path(path)
     if not path.is_file():
         raise CloudError(f"cloud file {path} does not exist")
@@ -105,16 +111,24 @@ def read_cloud(path: str | Path, *, organised: bool = False) -> np.ndarray:
     if "positions" not in pcd.point or len(pcd.point.positions) == 0:
         raise CloudError(f"cloud file {path} holds no points (empty or not a point cloud)")
     pts = pcd.point.positions.numpy().astype(np.float32, copy=False)
+    rgb = _rgb8(pcd.point.colors.numpy()) if "colors" in pcd.point else None
     if not organised:
-        found = finite_points(pts)
-        if len(found) == 0:
+        finite = np.all(np.isfinite(pts), axis=1)
+        if not finite.any():
             raise CloudError(f"cloud file {path} holds no finite points")
-        return found
+        return pts[finite], None if rgb is None else rgb[finite]
     if path.suffix.lower() in (".ply", ".xyz"):
         width, height = len(pts), 1
     if width * height != len(pts):
         raise CloudError(f"cloud file {path}: WIDTH x HEIGHT = {width}x{height} but {len(pts)} points")
-    return pts.reshape(height, width, 3)
+    return pts.reshape(height, width, 3), None if rgb is None else rgb.reshape(height, width, 3)
+
+
+def _rgb8(colours: np.ndarray) -> np.ndarray:
+    """Open3D's colours as uint8 rgb: PCD files give uint8, PLY files float 0-1."""
+    if colours.dtype == np.uint8:
+        return colours
+    return np.clip(np.nan_to_num(colours.astype(np.float64)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
 #: PCD header lines in the order the format fixes, the ones our checks need.
@@ -169,10 +183,19 @@ def _pcd_size(path: Path) -> tuple[int, int]:
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """Centroid of the points in each voxel of side voxel_m (m). (N, 3) -> (M, 3) float32."""
+    return voxel_downsample_coloured(points, None, voxel_m)[0]
+
+
+def voxel_downsample_coloured(points: np.ndarray, colours: np.ndarray | None, voxel_m: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """``voxel_downsample``, and the mean colour of each voxel's points (colours (N, 3) rgb 0-1 ->
+    (M, 3) float32; None stays None)."""
     if voxel_m <= 0:
         raise CloudError(f"voxel size must be positive, got {voxel_m} m")
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    return np.asarray(pcd.voxel_down_sample(voxel_m).points, dtype=np.float32)
+    if colours is not None:
+        pcd.colors = o3d.utility.Vector3dVector(np.asarray(colours, dtype=np.float64))
+    down = pcd.voxel_down_sample(voxel_m)
+    return np.asarray(down.points, dtype=np.float32), np.asarray(down.colors, dtype=np.float32) if colours is not None else None
 
 
 @dataclass(frozen=True)

@@ -117,6 +117,17 @@ class RecognitionConfig(BaseModel):
         description="verification: share of the outline with measured depth; below it nothing shows the object ends "
         "there (simulated true detections: min 0.89; PCL's milk in its scene 0.84; a false milk in office1.pcd 0.48)",
     )
+    colour_tolerance: float = Field(
+        default=0.1, gt=0, le=1,
+        description="verification: largest rg-chromaticity distance (r, g over r + g + b) at which a scene pixel has the "
+        "model's colour (the demo's red can and a grey box: 0.40; sensor noise on the simulated objects: median 0.01)",
+    )
+    min_colour_agreement: float = Field(
+        default=0.3, ge=0, le=1,
+        description="verification, where frame and model have colour: share of the inlier pixels with the model's "
+        "colour (simulated true detections: min 0.49 of 462 on four layout seeds, edge pixels take the background's; "
+        "grey look-alikes fitted as the red can: max 0.01 of 24; 0: colour off)",
+    )
     max_penetration: float = Field(
         default=0.01, ge=0, le=1,
         description="verification: largest share of the visible model hidden by a removed support plane and over "

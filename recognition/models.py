@@ -28,7 +28,7 @@ import numpy as np
 import open3d as o3d
 from pydantic import ValidationError
 
-from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, finite_points, image_window, voxel_downsample
+from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, finite_points, image_window, voxel_downsample_coloured
 from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
@@ -62,13 +62,15 @@ class Views:
 
 @dataclass(frozen=True)
 class ObjectModel:
-    """One object: points, normals (M, 3) in its own frame, metres; its views; diameter (m)."""
+    """One object: points, normals (M, 3) in its own frame, metres; its views; diameter (m); the
+    points' colours (M, 3) rgb 0-1, when the source has them (verification then judges colour)."""
 
     object_id: str
     points: np.ndarray
     normals: np.ndarray
     views: Views
     source: str
+    colours: np.ndarray | None = None
 
     @cached_property
     def diameter_m(self) -> float:
@@ -107,6 +109,8 @@ class ModelDatabase:
             od.mkdir(exist_ok=True)
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(mdl.points.astype(np.float64)))
             pcd.normals = o3d.utility.Vector3dVector(mdl.normals.astype(np.float64))
+            if mdl.colours is not None:
+                pcd.colors = o3d.utility.Vector3dVector(mdl.colours.astype(np.float64))
             o3d.io.write_point_cloud(str(od / "model.ply"), pcd)
             v = mdl.views
             np.savez(od / "views.npz", vfh=v.vfh, roll=v.roll, centroid=v.centroid, view_T_object=v.view_T_object)
@@ -149,8 +153,9 @@ def _load_model(od: Path, oid: str) -> ObjectModel:
         if getattr(views, name).shape != shape or not np.all(np.isfinite(getattr(views, name))):
             raise ModelError(f"{od / 'views.npz'}: {name} should be finite with shape {shape}")
     meta = json.loads((od / "model.json").read_text()) if (od / "model.json").is_file() else {}
+    colours = np.asarray(pcd.colors, np.float32) if pcd.has_colors() else None
     return ObjectModel(oid, np.asarray(pcd.points, np.float32), np.asarray(pcd.normals, np.float32), views,
-                       str(meta.get("source", "")))
+                       str(meta.get("source", "")), colours)
 
 
 def sphere_viewpoints(subdivisions: int = 1) -> np.ndarray:
@@ -218,6 +223,7 @@ def model_from_mesh(
 
     Each view is a noise-free depth image from a virtual Kinect (default intrinsics) at distance_m,
     back-projected exactly as a live frame is, so model and scene descriptors are computed alike.
+    The mesh's vertex colours, if it has them, become the model's colours.
     """
     if len(mesh.triangles) == 0:
         raise ModelError(f"object {object_id!r}: the mesh has no triangles")
@@ -250,7 +256,8 @@ def model_from_mesh(
     sample = sample.voxel_down_sample(params.voxel_m)
     normals = np.asarray(sample.normals)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    return ObjectModel(object_id, np.asarray(sample.points, np.float32), normals.astype(np.float32), views, "mesh")
+    colours = np.asarray(sample.colors, np.float32) if mesh.has_vertex_colors() else None
+    return ObjectModel(object_id, np.asarray(sample.points, np.float32), normals.astype(np.float32), views, "mesh", colours)
 
 
 def model_from_cloud(
@@ -261,6 +268,7 @@ def model_from_cloud(
     viewpoint: np.ndarray | tuple = (0.0, 0.0, 0.0),
     distance_m: float = 1.0,
     subdivisions: int = 1,
+    colours: np.ndarray | None = None,
     progress: Callable[[], None] | None = None,
 ) -> ObjectModel:
     """A model from a point cloud (object frame = the cloud's frame, metres).
@@ -268,13 +276,14 @@ def model_from_cloud(
     The first view is the cloud as captured from ``viewpoint`` (a PCD's VIEWPOINT; the origin for a
     sensor capture). Further views come from sphere viewpoints through hidden-point removal, kept
     only when most of what they see faces them (a partial scan seen from behind is not a view).
+    colours: the points' rgb (N, 3) uint8, if the capture has them.
     """
-    pts = finite_points(points).astype(np.float64)
+    pts, colours = _finite(points, colours)
     if len(pts) < MIN_VIEW_POINTS:
         raise ModelError(f"object {object_id!r}: the cloud has {len(pts)} finite points, need {MIN_VIEW_POINTS}")
     check_size(object_id, pts)
     vp = np.asarray(viewpoint, dtype=np.float64)
-    model_pts = voxel_downsample(pts, params.voxel_m)
+    model_pts, model_colours = voxel_downsample_coloured(pts, colours, params.voxel_m)
     model_normals, _ = estimate_normals(model_pts, params.normal_radius_m, vp)
     ok = np.all(np.isfinite(model_normals), axis=1)
     model_pts, model_normals = model_pts[ok], model_normals[ok]
@@ -288,7 +297,7 @@ def model_from_cloud(
         yield from _hidden_point_views(pts, pts_normals, centre, distance_m, subdivisions)
 
     views = describe_views(seen(), params, progress)
-    return ObjectModel(object_id, model_pts, model_normals, views, "cloud")
+    return ObjectModel(object_id, model_pts, model_normals, views, "cloud", None if model_colours is None else model_colours[ok])
 
 
 def model_from_points(
@@ -298,22 +307,37 @@ def model_from_points(
     *,
     distance_m: float = 1.0,
     subdivisions: int = 1,
+    colours: np.ndarray | None = None,
     progress: Callable[[], None] | None = None,
 ) -> ObjectModel:
     """A model from points over an object's whole surface (object frame, metres), as model libraries
     ship them: views from sphere viewpoints through hidden-point removal, normals pointing away
-    from the points' centroid (right for convex shapes and most boxes and bottles)."""
-    pts = finite_points(points).astype(np.float64)
+    from the points' centroid (right for convex shapes and most boxes and bottles). colours: the
+    points' rgb (N, 3) uint8, if the file has them."""
+    pts, colours = _finite(points, colours)
     if len(pts) < MIN_VIEW_POINTS:
         raise ModelError(f"object {object_id!r}: the points have {len(pts)} finite ones, need {MIN_VIEW_POINTS}")
     check_size(object_id, pts)
     centre = pts.mean(axis=0)
-    model_pts = voxel_downsample(pts, params.voxel_m)
+    model_pts, model_colours = voxel_downsample_coloured(pts, colours, params.voxel_m)
     inward, _ = estimate_normals(model_pts, params.normal_radius_m, centre)  # faced to the centroid ...
     ok = np.all(np.isfinite(inward), axis=1)
     pts_inward, _ = estimate_normals(pts, params.normal_radius_m, centre)
     views = describe_views(_hidden_point_views(pts, -pts_inward, centre, distance_m, subdivisions), params, progress)
-    return ObjectModel(object_id, model_pts[ok], -inward[ok], views, "points")  # ... and turned outward
+    kept_colours = None if model_colours is None else model_colours[ok]
+    return ObjectModel(object_id, model_pts[ok], -inward[ok], views, "points", kept_colours)  # ... and turned outward
+
+
+def _finite(points: np.ndarray, colours: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The finite points (N, 3) float64 and their colours as rgb 0-1 (N, 3), or None."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(pts), axis=1)
+    if colours is None:
+        return pts[finite], None
+    rgb = np.asarray(colours).reshape(-1, 3)
+    if len(rgb) != len(pts):
+        raise ModelError(f"{len(rgb)} colours for {len(pts)} points: one rgb triple per point")
+    return pts[finite], rgb[finite].astype(np.float64) / 255.0
 
 
 def _hidden_point_views(pts: np.ndarray, normals: np.ndarray, centre: np.ndarray, distance_m: float, subdivisions: int):
@@ -346,7 +370,7 @@ def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
     context.set_forkserver_preload([__name__])  # takes effect when the server starts, on the first read
     with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
         try:
-            vertices, triangles = pool.submit(_mesh_arrays, str(path)).result()
+            vertices, triangles, colours = pool.submit(_mesh_arrays, str(path)).result()
         except BrokenProcessPool as exc:
             raise ModelError(f"mesh file {path} is damaged: Open3D's reader crashed on it") from exc
     if len(triangles) == 0:
@@ -355,11 +379,15 @@ def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
         raise ModelError(f"mesh file {path} has non-finite vertices")
     if triangles.min() < 0 or triangles.max() >= len(vertices):
         raise ModelError(f"mesh file {path} has faces indexing vertices that do not exist ({len(vertices)} vertices)")
-    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    if len(colours) == len(vertices):
+        mesh.vertex_colors = o3d.utility.Vector3dVector(colours)
+    return mesh
 
 
-def _mesh_arrays(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) float64 and triangles (T, 3) int32 of a mesh file (runs in read_mesh's child)."""
+def _mesh_arrays(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (V, 3) float64, triangles (T, 3) int32 and vertex colours (V, 3) rgb 0-1 (or (0, 3))
+    of a mesh file (runs in read_mesh's child)."""
     mesh = o3d.io.read_triangle_mesh(path)
-    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
+    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy(), np.asarray(mesh.vertex_colors).copy()
 

@@ -181,13 +181,14 @@ class Recognizer:
 
     def recognize(
         self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None,
-        view: DepthView | None = None,
+        view: DepthView | None = None, rgb: np.ndarray | None = None,
     ) -> list[Detection]:
         """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), at most one
         per object and one per cluster.
 
         world_T_camera (4, 4), when known, crops the scene to the configured workspace. view: the
-        cloud's ``DepthView``, when the caller has it (else built when a hypothesis is judged).
+        cloud's ``DepthView``, when the caller has it (else built when a hypothesis is judged, with
+        rgb: the points' colours, uint8, the cloud's layout, if the sensor sent them).
         """
         scene = self.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
@@ -257,7 +258,7 @@ class Recognizer:
         # contradicts never takes a part, and a pixel explains one object.
         candidates = sorted(candidates, key=lambda pd: _rank(pd[1]), reverse=True)
         # Judged only when it could be taken: most frames hold candidates for objects already found.
-        view = (view or DepthView.of(cloud)) if c.verify and candidates else None
+        view = (view or DepthView.of(cloud, rgb)) if c.verify and candidates else None
         found: dict[str, Detection] = {}
         cluster_found: dict[str, int | None] = {}  # object -> the cluster its part came from (None: a prior's)
         taken: set[int] = set()
@@ -277,11 +278,13 @@ class Recognizer:
                 seen = explained.support(v) if v is not None else 1.0
                 if v is not None and not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
                                           and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
-                                          and v.penetration <= c.max_penetration and explained.admit(v)):  # fmt: skip
+                                          and v.penetration <= c.max_penetration
+                                          and v.colour_agreement >= c.min_colour_agreement and explained.admit(v)):  # fmt: skip
                     log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
                               "pixels, %d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a "
-                              "support %.3f", det.object_id, v.fitness, seen, v.inliers, v.visible, v.violations,
-                              v.clutter, v.outline_seen, v.outline, v.penetration)  # fmt: skip
+                              "support %.3f, colour %.2f (of %d pixels)", det.object_id, v.fitness, seen, v.inliers,
+                              v.visible, v.violations, v.clutter, v.outline_seen, v.outline, v.penetration,
+                              v.colour_agreement, v.colour_judged)  # fmt: skip
                     continue
                 taken.add(p)
                 found[det.object_id] = det
@@ -317,7 +320,8 @@ class Recognizer:
         """A hypothesis judged against the frame's depth and the supports removed from it
         (``recognition.verify``)."""
         model, c = self.db.models[det.object_id], self.config
-        return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes)
+        return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes,
+                       model.colours, c.colour_tolerance)  # fmt: skip
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None

@@ -16,6 +16,12 @@ pixel with a measured depth d and is
 ``support`` = inliers / visible is how much of the visible model is actually seen; judged among
 accepted hypotheses (``Explained.support``), pixels an accepted object hides leave ``visible``.
 
+Colour, where both the frame and the model have it: within depth noise a box or a cylinder of
+about the model's size fits its surface (a can's 12 cm silhouette at a box's diagonal), but not its
+colour. ``colour_agreement`` is the share of the inlier pixels whose rg-chromaticity (r, g over
+r + g + b: brightness and shading divide out) lies within a tolerance of the model point's there;
+pixels too dark for a chromaticity are not judged.
+
 The outline: the ring of pixels just outside the model's silhouette (``OUTLINE_PX``). An object
 ends there: beyond it the sensor sees background, a support it stands on, or something in front.
 A ring pixel where the measured surface continues the model's own (it lies on the tangent plane of
@@ -51,6 +57,11 @@ SAME_SURFACE_DEG = 30.0
 #: Normals from depth differences this many pixels either side (a Kinect's depth noise at 2 m, ~7 mm,
 #: would swamp neighbouring pixels' 8 mm spacing).
 NORMAL_STEP_PX = 2
+#: Colours darker than this (r + g + b, each 0-1) have no usable chromaticity: 8-bit noise of a few
+#: levels would move it by more than the tolerance.
+MIN_BRIGHTNESS = 0.25
+#: Fewer judged pixels than this say nothing about colour (``Verdict.colour_agreement`` is then 1).
+MIN_COLOUR_PIXELS = 20
 
 
 @dataclass(frozen=True)
@@ -62,30 +73,48 @@ class DepthView:
     far: np.ndarray
     K: np.ndarray
     z: np.ndarray  # (H, W) the measured depth itself (m, NaN: none)
+    chroma: np.ndarray | None = None  # (H, W, 2) rg-chromaticity (NaN: too dark); None: no colour
 
     @classmethod
-    def of(cls, cloud: np.ndarray) -> "DepthView":
+    def of(cls, cloud: np.ndarray, rgb: np.ndarray | None = None) -> "DepthView":
         """From a camera-frame cloud: (H, W, 3) organised (every other row and column of its own
-        grid, with the K its points fit) or (N, 3), projected with ``VIRTUAL_K``."""
+        grid, with the K its points fit) or (N, 3), projected with ``VIRTUAL_K``.
+
+        rgb: the colour of each point, registered to the cloud ((H, W, 3) or (N, 3), uint8), if
+        the sensor sent it."""
         pts = np.asarray(cloud)
+        if rgb is not None and np.shape(rgb) != pts.shape:
+            raise ValueError(f"colour {np.shape(rgb)} does not match the cloud {pts.shape}: one rgb8 triple per point")
+        colour = None if rgb is None else np.asarray(rgb, np.float32) / 255.0
         if pts.ndim == 3 and min(pts.shape[:2]) == 1:  # a PCD with HEIGHT 1 is a list of points, not an image
             pts = pts.reshape(-1, 3)
+            colour = None if colour is None else colour.reshape(-1, 3)
         if pts.ndim == 3:  # every other row and column: the virtual camera's resolution
             grid = pts[::2, ::2].astype(np.float64)
             z = grid[..., 2].copy()
             z[~np.isfinite(z) | (z <= 0)] = np.nan
             K = _fit_intrinsics(grid)
+            if colour is not None:
+                colour = colour[::2, ::2]
         else:
             H, W = VIRTUAL_SIZE
             K = VIRTUAL_K
             pts = pts.astype(np.float64)
-            pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
+            finite = np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
+            pts = pts[finite]
             u, v, ok = _project(pts, K, (H, W))
             z = np.full(H * W, np.inf)
             np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
+            if colour is not None:  # each pixel's colour is its nearest point's
+                flat = (v * W + u)[ok]
+                nearest = np.flatnonzero(ok)[pts[ok, 2] == z[flat]]
+                grid_colour = np.full((H * W, 3), np.nan, np.float32)
+                grid_colour[(v * W + u)[nearest]] = colour[finite][nearest]
+                colour = grid_colour.reshape(H, W, 3)
             z = z.reshape(H, W)
             z[np.isinf(z)] = np.nan
-        return cls(_filter3(z, nearest=True), _filter3(z, nearest=False), K, z)
+        chroma = None if colour is None else chromaticity(colour)
+        return cls(_filter3(z, nearest=True), _filter3(z, nearest=False), K, z, chroma)
 
 
 @dataclass(frozen=True)
@@ -102,6 +131,8 @@ class Verdict:
     outline_continuing: int = 0  # ... where the model's surface goes on
     inside_support: int = 0  # visible pixels hidden by a support plane the model point lies behind
     hidden: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat indices of the occluded pixels
+    colour_judged: int = 0  # inlier pixels where both scene and model have a chromaticity
+    colour_agreeing: int = 0  # ... within the colour tolerance of each other
 
     @property
     def fitness(self) -> float:
@@ -122,19 +153,29 @@ class Verdict:
         return self.inside_support / max(self.visible, 1)
 
     @property
+    def colour_agreement(self) -> float:
+        """Share of the colour-judged inlier pixels whose colour is the model's (1 when fewer than
+        ``MIN_COLOUR_PIXELS`` could be judged: no colour, or too dark)."""
+        return self.colour_agreeing / self.colour_judged if self.colour_judged >= MIN_COLOUR_PIXELS else 1.0
+
+    @property
     def outline_seen(self) -> float:
         """Share of the outline with measured depth (1 when the silhouette has no ring in the image)."""
         return self.outline_measured / self.outline if self.outline else 1.0
 
 
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
-            tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None) -> Verdict:  # fmt: skip
+            tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None,
+            colours: np.ndarray | None = None, colour_tolerance: float = 0.1) -> Verdict:  # fmt: skip
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
     camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
 
     planes (P, 4): supports removed from the scene (a x + b y + c z + d = 0, normal towards the
     camera). An occluded model point hidden by a surface on one of them, and itself behind that
-    plane by more than ``tolerance_m``, would be inside the support: a pose no object can have."""
+    plane by more than ``tolerance_m``, would be inside the support: a pose no object can have.
+
+    colours (M, 3): the model points' rgb (0-1), judged against the view's colour where both have
+    one: agreeing within ``colour_tolerance`` (rg-chromaticity distance)."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
     p = points @ R.T + t
     n = normals @ R.T
@@ -143,16 +184,17 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     u, v, ok = _project(p, view.K, (H, W))
     keep = front & ok
     p, u, v = p[keep], u[keep], v[keep]
+    index = np.flatnonzero(keep)  # each kept point's row in the model
     # The model hides itself: only points near its nearest one on a coarse cell are seen.
     cell = (v // SELF_CELL_PX) * (W // SELF_CELL_PX + 1) + u // SELF_CELL_PX
     nearest = np.full(cell.max() + 1 if len(cell) else 0, np.inf)
     np.minimum.at(nearest, cell, p[:, 2])
     seen = p[:, 2] <= nearest[cell] + SELF_OCCLUSION_M
-    pix, zs = (v * W + u)[seen], p[seen, 2]
+    pix, zs, voter = (v * W + u)[seen], p[seen, 2], index[seen]
     order = np.lexsort((zs, pix))  # one vote per pixel: its nearest point
-    pix, zs = pix[order], zs[order]
+    pix, zs, voter = pix[order], zs[order], voter[order]
     first = np.r_[True, pix[1:] != pix[:-1]] if len(pix) else np.zeros(0, bool)
-    flat, z = pix[first], zs[first]
+    flat, z, voter = pix[first], zs[first], voter[first]
     near, far = view.near.reshape(-1)[flat], view.far.reshape(-1)[flat]
     tol = tolerance_m + noise_per_m2 * z**2
     measured = np.isfinite(near)
@@ -163,8 +205,25 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     if planes is not None and len(planes) and occluded.any():
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
+    judged = agreeing = 0
+    if colours is not None and view.chroma is not None:
+        scene = view.chroma.reshape(-1, 2)[flat[inlier]]
+        model = chromaticity(np.asarray(colours, np.float32)[voter[inlier]])
+        both = np.all(np.isfinite(scene) & np.isfinite(model), axis=1)
+        judged = int(both.sum())
+        agreeing = int((np.linalg.norm(scene[both] - model[both], axis=1) <= colour_tolerance).sum())
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline, inside,
-                   flat[occluded])
+                   flat[occluded], judged, agreeing)
+
+
+def chromaticity(rgb: np.ndarray) -> np.ndarray:
+    """rg-chromaticity (..., 2) of colours rgb (..., 3) in 0-1: r and g over r + g + b, which
+    shading and exposure scale alike. NaN where r + g + b is under ``MIN_BRIGHTNESS`` (or NaN)."""
+    total = rgb.sum(axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = rgb[..., :2] / total
+    out[~(total[..., 0] >= MIN_BRIGHTNESS)] = np.nan
+    return out.astype(np.float32)
 
 
 def _inside_support(view: DepthView, pixels: np.ndarray, z: np.ndarray, band: np.ndarray, planes: np.ndarray,

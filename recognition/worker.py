@@ -1,7 +1,8 @@
 """The recognition worker: depth frames and camera poses in, object poses in world coordinates out.
 
-Owns the zenoh side: a camera's depth, subscribed only while a frame of it is due (a driver
-builds images only for a subscriber, and the worker uses about one of each camera's 30 a second),
+Owns the zenoh side: a camera's depth and colour, subscribed only while a frame of it is due (a
+driver builds images only for a subscriber, and the worker uses about one of each camera's 30 a
+second; a depth frame waits up to ``COLOUR_WAIT_S`` for the colour of the same stamp),
 intrinsics, ``tf`` and camera states from the estimator, object-marker observations for priors;
 publishes ``objects``, ``objects/scene`` and the fused cloud on ``points``. Recognition itself is
 ``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``, and ``cross_checked`` holds
@@ -43,6 +44,9 @@ UNUSABLE_STATES = (m.CameraState.MOVING, m.CameraState.UNANCHORED)
 #: A camera pose that moved this far since a detection means the camera was moved: the detection is
 #: dropped rather than carried over (m, deg). Estimator refinements are millimetres.
 MOVED_M, MOVED_DEG = 0.05, 3.0
+#: How long a depth frame waits for the colour frame of its stamp before it is recognised without
+#: colour (s): a driver sends both within milliseconds; one without colour sends none.
+COLOUR_WAIT_S = 0.2
 #: Colours of the cameras' points in the fused cloud (RGBA), in camera-id order.
 CLOUD_COLOURS = np.array([[31, 119, 180, 255], [255, 127, 14, 255], [44, 160, 44, 255], [214, 39, 40, 255],
                           [148, 103, 189, 255], [140, 86, 75, 255], [227, 119, 194, 255], [188, 189, 34, 255]], np.uint8)
@@ -261,6 +265,7 @@ class RecognitionWorker:
         self.boxes = model_boxes(database)
         cell = bus.cell
         self._depth: dict[str, Subscription[m.RawImage]] = {}  # camera -> its depth, while a frame of it is due
+        self._colour: dict[str, Subscription[m.RawImage]] = {}  # ... and its colour, when verification judges colour
         self._info = bus.subscribe(keys.all_cameras(cell, "camera_info"), m.CameraCalibration, capacity=64, ring=True)
         self._tf = bus.subscribe(keys.tf(cell), m.FrameTransforms, capacity=16, ring=True)
         self._markers = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=256, ring=True)
@@ -275,6 +280,8 @@ class RecognitionWorker:
         self.world_T_camera: dict[str, np.ndarray] = {}
         self.camera_state: dict[str, int] = {}  # the estimator's latest CameraState.State per camera
         self.frames: dict[str, m.RawImage] = {}
+        self.colours: dict[str, m.RawImage] = {}  # camera -> its newest colour frame, while one is due
+        self._frame_since: dict[str, float] = {}  # camera -> when its first due depth frame arrived (monotonic s)
         self.marker_msgs: dict[str, m.MarkerObservations] = {}
         self.latest: dict[tuple[str, str], WorldDetection] = {}  # (camera, object) -> newest detection
         self.views: dict[str, CameraView] = {}  # camera -> its last recognised frame, judge of the others'
@@ -300,6 +307,10 @@ class RecognitionWorker:
         for camera_id, sub in self._depth.items():
             for item in sub.drain():
                 self.frames[camera_id] = item.msg
+                self._frame_since.setdefault(camera_id, time.monotonic())
+        for camera_id, sub in self._colour.items():
+            for item in sub.drain():
+                self.colours[camera_id] = item.msg
         for item in self._markers.drain():
             self.marker_msgs[item.msg.camera_id] = item.msg
 
@@ -321,15 +332,50 @@ class RecognitionWorker:
                 if c not in self.world_T_camera:
                     self._warn_once(f"unlocalized/{c}", f"{c}: waiting for the estimator to localize it")
                 if c in self._depth:
-                    self._depth.pop(c).close()
+                    self._close_frames(c)
                     self.frames.pop(c, None)
             elif c not in self._depth and now - self.last_run.get(c, -np.inf) >= 1.0 / self.config.rate_hz:
                 self._depth[c] = self.bus.subscribe(keys.depth(self.bus.cell, c), m.RawImage, capacity=1, ring=True)
+                if self.config.verify and self.config.min_colour_agreement > 0:
+                    self._colour[c] = self.bus.subscribe(keys.color(self.bus.cell, c), m.RawImage, capacity=1, ring=True)
+
+    def _close_frames(self, camera_id: str) -> None:
+        self._depth.pop(camera_id).close()
+        self._frame_since.pop(camera_id, None)
+        if camera_id in self._colour:
+            self._colour.pop(camera_id).close()
+        self.colours.pop(camera_id, None)
 
     def _next_camera(self) -> str | None:
-        """The camera with a due frame whose last run is oldest."""
-        ready = [c for c in self.frames if self.placed(c)]
+        """The camera with a due frame (and its colour, or waited ``COLOUR_WAIT_S`` for it) whose last
+        run is oldest."""
+        now = time.monotonic()
+        ready = [c for c in self.frames if self.placed(c) and (
+            c not in self._colour or self._colour_of(c) is not None or now - self._frame_since.get(c, now) >= COLOUR_WAIT_S)]  # fmt: skip
         return min(ready, key=lambda c: self.last_run.get(c, -np.inf)) if ready else None
+
+    def _colour_of(self, camera_id: str) -> m.RawImage | None:
+        """The colour frame of the waiting depth frame's stamp, if it came."""
+        colour, depth = self.colours.get(camera_id), self.frames.get(camera_id)
+        if colour is None or depth is None or codec.timestamp_to_stamp(colour.timestamp) != codec.timestamp_to_stamp(depth.timestamp):
+            return None
+        return colour
+
+    def _rgb(self, camera_id: str, msg: m.RawImage | None, shape: tuple[int, int]) -> np.ndarray | None:
+        """A colour frame as (H, W, 3) rgb8 of the depth's size (H, W), or None (none came, or it is
+        unusable: said once, and the frame is recognised on depth alone)."""
+        if msg is None:
+            return None
+        try:
+            if msg.encoding not in ("rgb8", "bgr8"):
+                raise DecodeError(f"colour encoding {msg.encoding!r}, expected rgb8 or bgr8")
+            rgb = codec.image_from_msg(msg)
+            if rgb.shape[:2] != shape:
+                raise DecodeError(f"colour is {rgb.shape[1]}x{rgb.shape[0]}, depth {shape[1]}x{shape[0]} (not registered to it)")
+        except DecodeError as exc:
+            self._warn_once(f"colour/{camera_id}", f"{camera_id}: recognising on depth alone: {exc}")
+            return None
+        return rgb[..., ::-1] if msg.encoding == "bgr8" else rgb
 
     def priors(self, camera_id: str, stamp_ns: int) -> list[Prior]:
         msg = self.marker_msgs.get(camera_id)
@@ -345,9 +391,10 @@ class RecognitionWorker:
 
     def process(self, camera_id: str) -> list[WorldDetection]:
         """Recognise the newest frame of one camera; remember and return its world-frame detections."""
+        colour = self._colour_of(camera_id)
         frame = self.frames.pop(camera_id)
         if camera_id in self._depth:  # the next frame is due a period from now
-            self._depth.pop(camera_id).close()
+            self._close_frames(camera_id)
         self.last_run[camera_id] = time.monotonic()
         stamp_ns = codec.timestamp_to_stamp(frame.timestamp)
         if frame.encoding != "16UC1":
@@ -357,16 +404,17 @@ class RecognitionWorker:
         if depth.shape != (info.height, info.width):
             raise DecodeError(f"{camera_id}: depth is {depth.shape[1]}x{depth.shape[0]} but camera_info says "
                               f"{info.width}x{info.height}")
+        rgb = self._rgb(camera_id, colour, depth.shape)
         world_T_camera = self.world_T_camera[camera_id]
         cloud = depth_to_cloud(depth, info.K, depth_scale=0.001)
         if self.config.cloud_voxel_m > 0:
             self.clouds[camera_id] = display_cloud(cloud, info.K[0, 0], self.config.cloud_voxel_m, self.config.max_range_m)
         # Kept to judge the other cameras' detections; without that check, the recogniser builds
         # one only for a frame with a hypothesis to verify.
-        view = DepthView.of(cloud) if self.config.min_cross_view_fitness > 0 else None
+        view = DepthView.of(cloud, rgb) if self.config.min_cross_view_fitness > 0 else None
         if view is not None:
             self.views[camera_id] = CameraView(camera_id, stamp_ns, view, world_T_camera)
-        found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view)
+        found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view, rgb)
         for key in [k for k in self.latest if k[0] == camera_id]:
             del self.latest[key]  # what this camera no longer sees is no longer reported by it
         out = [WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d, world_T_camera) for d in found]

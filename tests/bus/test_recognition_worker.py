@@ -132,6 +132,64 @@ def test_worker_publishes_world_poses_from_frames_and_tf(client_transport: Trans
     assert worker.current_detections() == []
 
 
+@pytest.mark.slow
+def test_the_worker_judges_colour_sent_with_the_depth(client_transport: TransportConfig, demo_database) -> None:
+    """The demo cell with its can painted grey: the same depth. A driver sending colour with each
+    depth frame (colour first, the same stamp, as ``drivers.service`` does): the worker pairs them
+    and the red can's model is turned down on the grey one; the crate and tote are published. The
+    same driver sending no colour, or colour of another size (not registered to the depth): the
+    worker recognises on depth alone, and the grey can is a `can` again."""
+    cfg, db = demo_database
+    red = load_scenario()
+    grey = red.model_copy(update={"objects": [o.model_copy(update={"color": (0.5, 0.5, 0.5)}) if o.id == "can" else o
+                                              for o in red.objects]})  # fmt: skip
+    frame = SimCell(grey).render("cam2", 1.0, 30)
+    got: list[m.ObjectDetections] = []
+    colour_msg = [codec.image_to_msg(frame.rgb, frame.stamp_ns, "cam2", "rgb8")]
+    with Bus(client_transport, CELL) as worker_bus, Bus(client_transport, CELL) as client:
+        worker = RecognitionWorker(worker_bus, cfg.recognition.model_copy(update={"rate_hz": 2.0}), db)
+        client.subscribe(keys.objects(CELL), m.ObjectDetections, callback=lambda r: got.append(r.msg))
+        stop, sensor_off = threading.Event(), threading.Event()
+        thread = threading.Thread(target=worker.run, args=(stop,))
+        colour_pub = client.publisher(keys.color(CELL, "cam2"), frames=True)
+        depth_pub = client.publisher(keys.depth(CELL, "cam2"), frames=True)
+        depth = codec.image_to_msg(frame.depth_mm, frame.stamp_ns, "cam2", "16UC1")
+
+        def sensor() -> None:
+            while not sensor_off.wait(1 / 30):
+                if colour_msg[0] is not None and colour_pub.wanted():
+                    colour_pub.put(colour_msg[0])
+                if depth_pub.wanted():
+                    depth_pub.put(depth)
+
+        feeder = threading.Thread(target=sensor)
+        thread.start()
+        feeder.start()
+
+        def published() -> list[str]:
+            got.clear()
+            wait_until(lambda: got, 20.0, "object detections")
+            return sorted(o.object_id for o in got[-1].objects)
+
+        try:
+            time.sleep(0.5)  # routes
+            client.publisher(keys.camera_info(CELL, "cam2")).put(frame.info.to_msg(frame.stamp_ns, "cam2"))
+            client.publisher(keys.tf(CELL)).put(codec.transforms_to_msg(frame.stamp_ns, [("world", "cam2", frame.world_T_camera)]))
+            with_colour = published()
+            colour_msg[0] = codec.image_to_msg(frame.rgb[:240], frame.stamp_ns, "cam2", "rgb8")  # not the depth's size
+            wait_until(lambda: "can" in published(), 20.0, "the can, on depth alone")
+            colour_msg[0] = None
+            without_colour = published()
+        finally:
+            sensor_off.set()
+            feeder.join()
+            stop.set()
+            thread.join()
+    assert with_colour == ["crate", "tote"]
+    assert without_colour == ["can", "crate", "tote"]
+    assert worker.errors == 0  # a colour frame of the wrong size costs the frame its colour, nothing more
+
+
 def check_cloud_lies_on_the_cell(msg: m.PointCloud, cell: SimCell, scenario, t_s: float) -> None:
     """The fused world cloud lies on the simulated geometry (static scene and objects at t_s)."""
     import open3d as o3d

@@ -201,13 +201,13 @@ def test_a_scene_in_millimetres_is_named_as_such(tmp_path: Path) -> None:
     """PCL's real milk scene written in millimetres: ``cellsight recognize`` says so instead of
     finding nothing; in metres (as PCL ships it) it loads."""
     scene = PCL / "milk_cartoon_all_small_clorox.pcd"
-    cloud = load_scene(scene)
+    cloud, _ = load_scene(scene)
     pts = cloud.reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     o3d.io.write_point_cloud(str(tmp_path / "mm.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts * 1000.0)))
     with pytest.raises(CloudError, match=r"mm.ply: its points lie [0-9.]+ from the camera.*millimetres\? give --scale 0.001"):
         load_scene(tmp_path / "mm.ply")
-    scaled = load_scene(tmp_path / "mm.ply", scale=0.001)  # what the error says to do
+    scaled, _ = load_scene(tmp_path / "mm.ply", scale=0.001)  # what the error says to do
     np.testing.assert_allclose(scaled, pts, atol=1e-6)
     with pytest.raises(CloudError, match="scale -1"):
         load_scene(scene, scale=-1.0)

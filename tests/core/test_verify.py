@@ -143,3 +143,39 @@ def test_a_pose_inside_the_support_plane_is_caught() -> None:
     resting = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.01]), TOL, NOISE, wall_plane)
     assert resting.inside_support == 0
     assert verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.05]), TOL, NOISE).inside_support == 0
+
+
+def test_colour_agrees_on_the_models_colour_and_not_on_another() -> None:
+    """A red wall and the patch on it: a red model agrees everywhere, a grey one (chromaticity 0.4
+    away) nowhere, and a red one in shade (a third of the brightness) still agrees; without the
+    frame's colour, or on a wall too dark for a chromaticity, colour says nothing (agreement 1)."""
+    points, normals = patch()
+    on = make_pose(t=[0.0, 0.0, 1.0])
+    red, grey = np.array([0.8, 0.2, 0.15]), np.array([0.5, 0.5, 0.5])
+    rgb = np.broadcast_to(np.uint8(red * 255), (480, 640, 3))
+    view = DepthView.of(wall(), rgb)
+
+    def agreement(colour: np.ndarray, v: DepthView = view) -> tuple[int, float]:
+        out = verdict(v, points, normals, on, TOL, NOISE, colours=np.tile(colour, (len(points), 1)))
+        return out.colour_judged, out.colour_agreement
+
+    judged, agree = agreement(red)
+    assert judged > 100 and agree == 1.0
+    assert agreement(grey) == (judged, 0.0)
+    assert agreement(red / 3) == (judged, 1.0)
+    assert agreement(grey, DepthView.of(wall())) == (0, 1.0)
+    assert agreement(grey, DepthView.of(wall(), np.full((480, 640, 3), 20, np.uint8))) == (0, 1.0)
+
+
+def test_an_unorganised_cloud_takes_each_pixels_colour_from_its_nearest_point() -> None:
+    """Two layers of points on the same rays, a red one at 1 m and a green one behind at 1.5 m: the
+    view's colour is the red layer's, as its depth is."""
+    near = wall(1.0).reshape(-1, 3)
+    cloud = np.concatenate([near * 1.5, near])
+    rgb = np.concatenate([np.tile(np.uint8([0, 200, 0]), (len(near), 1)), np.tile(np.uint8([200, 0, 0]), (len(near), 1))])
+    view = DepthView.of(cloud, rgb)
+    seen = np.isfinite(view.z)
+    assert seen.mean() > 0.9 and np.allclose(view.z[seen], 1.0, atol=1e-3)
+    np.testing.assert_allclose(view.chroma[seen], np.tile([1.0, 0.0], (int(seen.sum()), 1)), atol=1e-6)
+    with pytest.raises(ValueError, match="colour .* does not match the cloud"):
+        DepthView.of(cloud, rgb[:10])
