@@ -63,7 +63,8 @@ class Views:
 @dataclass(frozen=True)
 class ObjectModel:
     """One object: points, normals (M, 3) in its own frame, metres; its views; diameter (m); the
-    points' colours (M, 3) rgb 0-1, when the source has them (verification then judges colour)."""
+    points' colours (M, 3) rgb 0-1, when the source has them (verification then judges colour; black
+    is too dark to judge, so it also stands for a point whose colour no source saw)."""
 
     object_id: str
     points: np.ndarray

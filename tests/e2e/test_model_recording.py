@@ -47,6 +47,8 @@ def capture(tmp_path_factory) -> tuple[Path, BoardConfig, dict[int, np.ndarray]]
     w = LogWriter(path)
     for k in range(36):  # one turn, a frame every 10 deg
         f = cell.render(cam.id, k / 3.0, k)
+        if k % 2:  # half of the frames with their colour, as a recorder of a colour stream keeps them
+            w.write(keys.color(s.name, cam.id), codec.image_to_msg(f.rgb, f.stamp_ns, cam.id, "rgb8"), f.stamp_ns)
         w.write(keys.depth(s.name, cam.id), codec.image_to_msg(f.depth_mm, f.stamp_ns, cam.id, "16UC1"), f.stamp_ns)
         w.write(keys.camera_info(s.name, cam.id), f.info.to_msg(f.stamp_ns, cam.id), f.stamp_ns)
         found = detector.detect(f.rgb, f.info, f.depth_mm)
@@ -68,6 +70,13 @@ def test_each_frame_is_posed_by_the_board(capture) -> None:
         # Four 10 cm markers at ~1 m, Kabsch on their centres: a few mm, well under a degree.
         assert_pose_close(v.camera_T_object, truth[v.stamp_ns], pos_tol_m=0.01, rot_tol_deg=1.0, what=f"view at {v.stamp_ns}")
         assert len(v.points) > 500
+    # A frame's colour colours its points: the crate's blue (chromaticity (0.15, 0.33), shading aside).
+    coloured = [v for v in views if v.colours is not None]
+    assert 0 < len(coloured) < len(views)
+    for v in coloured:
+        assert v.colours.shape == v.points.shape
+        chroma = v.colours[:, :2] / np.maximum(v.colours.sum(axis=1, keepdims=True), 1)
+        assert np.median(np.linalg.norm(chroma - [0.2 / 1.35, 0.45 / 1.35], axis=1)) < 0.03
 
 
 def test_recorded_model_has_the_crates_shape_and_finds_it_in_the_demo_cell(capture) -> None:
@@ -75,6 +84,10 @@ def test_recorded_model_has_the_crates_shape_and_finds_it_in_the_demo_cell(captu
     cfg = demo_config().recognition
     model = model_from_recording("crate", path, board, cfg.descriptor)
     assert len(model.views) >= 30 and model.source == "recording"
+    # Half of the views were recorded with colour: the model is the crate's blue where they saw it.
+    chroma = model.colours[:, :2] / np.maximum(model.colours.sum(axis=1, keepdims=True), 1e-9)
+    lit = model.colours.sum(axis=1) > 0.25
+    assert lit.mean() > 0.8 and np.median(np.linalg.norm(chroma[lit] - [0.2 / 1.35, 0.45 / 1.35], axis=1)) < 0.03
     lo, hi = np.percentile(model.points, 1, axis=0), np.percentile(model.points, 99, axis=0)
     # The crate is 0.24 x 0.18 x 0.14 m on the board's origin; 1 cm voxels and Kinect noise at 1 m.
     np.testing.assert_allclose(hi - lo, [0.24, 0.18, 0.14], atol=0.02)
