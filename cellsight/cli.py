@@ -527,6 +527,7 @@ def model_build(
 def recognize_cmd(
     models: Annotated[Path, typer.Option("--models", help="model database folder (cellsight model build)")],
     scene: Annotated[Path, typer.Option("--scene", help="scene: PCD/PLY cloud (m), or 16-bit depth image (mm); see --scale")],
+    rgb: Annotated[Optional[Path], typer.Option("--rgb", help="colour image registered to a depth image scene (same size): verification then judges colour")] = None,
     fx: Annotated[Optional[float], typer.Option(help="depth image focal length x, px (default Kinect v1)")] = None,
     fy: Annotated[Optional[float], typer.Option(help="depth image focal length y, px")] = None,
     cx: Annotated[Optional[float], typer.Option(help="depth image principal point x, px")] = None,
@@ -545,7 +546,7 @@ def recognize_cmd(
     cfg = _load(cell_config)
     db = ModelDatabase.load(models)
     result = recognize_file(scene, db, cfg.recognition.model_copy(update={"descriptor": db.descriptor}),
-                            fx=fx, fy=fy, cx=cx, cy=cy, scale=scale)
+                            fx=fx, fy=fy, cx=cx, cy=cy, scale=scale, rgb=rgb)
     typer.echo(result.to_json() if as_json else result.to_text())
     if not result.detections:
         raise typer.Exit(1)

@@ -55,15 +55,18 @@ class RecognizeResult:
 
 
 def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx: float | None = None,
-               cy: float | None = None, scale: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+               cy: float | None = None, scale: float | None = None, rgb: Path | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """A camera-frame cloud (m) from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
     (Kinect v1 defaults for any that are not given), and its points' colours (uint8 rgb, the
-    cloud's layout) when the file has them. ``scale``: metres per unit of the file (default 1 for a
-    cloud, 0.001 for a depth image in millimetres)."""
+    cloud's layout) when the file has them, or from ``rgb``: a colour image registered to the depth
+    image (the same size). ``scale``: metres per unit of the file (default 1 for a cloud, 0.001 for
+    a depth image in millimetres)."""
     if scale is not None and not scale > 0:
         raise CloudError(f"scale {scale:g}: metres per unit of the scene must be positive")
     if scene.suffix.lower() in (".pcd", ".ply"):
-        cloud, rgb = read_coloured_cloud(scene, organised=scene.suffix.lower() == ".pcd")
+        if rgb is not None:
+            raise CloudError(f"{scene}: a cloud file carries its own colours; --rgb goes with a depth image")
+        cloud, colours = read_coloured_cloud(scene, organised=scene.suffix.lower() == ".pcd")
         if scale is not None:
             cloud = cloud * np.float32(scale)
         pts = cloud.reshape(-1, 3)
@@ -72,15 +75,24 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
         if median > MAX_SCENE_RANGE_M:
             raise CloudError(f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
                              f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? give --scale 0.001")
-        return cloud, rgb
+        return cloud, colours
     depth = cv2.imread(str(scene), cv2.IMREAD_UNCHANGED)
     if depth is None or depth.ndim != 2:
         raise CloudError(f"{scene}: not a PCD/PLY cloud nor a single-channel depth image")
+    colours = None
+    if rgb is not None:
+        bgr = cv2.imread(str(rgb), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise CloudError(f"{rgb}: not a colour image (PNG, JPEG)")
+        if bgr.shape[:2] != depth.shape:
+            raise CloudError(f"{rgb} is {bgr.shape[1]}x{bgr.shape[0]} but the depth image {scene} is "
+                             f"{depth.shape[1]}x{depth.shape[0]}: the colour must be registered to the depth")
+        colours = np.ascontiguousarray(bgr[..., ::-1])
     K = CameraInfo.kinect_v1(depth.shape[1], depth.shape[0]).K
     for (r, c), v in (((0, 0), fx), ((1, 1), fy), ((0, 2), cx), ((1, 2), cy)):
         if v is not None:
             K[r, c] = v
-    return depth_to_cloud(depth, K, 0.001 if scale is None else scale), None
+    return depth_to_cloud(depth, K, 0.001 if scale is None else scale), colours
 
 
 def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, **intrinsics) -> RecognizeResult:

@@ -13,6 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
@@ -27,7 +28,7 @@ from drivers.errors import ScenarioError
 from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
 from estimator.errors import StateFileError
 from estimator.state import SavedMarker, load_state, save_state
-from recognition.cloud import read_cloud
+from recognition.cloud import read_cloud, read_coloured_cloud
 from recognition.errors import CloudError, ModelError
 from recognition.config import DescriptorConfig
 from recognition.models import model_from_cloud, model_from_mesh, model_from_points, read_mesh
@@ -127,8 +128,9 @@ def test_a_damaged_pcd_header_is_named(tmp_path: Path, edit: tuple[str, str], wh
 FUZZ_CLOUDS = """
 import sys
 from pathlib import Path
+import cv2
 import numpy as np
-from recognition.cloud import read_cloud
+from recognition.cloud import read_cloud, read_coloured_cloud
 from recognition.errors import CloudError, ModelError
 from recognition.models import read_mesh
 src, out = Path(sys.argv[1]), Path(sys.argv[2])
@@ -213,6 +215,25 @@ def test_a_scene_in_millimetres_is_named_as_such(tmp_path: Path) -> None:
         load_scene(scene, scale=-1.0)
 
 
+def test_a_depth_image_takes_its_colour_from_the_registered_colour_image(tmp_path: Path) -> None:
+    """PCL's grabber frames as TIFF depth + RGB (``cellsight recognize --scene D --rgb C``) give the
+    colours PCL's grabber put in the PCD it built from them; a colour image of another size, or
+    colour given to a cloud that has its own, is an error naming both."""
+    tiff = PCL / "grabber_sequences" / "tiff"
+    frame = "frame_20121214T142255.814212"
+    cloud, rgb = load_scene(tiff / f"{frame}_depth.tiff", fx=525.0, fy=525.0, cx=320.0, cy=240.0, rgb=tiff / f"{frame}_rgb.tiff")
+    pcl_points, pcl_rgb = read_coloured_cloud(PCL / "grabber_sequences" / "pcd" / f"{frame}.pcd", organised=True)
+    finite = np.all(np.isfinite(pcl_points), axis=2)
+    assert finite.mean() > 0.5 and rgb.shape == pcl_rgb.shape
+    np.testing.assert_array_equal(rgb[finite], pcl_rgb[finite])
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((240, 320, 3), np.uint8))
+    with pytest.raises(CloudError, match=r"small.png is 320x240 but the depth image .* is 640x480"):
+        load_scene(tiff / f"{frame}_depth.tiff", rgb=small)
+    with pytest.raises(CloudError, match="carries its own colours"):
+        load_scene(PCL / "milk_cartoon_all_small_clorox.pcd", rgb=small)
+
+
 def test_model_files_in_millimetres_build_with_their_scale(tmp_path: Path) -> None:
     """The millimetre box of the test above, as a points file and a mesh file: with ``scale`` 0.001
     (``cellsight model build --scale``) each builds the model the metre files build."""
@@ -255,7 +276,7 @@ CLI_TEMPLATES = [
     ["config", "check", "P"],
     ["config", "show", "P"],
     ["markers", "detect", "P", "--size", "N", "--dict", "S", "--camera-info", "P", "--depth", "P", "--json"],
-    ["recognize", "--models", "P", "--scene", "P", "--fx", "N", "--cy", "N"],
+    ["recognize", "--models", "P", "--scene", "P", "--fx", "N", "--cy", "N", "--rgb", "P"],
     ["model", "build", "--out", "OUT", "--cloud", "S=P", "--mesh", "S=P", "--distance", "N"],
     ["resolve", "P", "--out", "OUT"],
     ["compare", "P", "P"],
