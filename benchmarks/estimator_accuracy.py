@@ -361,8 +361,8 @@ def option_paired(option: str, s: Scenario, seeds: list[int], seconds: float,
         out[f"{p}_{c.id}_sigma_over_plain"] = float(np.mean(sigma[option][c.id]) / np.mean(sigma["plain"][c.id]))
     out[f"{p}_over_plain_max"] = max(out[f"{p}_{c.id}_pos_mm"] / out[f"{p}_plain_{c.id}_pos_mm"] for c in s.cameras)
     out[f"{p}_over_plain_seed_max"] = max(max(np.divide(err[option][c.id], err["plain"][c.id])) for c in s.cameras)
-    out[f"{p}_seed_cost_over_sigma_max"] = max(max((np.subtract(err[option][c.id], err["plain"][c.id]) * 1000)
-                                                   / np.array(sigma["plain"][c.id])) for c in s.cameras)  # fmt: skip
+    out[f"{p}_seed_cost_over_sigma_max"] = max(max(np.subtract(err[option][c.id], err["plain"][c.id]) / sigma["plain"][c.id])
+                                               for c in s.cameras)  # both in mm  # fmt: skip
     out[f"{p}_sigma_over_plain_max"] = max(out[f"{p}_{c.id}_sigma_over_plain"] for c in s.cameras)
     return out
 
