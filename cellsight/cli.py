@@ -519,7 +519,8 @@ def model_build(
                             board=board_cfg, distance_m=distance, scale=scale, progress=lambda: bar.advance(task))
     db.save(out)
     for oid, mdl in sorted(db.models.items()):
-        typer.echo(f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source})")
+        colour = "in colour" if mdl.colours is not None else "no colour: verified on depth alone"
+        typer.echo(f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source}, {colour})")
     typer.echo(f"wrote {out}/")
 
 
