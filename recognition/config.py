@@ -119,14 +119,15 @@ class RecognitionConfig(BaseModel):
     )
     colour_tolerance: float = Field(
         default=0.1, gt=0, le=1,
-        description="verification: largest rg-chromaticity distance (r, g over r + g + b) at which a scene pixel has the "
-        "model's colour (the demo's red can and a grey box: 0.40; sensor noise on the simulated objects: median 0.01)",
+        description="verification: a scene pixel has the model's colour when its rg-chromaticity (r, g over r + g + b) "
+        "is within this, in r and in g, of the colours the model has within 1 cm of the point there (the demo's red can "
+        "against a grey box: 0.36 in r; sensor noise on the simulated objects: median 0.01)",
     )
     min_colour_agreement: float = Field(
         default=0.3, ge=0, le=1,
         description="verification, where frame and model have colour: share of the inlier pixels with the model's "
         "colour (simulated true detections: min 0.49 of 462 on four layout seeds, edge pixels take the background's; "
-        "grey look-alikes fitted as the red can: max 0.01 of 24; 0: colour off)",
+        "grey look-alikes fitted as the red can: max 0.02 of 24; 0: colour off)",
     )
     max_penetration: float = Field(
         default=0.01, ge=0, le=1,

@@ -32,6 +32,7 @@ from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, fin
 from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
+from recognition.verify import chroma_ranges
 from recognition.vfh import ROLL_BINS, SIZE
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, make_pose
@@ -72,6 +73,11 @@ class ObjectModel:
     views: Views
     source: str
     colours: np.ndarray | None = None
+
+    @cached_property
+    def chroma_range(self) -> np.ndarray | None:
+        """Each point's colours as verification judges them (``recognition.verify.chroma_ranges``), (M, 4)."""
+        return None if self.colours is None else chroma_ranges(self.points, self.colours)
 
     @cached_property
     def diameter_m(self) -> float:

@@ -321,7 +321,7 @@ class Recognizer:
         (``recognition.verify``)."""
         model, c = self.db.models[det.object_id], self.config
         return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes,
-                       model.colours, c.colour_tolerance)  # fmt: skip
+                       model.chroma_range, c.colour_tolerance)  # fmt: skip
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None

@@ -19,8 +19,9 @@ accepted hypotheses (``Explained.support``), pixels an accepted object hides lea
 Colour, where both the frame and the model have it: within depth noise a box or a cylinder of
 about the model's size fits its surface (a can's 12 cm silhouette at a box's diagonal), but not its
 colour. ``colour_agreement`` is the share of the inlier pixels whose rg-chromaticity (r, g over
-r + g + b: brightness and shading divide out) lies within a tolerance of the model point's there;
-pixels too dark for a chromaticity are not judged.
+r + g + b: brightness and shading divide out) lies within a tolerance of the colours of the model
+around the point there (``chroma_ranges``: a pose a few millimetres off puts the other side of a
+printed edge on the pixel); pixels too dark for a chromaticity are not judged.
 
 The outline: the ring of pixels just outside the model's silhouette (``OUTLINE_PX``). An object
 ends there: beyond it the sensor sees background, a support it stands on, or something in front.
@@ -42,6 +43,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from recognition.cloud import radius_neighbours
+
 #: The virtual camera unorganised clouds are projected with: a 640x480 Kinect's intrinsics at half
 #: resolution (a pixel is ~4 mm at 1 m). Organised clouds keep their own grid.
 VIRTUAL_K = np.array([[262.5, 0.0, 159.75], [0.0, 262.5, 119.75], [0.0, 0.0, 1.0]])
@@ -62,6 +65,9 @@ NORMAL_STEP_PX = 2
 MIN_BRIGHTNESS = 0.25
 #: Fewer judged pixels than this say nothing about colour (``Verdict.colour_agreement`` is then 1).
 MIN_COLOUR_PIXELS = 20
+#: A model point's colour is every colour of the model within this of it (m): poses are a few mm
+#: off, and on a printed surface that moves a pixel across an edge of the print.
+COLOUR_RADIUS_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -166,7 +172,7 @@ class Verdict:
 
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
             tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None,
-            colours: np.ndarray | None = None, colour_tolerance: float = 0.1) -> Verdict:  # fmt: skip
+            chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1) -> Verdict:  # fmt: skip
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
     camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
 
@@ -174,8 +180,9 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     camera). An occluded model point hidden by a surface on one of them, and itself behind that
     plane by more than ``tolerance_m``, would be inside the support: a pose no object can have.
 
-    colours (M, 3): the model points' rgb (0-1), judged against the view's colour where both have
-    one: agreeing within ``colour_tolerance`` (rg-chromaticity distance)."""
+    chroma_range (M, 4): each model point's colours (``chroma_ranges``), judged against the view's
+    colour where both have one: agreeing when its chromaticity is within ``colour_tolerance`` of
+    the range in r and in g."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
     p = points @ R.T + t
     n = normals @ R.T
@@ -206,14 +213,28 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
     judged = agreeing = 0
-    if colours is not None and view.chroma is not None:
+    if chroma_range is not None and view.chroma is not None:
         scene = view.chroma.reshape(-1, 2)[flat[inlier]]
-        model = chromaticity(np.asarray(colours, np.float32)[voter[inlier]])
-        both = np.all(np.isfinite(scene) & np.isfinite(model), axis=1)
+        lo, hi = chroma_range[voter[inlier], :2], chroma_range[voter[inlier], 2:]
+        both = np.all(np.isfinite(scene), axis=1) & np.all(np.isfinite(lo), axis=1)
         judged = int(both.sum())
-        agreeing = int((np.linalg.norm(scene[both] - model[both], axis=1) <= colour_tolerance).sum())
+        with np.errstate(invalid="ignore"):
+            agreeing = int((np.all((scene >= lo - colour_tolerance) & (scene <= hi + colour_tolerance), axis=1) & both).sum())
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), flat[inlier], *outline, inside,
                    flat[occluded], judged, agreeing)
+
+
+def chroma_ranges(points: np.ndarray, colours: np.ndarray, radius_m: float = COLOUR_RADIUS_M) -> np.ndarray:
+    """Each model point's colours: the box [r_min, g_min, r_max, g_max] (M, 4) of the
+    chromaticities of the model points (M, 3, m) within radius_m of it, colours (M, 3) rgb 0-1
+    (NaN where none of them is bright enough to have one)."""
+    chroma = chromaticity(np.asarray(colours, np.float32)).astype(np.float64)
+    near = radius_neighbours(points, radius_m)
+    starts = near.splits[:-1]  # every point is its own neighbour: no segment is empty
+    with np.errstate(invalid="ignore"):
+        lo = np.fmin.reduceat(chroma[near.index], starts, axis=0)  # fmin: NaN only where all are
+        hi = np.fmax.reduceat(chroma[near.index], starts, axis=0)
+    return np.concatenate([lo, hi], axis=1)
 
 
 def chromaticity(rgb: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ from recognition.cloud import depth_to_cloud, finite_points, read_cloud, read_co
 from recognition.config import RecognitionConfig
 from recognition.models import ModelDatabase, model_from_cloud
 from recognition.pipeline import Recognizer
-from recognition.verify import DepthView, Explained, verdict
+from recognition.verify import DepthView, Explained, chroma_ranges, verdict
 from schemas.geometry import make_pose
 from tests.conftest import SHARED_DATA
 
@@ -118,7 +118,7 @@ def test_the_milk_in_its_colour_is_found_on_the_real_frames_colour_and_in_anothe
     scene, scene_rgb = read_coloured_cloud(PCL / "milk_cartoon_all_small_clorox.pcd", organised=True)
     view = DepthView.of(scene, scene_rgb)
     milk = model_from_cloud("milk", points, cfg.descriptor, colours=rgb)
-    judged = verdict(view, milk.points, milk.normals, np.eye(4), TOL, NOISE, colours=milk.colours)  # its true pose
+    judged = verdict(view, milk.points, milk.normals, np.eye(4), TOL, NOISE, chroma_range=milk.chroma_range)  # its true pose
     assert judged.colour_judged > 500 and judged.colour_agreement > 0.8
     red = replace(milk, colours=np.broadcast_to(np.float32([0.8, 0.15, 0.1]), milk.colours.shape))
     for model, found in ((milk, ["milk"]), (red, [])):
@@ -176,7 +176,7 @@ def test_colour_agrees_on_the_models_colour_and_not_on_another() -> None:
     view = DepthView.of(wall(), rgb)
 
     def agreement(colour: np.ndarray, v: DepthView = view) -> tuple[int, float]:
-        out = verdict(v, points, normals, on, TOL, NOISE, colours=np.tile(colour, (len(points), 1)))
+        out = verdict(v, points, normals, on, TOL, NOISE, chroma_range=chroma_ranges(points, np.tile(colour, (len(points), 1))))
         return out.colour_judged, out.colour_agreement
 
     judged, agree = agreement(red)
@@ -185,6 +185,28 @@ def test_colour_agrees_on_the_models_colour_and_not_on_another() -> None:
     assert agreement(red / 3) == (judged, 1.0)
     assert agreement(grey, DepthView.of(wall())) == (0, 1.0)
     assert agreement(grey, DepthView.of(wall(), np.full((480, 640, 3), 20, np.uint8))) == (0, 1.0)
+
+
+def test_a_printed_surface_agrees_with_its_model_a_few_millimetres_off() -> None:
+    """A wall printed in 2 cm red and green stripes and its patch posed 6 mm off across them: a
+    third of its pixels see the other stripe than the model point there, yet every one is a colour
+    the model has within 1 cm of that point. The same patch printed blue and yellow agrees nowhere."""
+    stripes = lambda x, a, b: np.where(np.floor(x / 0.02) % 2 == 0, a, b)  # noqa: E731
+    cloud = wall()
+    red, green, blue, yellow = (np.array(c) for c in ([0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8], [0.8, 0.8, 0.1]))
+    rgb = (255 * stripes(cloud[..., :1], red, green)).astype(np.uint8)
+    view = DepthView.of(cloud, rgb)
+    points, normals = patch()
+    off = make_pose(t=[0.006, 0.0, 1.0])  # the true pose is t = (0, 0, 1): 6 mm off across the stripes
+    for a, b, agrees in ((red, green, True), (blue, yellow, False)):
+        colours = stripes(points[:, :1], a, b)  # the print on the object; the wall is it at the true pose
+        v = verdict(view, points, normals, off, TOL, NOISE, chroma_range=chroma_ranges(points, colours))
+        pointwise = verdict(view, points, normals, off, TOL, NOISE, chroma_range=chroma_ranges(points, colours, radius_m=1e-4))
+        assert v.colour_judged > 100
+        if agrees:
+            assert v.colour_agreement > 0.95 and pointwise.colour_agreement < 0.8
+        else:
+            assert v.colour_agreement == 0.0
 
 
 def test_an_unorganised_cloud_takes_each_pixels_colour_from_its_nearest_point() -> None:
