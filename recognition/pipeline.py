@@ -149,12 +149,10 @@ class Recognizer:
         # of every accepted hypothesis.
         self._model_index = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
 
-    def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
-        """Finite points within range (and the workspace, when the camera pose is known), downsampled,
-        off the dominant planes, with normals."""
-        c, d = self.config, self.config.descriptor
-        empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                           PointGraph.empty(c.cluster_tolerance_m))
+    def workspace_points(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> np.ndarray:
+        """The cloud's finite points within range, and within the workspace when the camera pose is
+        known: (N, 3) float32, camera frame."""
+        c = self.config
         pts = np.asarray(cloud, dtype=np.float32).reshape(-1, 3)
         # A 640x480 frame is 307k points and this runs on every frame: the workspace (which drops
         # most of them) in one OpenCV pass each for the transform and the box, then the range.
@@ -163,7 +161,15 @@ class Recognizer:
             world = cv2.transform(pts.reshape(-1, 1, 3), np.asarray(world_T_camera, np.float64)[:3])
             inside = cv2.inRange(world, np.array(c.workspace_min, np.float64), np.array(c.workspace_max, np.float64))
             pts = pts[inside.reshape(-1).view(bool)]
-        pts = pts[np.einsum("ij,ij->i", pts, pts) <= np.float32(c.max_range_m**2)]
+        return pts[np.einsum("ij,ij->i", pts, pts) <= np.float32(c.max_range_m**2)]
+
+    def prepare(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> SceneCloud:
+        """Finite points within range (and the workspace, when the camera pose is known), downsampled,
+        off the dominant planes, with normals."""
+        c, d = self.config, self.config.descriptor
+        empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                           PointGraph.empty(c.cluster_tolerance_m))
+        pts = self.workspace_points(cloud, world_T_camera)
         if len(pts) == 0:
             return empty
         pts = voxel_downsample(pts, d.voxel_m)

@@ -5,8 +5,9 @@ driver builds images only for a subscriber, and the worker uses about one of eac
 second; a depth frame waits up to ``COLOUR_WAIT_S`` for the colour of the same stamp),
 intrinsics, ``tf`` and camera states from the estimator, object-marker observations for priors;
 publishes ``objects``, ``objects/scene`` and the fused cloud on ``points``. Recognition itself is
-``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``, and ``cross_checked`` holds
-back a fused object another camera's frame saw through. A camera is used once the estimator has
+``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``, ``cross_checked`` holds
+back a fused object another camera's frame saw through, and ``refined_in_cloud`` fits each fused
+object to every camera's points around it. A camera is used once the estimator has
 localized it (detections are only useful in world frame), and its detections are dropped while the
 estimator says it is moving or unanchored.
 """
@@ -20,7 +21,9 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
+import open3d as o3d
 
+from recognition.align import facing_camera, icp_pass
 from recognition.config import RecognitionConfig
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Prior, Recognizer
@@ -44,6 +47,18 @@ UNUSABLE_STATES = (m.CameraState.MOVING, m.CameraState.UNANCHORED)
 #: A camera pose that moved this far since a detection means the camera was moved: the detection is
 #: dropped rather than carried over (m, deg). Estimator refinements are millimetres.
 MOVED_M, MOVED_DEG = 0.05, 3.0
+#: Voxel of the cameras' points fused objects are refined in (m): recognition's own 1 cm leaves an
+#: object's side near the table with fewer points than the table, which then pulls the object into it.
+REFINE_VOXEL_M = 0.005
+#: Neighbours (at most) a point's normal is fitted to in that refinement.
+NORMAL_NEIGHBOURS = 30
+#: Between refinements (``RecognitionConfig.refine_period_s``) an object keeps its last refined pose
+#: while its fused pose stays within this of the one refined (m, deg).
+REFINED_HOLD_M, REFINED_HOLD_DEG = 0.005, 2.0
+#: A fused object's refinement in the cameras' points (``refined_in_cloud``) that moves it further than
+#: this (m), or tilts it by more than this (deg: turns the world's up in the object's frame; a turn
+#: about the up, as an object on a table takes, is free) slid off: the fused pose stands.
+REFINE_MAX_SHIFT_M, REFINE_MAX_TILT_DEG = 0.02, 3.0
 #: How long a depth frame waits for the colour frame of its stamp before it is recognised without
 #: colour (s): a driver sends both within milliseconds; one without colour sends none.
 COLOUR_WAIT_S = 0.2
@@ -155,6 +170,57 @@ def cross_checked(detections: list[WorldDetection], views: list[CameraView], jud
         left = [d for d in left if (d.camera_id, d.detection.object_id) not in wrong]
 
 
+@dataclass(frozen=True)
+class CameraPoints:
+    """One camera's last recognised frame: its points in the workspace, one per ``REFINE_VOXEL_M``
+    voxel, (N, 3), camera frame, and the world pose (4, 4) it was taken from."""
+
+    camera_id: str
+    stamp_ns: int
+    points: np.ndarray
+    world_T_camera: np.ndarray
+
+
+def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], models: ModelDatabase, distance_m: float,
+                     normal_radius_m: float, min_fitness: float) -> list[FusedObject]:  # fmt: skip
+    """Each fused object fitted (point-to-plane ICP at distance_m, m) to every camera's points around
+    it, in world frame: what one camera sees of it, the others complete, so the pose is held on all
+    its sides at once instead of averaged from views that each see one or two, and on the support
+    it stands on (its side alone would leave it free to slide along itself). The model points facing
+    at least one of the cameras take part; the points' normals are estimated within
+    normal_radius_m (m). A fit under min_fitness, or one that slid or tilted more than
+    ``REFINE_MAX_SHIFT_M`` / ``REFINE_MAX_TILT_DEG``, leaves the fused pose as it was. World z is up."""
+    if not cameras or not objects:
+        return objects
+    pts = np.concatenate([c.points @ c.world_T_camera[:3, :3].T + c.world_T_camera[:3, 3] for c in cameras])
+    out = []
+    for o in objects:
+        model = models.models[o.object_id]
+        # Only the points around it (the fit builds its own search tree of the whole target): within
+        # its half diameter of its centre (an object frame's origin may be at its base).
+        centre = o.world_T_object[:3, :3] @ model.points.mean(axis=0) + o.world_T_object[:3, 3]
+        near = pts[np.linalg.norm(pts - centre, axis=1) <= model.diameter_m / 2 + 2 * distance_m]
+        if len(near) < 3:
+            log.debug("%s: kept its fused pose, no camera's points around it", o.object_id)
+            out.append(o)
+            continue
+        facing = np.zeros(len(model.points), bool)
+        for c in cameras:
+            facing |= facing_camera(model.points, model.normals, geometry.invert_pose(c.world_T_camera) @ o.world_T_object)[0]
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near.astype(np.float64)))
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=NORMAL_NEIGHBOURS))
+        fit = icp_pass(model.points[facing], target, o.world_T_object, distance_m, max_shift_m=REFINE_MAX_SHIFT_M)
+        up_before, up_after = o.world_T_object[2, :3], fit.camera_T_object[2, :3]  # world up in the object's frame
+        tilt = np.degrees(np.arccos(np.clip(up_before @ up_after, -1.0, 1.0)))
+        if fit.fitness < min_fitness or tilt > REFINE_MAX_TILT_DEG:
+            log.debug("%s: kept its fused pose, the fit in the cameras' points scored %.2f and tilted it %.1f deg",
+                      o.object_id, fit.fitness, tilt)  # fmt: skip
+            out.append(o)
+            continue
+        out.append(replace(o, world_T_object=fit.camera_T_object))
+    return out
+
+
 def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The cameras' points (camera frame, (N, 3) each) in world frame as one cloud: xyz (M, 3)
     float32 and a colour per camera, rgba (M, 4) uint8.
@@ -189,8 +255,13 @@ def display_cloud(cloud: np.ndarray, f_px: float, voxel_m: float, max_range_m: f
 def _still_at(then: np.ndarray, now: np.ndarray) -> bool:
     """Whether a camera's world pose ``now`` (4, 4) is within ``MOVED_M`` / ``MOVED_DEG`` of ``then``:
     refined by the estimator, not moved."""
-    step = geometry.invert_pose(then) @ now
-    return bool(np.linalg.norm(step[:3, 3]) <= MOVED_M and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= MOVED_DEG)
+    return _within(then, now, MOVED_M, MOVED_DEG)
+
+
+def _within(a: np.ndarray, b: np.ndarray, metres: float, degrees: float) -> bool:
+    """Whether poses a and b (4, 4) are within ``metres`` and ``degrees`` of each other."""
+    step = geometry.invert_pose(a) @ b
+    return bool(np.linalg.norm(step[:3, 3]) <= metres and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= degrees)
 
 
 def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDetections:
@@ -285,6 +356,9 @@ class RecognitionWorker:
         self.marker_msgs: dict[str, m.MarkerObservations] = {}
         self.latest: dict[tuple[str, str], WorldDetection] = {}  # (camera, object) -> newest detection
         self.views: dict[str, CameraView] = {}  # camera -> its last recognised frame, judge of the others'
+        self.scenes: dict[str, CameraPoints] = {}  # camera -> its last recognised frame's points, to refine in
+        self.refined: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # object -> (fused pose, its refinement), last refined
+        self._refined_at = -np.inf  # monotonic s of the last refinement
         self.held_back = 0  # fused objects another camera's frame contradicted
         self.clouds: dict[str, np.ndarray] = {}  # camera -> its newest frame's points, voxel-thinned, camera frame
         self.last_run: dict[str, float] = {}
@@ -414,6 +488,9 @@ class RecognitionWorker:
         view = DepthView.of(cloud, rgb) if self.config.min_cross_view_fitness > 0 else None
         if view is not None:
             self.views[camera_id] = CameraView(camera_id, stamp_ns, view, world_T_camera)
+        if self.config.refine_in_cloud:
+            near = voxel_downsample(self.recognizer.workspace_points(cloud, world_T_camera), REFINE_VOXEL_M)
+            self.scenes[camera_id] = CameraPoints(camera_id, stamp_ns, near, world_T_camera)
         found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view, rgb)
         for key in [k for k in self.latest if k[0] == camera_id]:
             del self.latest[key]  # what this camera no longer sees is no longer reported by it
@@ -448,17 +525,33 @@ class RecognitionWorker:
         return objects
 
     def fused(self) -> list[FusedObject]:
-        """The cameras' current detections fused, less what another camera's frame contradicts."""
+        """The cameras' current detections fused, less what another camera's frame contradicts,
+        each fitted to the cameras' points around it (``refined_in_cloud``)."""
         c = self.config
         if c.min_cross_view_fitness <= 0:
-            return fuse(self.current_detections())
-        views = [v for v in self.views.values() if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])]
-        objects, held = cross_checked(self.current_detections(), views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))
-        for h in held:  # what a robot is not told, and why
-            log.debug("%s from %s held back: %s saw through it (%d of %d judged pixels on its surface)", h.object_id,
-                      ", ".join(h.detected_by), h.camera_id, h.verdict.inliers, h.verdict.inliers + h.verdict.violations)  # fmt: skip
-        self.held_back += len(held)
-        return objects
+            objects = fuse(self.current_detections())
+        else:
+            views = [v for v in self.views.values() if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])]
+            objects, held = cross_checked(self.current_detections(), views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))
+            for h in held:  # what a robot is not told, and why
+                log.debug("%s from %s held back: %s saw through it (%d of %d judged pixels on its surface)", h.object_id,
+                          ", ".join(h.detected_by), h.camera_id, h.verdict.inliers, h.verdict.inliers + h.verdict.violations)  # fmt: skip
+            self.held_back += len(held)
+        if not c.refine_in_cloud or not objects:
+            return objects
+        now = time.monotonic()
+        if now - self._refined_at < c.refine_period_s:  # hold the last refinement of what stayed put
+            return [replace(o, world_T_object=self.refined[o.object_id][1]) if o.object_id in self.refined
+                    and _within(self.refined[o.object_id][0], o.world_T_object, REFINED_HOLD_M, REFINED_HOLD_DEG) else o
+                    for o in objects]  # fmt: skip
+        self._refined_at = now
+        newest = max(o.stamp_ns for o in objects)
+        cameras = [replace(p, world_T_camera=self.world_T_camera[p.camera_id]) for p in self.scenes.values()
+                   if self.placed(p.camera_id) and _still_at(p.world_T_camera, self.world_T_camera[p.camera_id])
+                   and newest - p.stamp_ns <= c.cross_view_max_age_s * 1e9]  # fmt: skip
+        refined = refined_in_cloud(objects, cameras, self.db, c.icp_distance_m, c.descriptor.normal_radius_m, c.min_fitness)
+        self.refined = {o.object_id: (o.world_T_object, r.world_T_object) for o, r in zip(objects, refined)}
+        return refined
 
     def current_detections(self) -> list[WorldDetection]:
         """The cameras' latest detections, put in world frame with each camera's newest pose.
