@@ -29,7 +29,10 @@ Fused cameras (``adds_recall_fused``): what the recognition worker publishes, ea
 detections put in world by its pose, fused, and held back where another camera's frame saw
 through them (``recognition.worker.cross_checked``), scored for every object partly occluded in
 at least one camera of its trial; a fused object that is wrong counts in
-``false_positives_per_trial_fused``, a right one held back in ``fused_held_back_right``. What the
+``false_positives_per_trial_fused``, a right one held back in ``fused_held_back_right``. The
+fused objects are then each fitted to every camera's points around it, as the worker does
+(``recognition.worker.refined_in_cloud``): ``fused_position_error_mm_*`` against
+``..._unrefined`` (the fused detections before the fit), over every fused object. What the
 check catches: every correct detection moved 20 cm (up, or sideways along either table axis) and
 judged by the trial's other cameras, the share held back (``cross_view_caught_moved``). In the
 demo cell every object is unoccluded in some camera of its trial, so the same fusion is also run
@@ -76,12 +79,12 @@ from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, apart, footprint, load_scenario  # noqa: E402
 from recognition import ppf  # noqa: E402
 from recognition.align import model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
-from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_cloud, read_coloured_cloud  # noqa: E402
+from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_cloud, read_coloured_cloud, voxel_downsample  # noqa: E402
 from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
 from recognition.models import model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from recognition.verify import DepthView  # noqa: E402
-from recognition.worker import CameraView, WorldDetection, cross_checked  # noqa: E402
+from recognition.worker import REFINE_VOXEL_M, CameraPoints, CameraView, WorldDetection, cross_checked, refined_in_cloud  # noqa: E402
 from schemas.geometry import invert_pose, make_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
 
@@ -288,6 +291,7 @@ def run(quick: bool) -> dict[str, float]:
     times: dict[str, list[float]] = {b: [] for b in recognisers}
     false_detections = 0  # ours (PCL binning), any frame
     fused_hits: list[bool] = []  # per (trial, object partly occluded in some camera): fused pose correct
+    fused_errors: dict[str, list[float]] = {"unrefined": [], "refined": []}  # position error, mm, every fused object
     fused_false = 0
     fused_held_right = 0  # correct fused objects another camera's frame contradicted
     moved_caught: list[bool] = []  # correct detections moved 20 cm: held back by the other cameras
@@ -298,6 +302,7 @@ def run(quick: bool) -> dict[str, float]:
         cell = SimCell(s)
         in_world: list[WorldDetection] = []  # ours, every camera of the trial
         views: list[CameraView] = []
+        points: list[CameraPoints] = []
         right_ones: list[WorldDetection] = []
         partly_somewhere: set[str] = set()
         shares: dict[str, dict[str, float]] = {}  # camera -> object -> visible share
@@ -317,6 +322,8 @@ def run(quick: bool) -> dict[str, float]:
                 times[binning].append(time.perf_counter() - t0)
                 if binning == "pcl":
                     views.append(CameraView(cam.id, 0, view, frame.world_T_camera))
+                    near = voxel_downsample(rec.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M)
+                    points.append(CameraPoints(cam.id, 0, near, frame.world_T_camera))
                     for oid, det in found.items():
                         obj = next(o for o in s.objects if o.id == oid)
                         gt = invert_pose(frame.world_T_camera) @ obj.world_T_object(0.0)
@@ -341,7 +348,13 @@ def run(quick: bool) -> dict[str, float]:
             later.append((s, frame, classes))
         judge = recognisers["pcl"].seen_through
         published, held = cross_checked(in_world, views, judge, 10**9)
-        fused = {f.object_id: f.world_T_object for f in published}
+        cfg = recognisers["pcl"].config
+        refined = refined_in_cloud(published, points, recognisers["pcl"].db, cfg.icp_distance_m, cfg.descriptor.normal_radius_m, cfg.min_fitness)
+        for before, after in zip(published, refined):
+            truth = next(o for o in s.objects if o.id == before.object_id).world_T_object(0.0)
+            fused_errors["unrefined"].append(1000 * float(np.linalg.norm(before.world_T_object[:3, 3] - truth[:3, 3])))
+            fused_errors["refined"].append(1000 * float(np.linalg.norm(after.world_T_object[:3, 3] - truth[:3, 3])))
+        fused = {f.object_id: f.world_T_object for f in refined}
         for obj in s.objects:
             right = obj.id in fused and adds(shapes[obj.id], fused[obj.id], obj.world_T_object(0.0)) < 0.1 * shapes[obj.id].diameter_m
             fused_false += obj.id in fused and not right
@@ -382,6 +395,11 @@ def run(quick: bool) -> dict[str, float]:
     out["false_positives_per_frame_sim"] = false_detections / len(times["pcl"])
     out["adds_recall_fused"] = float(np.mean(fused_hits)) if fused_hits else float("nan")
     out["objects_partly_occluded_somewhere"] = len(fused_hits)
+    for kind, suffix in (("refined", ""), ("unrefined", "_unrefined")):
+        e = np.array(fused_errors[kind])
+        out[f"fused_position_error_mm_p50{suffix}"] = float(np.median(e))
+        out[f"fused_position_error_mm_p90{suffix}"] = float(np.percentile(e, 90))
+        out[f"fused_position_error_mm_max{suffix}"] = float(e.max())
     out["false_positives_per_trial_fused"] = fused_false / (3 if quick else 12)
     out["adds_recall_fused_pairs"] = float(np.mean(pair_hits)) if pair_hits else float("nan")
     out["objects_partly_occluded_in_both_of_a_pair"] = len(pair_hits)
