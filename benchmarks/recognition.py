@@ -27,11 +27,11 @@ the object's true pose, per rendered frame (``false_positives_per_frame_sim``).
 
 Fused cameras (``adds_recall_fused``): what the recognition worker publishes, each camera's
 detections put in world by its pose, fused, and held back where another camera's frame saw
-through them (``recognition.worker.cross_checked``), scored for every object partly occluded in
+through them (``recognition.fusion.cross_checked``), scored for every object partly occluded in
 at least one camera of its trial; a fused object that is wrong counts in
 ``false_positives_per_trial_fused``, a right one held back in ``fused_held_back_right``. The
 fused objects are then each fitted to every camera's points around it, as the worker does
-(``recognition.worker.refined_in_cloud``): ``fused_position_error_mm_*`` against
+(``recognition.fusion.refined_in_cloud``): ``fused_position_error_mm_*`` against
 ``..._unrefined`` (the fused detections before the fit), over every fused object. What the
 check catches: every correct detection moved 20 cm (up, or sideways along either table axis) and
 judged by the trial's other cameras, the share held back (``cross_view_caught_moved``). In the
@@ -84,7 +84,7 @@ from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
 from recognition.models import model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from recognition.verify import DepthView  # noqa: E402
-from recognition.worker import REFINE_VOXEL_M, CameraPoints, CameraView, WorldDetection, cross_checked, refined_in_cloud  # noqa: E402
+from recognition.fusion import REFINE_VOXEL_M, CameraPoints, CameraView, WorldDetection, cross_checked, refined_in_cloud  # noqa: E402
 from schemas.geometry import invert_pose, make_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
 

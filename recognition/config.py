@@ -175,7 +175,7 @@ class RecognitionConfig(BaseModel):
     refine_in_cloud: bool = Field(
         default=True,
         description="worker: fit each fused object to every localized camera's points around it (their last frames "
-        "within cross_view_max_age_s), so its pose is held on all its sides at once (recognition.worker.refined_in_cloud)",
+        "within cross_view_max_age_s), so its pose is held on all its sides at once (recognition.fusion.refined_in_cloud)",
     )
     refine_period_s: float = Field(
         default=2.0, ge=0,

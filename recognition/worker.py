@@ -5,9 +5,8 @@ driver builds images only for a subscriber, and the worker uses about one of eac
 second; a depth frame waits up to ``COLOUR_WAIT_S`` for the colour of the same stamp),
 intrinsics, ``tf`` and camera states from the estimator, object-marker observations for priors;
 publishes ``objects``, ``objects/scene`` and the fused cloud on ``points``. Recognition itself is
-``recognition.pipeline.Recognizer``; fusion across cameras is ``fuse``, ``cross_checked`` holds
-back a fused object another camera's frame saw through, and ``refined_in_cloud`` fits each fused
-object to every camera's points around it. A camera is used once the estimator has
+``recognition.pipeline.Recognizer``; what several cameras make of it (fused, cross-checked and
+fitted in every camera's points) is ``recognition.fusion``. A camera is used once the estimator has
 localized it (detections are only useful in world frame), and its detections are dropped while the
 estimator says it is moving or unanchored.
 """
@@ -17,18 +16,19 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, replace
-from typing import Callable
+from dataclasses import replace
 
 import numpy as np
-import open3d as o3d
 
-from recognition.align import facing_camera, icp_pass
+from recognition.cloud import depth_to_cloud, voxel_downsample
 from recognition.config import RecognitionConfig
+from recognition.fusion import (
+    REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, cross_checked, display_cloud, fuse, fused_cloud,
+    refined_in_cloud,
+)
 from recognition.models import ModelDatabase
-from recognition.pipeline import Detection, Prior, Recognizer
-from recognition.cloud import depth_to_cloud, finite_points, voxel_downsample
-from recognition.verify import DepthView, Verdict
+from recognition.pipeline import Prior, Recognizer
+from recognition.verify import DepthView
 from schemas import codec, keys
 from schemas import geometry
 from schemas import messages as m
@@ -40,216 +40,17 @@ from schemas.ros2 import CLOUD, DETECTIONS, Ros2Config, ros2_types
 log = logging.getLogger(__name__)
 #: Marker observations this close in time to a depth frame (ns) count as seen with it.
 PRIOR_WINDOW_NS = 100_000_000
-#: Detections from cameras further apart than this are not the same object (m).
-SAME_OBJECT_M = 0.05
 #: Estimator camera states in which a camera's world pose is not to be trusted.
 UNUSABLE_STATES = (m.CameraState.MOVING, m.CameraState.UNANCHORED)
 #: A camera pose that moved this far since a detection means the camera was moved: the detection is
 #: dropped rather than carried over (m, deg). Estimator refinements are millimetres.
 MOVED_M, MOVED_DEG = 0.05, 3.0
-#: Voxel of the cameras' points fused objects are refined in (m): recognition's own 1 cm leaves an
-#: object's side near the table with fewer points than the table, which then pulls the object into it.
-REFINE_VOXEL_M = 0.005
-#: Neighbours (at most) a point's normal is fitted to in that refinement.
-NORMAL_NEIGHBOURS = 30
 #: Between refinements (``RecognitionConfig.refine_period_s``) an object keeps its last refined pose
 #: while its fused pose stays within this of the one refined (m, deg).
 REFINED_HOLD_M, REFINED_HOLD_DEG = 0.005, 2.0
-#: A fused object's refinement in the cameras' points (``refined_in_cloud``) that moves it further than
-#: this (m), or tilts it by more than this (deg: turns the world's up in the object's frame; a turn
-#: about the up, as an object on a table takes, is free) slid off: the fused pose stands.
-REFINE_MAX_SHIFT_M, REFINE_MAX_TILT_DEG = 0.02, 3.0
 #: How long a depth frame waits for the colour frame of its stamp before it is recognised without
 #: colour (s): a driver sends both within milliseconds; one without colour sends none.
 COLOUR_WAIT_S = 0.2
-#: Colours of the cameras' points in the fused cloud (RGBA), in camera-id order.
-CLOUD_COLOURS = np.array([[31, 119, 180, 255], [255, 127, 14, 255], [44, 160, 44, 255], [214, 39, 40, 255],
-                          [148, 103, 189, 255], [140, 86, 75, 255], [227, 119, 194, 255], [188, 189, 34, 255]], np.uint8)
-
-
-@dataclass(frozen=True)
-class WorldDetection:
-    """One camera's detection in world frame. stamp_ns: the depth frame's time (ns); world_T_camera:
-    the camera's estimated pose it was put in world with."""
-
-    camera_id: str
-    stamp_ns: int
-    world_T_object: np.ndarray
-    detection: Detection
-    world_T_camera: np.ndarray
-
-    @property
-    def score(self) -> float:
-        d = self.detection
-        return d.fitness * d.coverage / max(d.rmse_m, 1e-4) ** 2
-
-
-@dataclass(frozen=True)
-class FusedObject:
-    """An object as reported: world_T_object (4, 4), the cameras that agree on it, best fitness and RMSE."""
-
-    object_id: str
-    stamp_ns: int
-    world_T_object: np.ndarray
-    camera_ids: list[str]
-    fitness: float
-    rmse_m: float
-
-
-def fuse(detections: list[WorldDetection]) -> list[FusedObject]:
-    """One pose per object from the cameras' latest detections.
-
-    The best-scored detection (fitness x coverage / RMSE^2) sets the rotation: symmetric shapes give
-    equally valid rotations that must not be averaged. Positions of the detections within 5 cm of it
-    are averaged with the same weights; detections further away are outvoted, not blended in.
-    """
-    by_object: dict[str, list[WorldDetection]] = {}
-    for d in detections:
-        by_object.setdefault(d.detection.object_id, []).append(d)
-    out = []
-    for oid, group in sorted(by_object.items()):
-        best = max(group, key=lambda d: d.score)
-        agree = [d for d in group if np.linalg.norm(d.world_T_object[:3, 3] - best.world_T_object[:3, 3]) <= SAME_OBJECT_M]
-        w = np.array([d.score for d in agree])
-        T = best.world_T_object.copy()
-        T[:3, 3] = np.average([d.world_T_object[:3, 3] for d in agree], axis=0, weights=w)
-        out.append(FusedObject(oid, max(d.stamp_ns for d in agree), T, sorted(d.camera_id for d in agree),
-                               best.detection.fitness, best.detection.rmse_m))
-    return out
-
-
-@dataclass(frozen=True)
-class CameraView:
-    """One camera's last recognised frame, judge of the other cameras' detections: its depth view,
-    the frame's stamp (ns) and the world pose (4, 4) it was taken from."""
-
-    camera_id: str
-    stamp_ns: int
-    view: DepthView
-    world_T_camera: np.ndarray
-
-
-@dataclass(frozen=True)
-class Contradiction:
-    """A fused object held back: ``camera_id``'s frame saw through where ``detected_by`` put it."""
-
-    object_id: str
-    detected_by: list[str]
-    camera_id: str
-    verdict: Verdict
-
-
-#: judge(view, object_id, camera_T_object): the verdict when that view contradicts the object there, else None.
-Judge = Callable[[DepthView, str, np.ndarray], Verdict | None]
-
-
-def cross_checked(detections: list[WorldDetection], views: list[CameraView], judge: Judge,
-                  max_age_ns: int) -> tuple[list[FusedObject], list[Contradiction]]:  # fmt: skip
-    """The fused objects (``fuse``) that no other camera's frame contradicts, and those held back.
-
-    A fused object is judged by the view of every camera not among those that agree on it, taken
-    within ``max_age_ns`` of it: one camera may fit an object to a surface that another, looking
-    from elsewhere, sees lying behind where the object would be. A contradicted object's detections
-    are dropped and the rest fused again, so that a camera outvoted by a wrong pose is heard.
-    """
-    left, held = list(detections), []
-    while True:
-        objects = fuse(left)
-        wrong: set[tuple[str, str]] = set()
-        for o in objects:
-            for cv in views:
-                if cv.camera_id in o.camera_ids or abs(cv.stamp_ns - o.stamp_ns) > max_age_ns:
-                    continue
-                v = judge(cv.view, o.object_id, geometry.invert_pose(cv.world_T_camera) @ o.world_T_object)
-                if v is not None:
-                    held.append(Contradiction(o.object_id, o.camera_ids, cv.camera_id, v))
-                    wrong |= {(c, o.object_id) for c in o.camera_ids}
-                    break
-        if not wrong:
-            return objects, held
-        left = [d for d in left if (d.camera_id, d.detection.object_id) not in wrong]
-
-
-@dataclass(frozen=True)
-class CameraPoints:
-    """One camera's last recognised frame: its points in the workspace, one per ``REFINE_VOXEL_M``
-    voxel, (N, 3), camera frame, and the world pose (4, 4) it was taken from."""
-
-    camera_id: str
-    stamp_ns: int
-    points: np.ndarray
-    world_T_camera: np.ndarray
-
-
-def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], models: ModelDatabase, distance_m: float,
-                     normal_radius_m: float, min_fitness: float) -> list[FusedObject]:  # fmt: skip
-    """Each fused object fitted (point-to-plane ICP at distance_m, m) to every camera's points around
-    it, in world frame: what one camera sees of it, the others complete, so the pose is held on all
-    its sides at once instead of averaged from views that each see one or two, and on the support
-    it stands on (its side alone would leave it free to slide along itself). The model points facing
-    at least one of the cameras take part; the points' normals are estimated within
-    normal_radius_m (m). A fit under min_fitness, or one that slid or tilted more than
-    ``REFINE_MAX_SHIFT_M`` / ``REFINE_MAX_TILT_DEG``, leaves the fused pose as it was. World z is up."""
-    if not cameras or not objects:
-        return objects
-    pts = np.concatenate([c.points @ c.world_T_camera[:3, :3].T + c.world_T_camera[:3, 3] for c in cameras])
-    out = []
-    for o in objects:
-        model = models.models[o.object_id]
-        # Only the points around it (the fit builds its own search tree of the whole target): within
-        # its half diameter of its centre (an object frame's origin may be at its base).
-        centre = o.world_T_object[:3, :3] @ model.points.mean(axis=0) + o.world_T_object[:3, 3]
-        near = pts[np.linalg.norm(pts - centre, axis=1) <= model.diameter_m / 2 + 2 * distance_m]
-        if len(near) < 3:
-            log.debug("%s: kept its fused pose, no camera's points around it", o.object_id)
-            out.append(o)
-            continue
-        facing = np.zeros(len(model.points), bool)
-        for c in cameras:
-            facing |= facing_camera(model.points, model.normals, geometry.invert_pose(c.world_T_camera) @ o.world_T_object)[0]
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near.astype(np.float64)))
-        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=NORMAL_NEIGHBOURS))
-        fit = icp_pass(model.points[facing], target, o.world_T_object, distance_m, max_shift_m=REFINE_MAX_SHIFT_M)
-        up_before, up_after = o.world_T_object[2, :3], fit.camera_T_object[2, :3]  # world up in the object's frame
-        tilt = np.degrees(np.arccos(np.clip(up_before @ up_after, -1.0, 1.0)))
-        if fit.fitness < min_fitness or tilt > REFINE_MAX_TILT_DEG:
-            log.debug("%s: kept its fused pose, the fit in the cameras' points scored %.2f and tilted it %.1f deg",
-                      o.object_id, fit.fitness, tilt)  # fmt: skip
-            out.append(o)
-            continue
-        out.append(replace(o, world_T_object=fit.camera_T_object))
-    return out
-
-
-def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """The cameras' points (camera frame, (N, 3) each) in world frame as one cloud: xyz (M, 3)
-    float32 and a colour per camera, rgba (M, 4) uint8.
-
-    Where the cameras' clouds of the same surface separate, their poses disagree: the view shows
-    the calibration's quality at a glance.
-    """
-    xyz, rgba = [], []
-    for i, cam in enumerate(sorted(c for c in clouds if c in world_T_camera)):
-        T = world_T_camera[cam]
-        xyz.append(clouds[cam] @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32))
-        rgba.append(np.broadcast_to(CLOUD_COLOURS[i % len(CLOUD_COLOURS)], (len(clouds[cam]), 4)))
-    if not xyz:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.uint8)
-    return np.concatenate(xyz), np.concatenate(rgba)
-
-
-def display_cloud(cloud: np.ndarray, f_px: float, voxel_m: float, max_range_m: float) -> np.ndarray:
-    """One camera's share of the fused world cloud: the finite points of its organised cloud (H, W, 3),
-    camera frame, within max_range_m, one per voxel_m voxel, (N, 3) float32.
-
-    Pixels are taken on a grid with at most half a voxel between samples at max_range_m (a pixel
-    spans max_range_m / f_px there; f_px the focal length, px). What the grid loses are voxels only
-    a few noisy returns reach: every voxel point of the full cloud but ~2 % lies within a voxel of
-    one it keeps, at a third of the time (a 640x480 demo frame: 42 -> 13 ms)."""
-    step = max(1, int(0.5 * voxel_m * f_px / max_range_m))
-    pts = finite_points(cloud[::step, ::step])
-    pts = pts[pts[:, 2] <= max_range_m]
-    return voxel_downsample(pts, voxel_m) if len(pts) else pts
 
 
 def _still_at(then: np.ndarray, now: np.ndarray) -> bool:

@@ -16,7 +16,8 @@ from recognition.align import rot_z
 from recognition.cloud import depth_to_cloud, voxel_downsample
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Recognizer
-from recognition.worker import REFINE_VOXEL_M, CameraPoints, FusedObject, RecognitionWorker, WorldDetection, fuse, refined_in_cloud
+from recognition.fusion import REFINE_VOXEL_M, CameraPoints, FusedObject, WorldDetection, fuse, refined_in_cloud
+from recognition.worker import RecognitionWorker
 from schemas import codec, geometry, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig

@@ -11,7 +11,8 @@ from rosbags.highlevel import AnyReader
 
 from cellsight.export_ros2 import MARKER_POSES, OBJECTS, POINTS, TF, export_bag
 from estimator.offline.outputs import RESOLVE_SOURCE
-from recognition.worker import FusedObject, detections_to_msg
+from recognition.fusion import FusedObject
+from recognition.worker import detections_to_msg
 from schemas import codec, keys
 from schemas.codec import CameraInfo, StampedPose
 from schemas.errors import SchemaError

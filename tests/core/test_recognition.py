@@ -497,7 +497,7 @@ def test_a_detection_another_camera_sees_through_is_held_back() -> None:
     (cam2's lifted crate against cam3's true one) is held back and the right one reported."""
     from drivers.sim.render import SimCell
     from recognition.verify import DepthView
-    from recognition.worker import CameraView, WorldDetection, cross_checked
+    from recognition.fusion import CameraView, WorldDetection, cross_checked
 
     scenario, recognizer = static_demo({"crate": (-0.15, -0.05, 10.0), "can": (0.18, -0.12, 0.0), "tote": (0.12, 0.2, 80.0)})
     cell = SimCell(scenario)
@@ -559,7 +559,7 @@ def test_the_display_cloud_covers_what_the_full_cloud_does() -> None:
     of the full frame's voxel points (a grid of every 3rd pixel: 94 %), none off them."""
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
-    from recognition.worker import display_cloud
+    from recognition.fusion import display_cloud
 
     frame = SimCell(load_scenario()).render("cam1", 0.0, 0)
     cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
