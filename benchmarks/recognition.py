@@ -30,8 +30,8 @@ detections put in world by its pose, fused, and held back where another camera's
 through them (``recognition.fusion.cross_checked``), scored for every object partly occluded in
 at least one camera of its trial; a fused object that is wrong counts in
 ``false_positives_per_trial_fused``, a right one held back in ``fused_held_back_right``. The
-fused objects are then each fitted to every camera's points around it, as the worker does
-(``recognition.fusion.refined_in_cloud``): ``fused_position_error_mm_*`` against
+fused objects are then each fitted to every camera's points around it, as the worker does with
+``[recognition] refine_in_cloud`` (``recognition.fusion.refined_in_cloud``): ``fused_position_error_mm_*`` against
 ``..._unrefined`` (the fused detections before the fit), over every fused object. What the
 check catches: every correct detection moved 20 cm (up, or sideways along either table axis) and
 judged by the trial's other cameras, the share held back (``cross_view_caught_moved``). In the

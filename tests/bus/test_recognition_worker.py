@@ -250,7 +250,7 @@ def test_between_fits_an_object_keeps_its_fitted_pose_while_it_stays_put(client_
     cfg, db = demo_database
     scenario = load_scenario()
     frame = SimCell(scenario).render("cam2", 0.0, 3)
-    config = cfg.recognition.model_copy(update={"refine_period_s": 3600.0})
+    config = cfg.recognition.model_copy(update={"refine_in_cloud": True, "refine_period_s": 3600.0})
     with Bus(client_transport, CELL) as bus:
         worker = RecognitionWorker(bus, config, db)
         cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
