@@ -183,8 +183,8 @@ def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], mo
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near.astype(np.float64)))
         target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=NORMAL_NEIGHBOURS))
         fit = icp_pass(model.points[facing], target, o.world_T_object, distance_m, max_shift_m=REFINE_MAX_SHIFT_M)
-        up_before, up_after = o.world_T_object[2, :3], fit.camera_T_object[2, :3]  # world up in the object's frame
-        tilt = np.degrees(np.arccos(np.clip(up_before @ up_after, -1.0, 1.0)))
+        # world up in the object's frame, before and after
+        tilt = np.degrees(geometry.angle_between(o.world_T_object[2, :3], fit.camera_T_object[2, :3]))
         if fit.fitness < min_fitness or tilt > REFINE_MAX_TILT_DEG:
             log.debug("%s: kept its fused pose, the fit in the cameras' points scored %.2f and tilted it %.1f deg",
                       o.object_id, fit.fitness, tilt)  # fmt: skip

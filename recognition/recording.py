@@ -162,10 +162,8 @@ def _rgb(msg: m.RawImage | None, stamp_ns: int, shape: tuple[int, int]) -> np.nd
     """A recorded colour frame of this stamp as (H, W, 3) rgb8, if it is one of the depth's size."""
     if msg is None or codec.timestamp_to_stamp(msg.timestamp) != stamp_ns or msg.encoding not in ("rgb8", "bgr8"):
         return None
-    rgb = codec.image_from_msg(msg)
-    if rgb.shape[:2] != shape:
-        return None
-    return rgb[..., ::-1] if msg.encoding == "bgr8" else rgb
+    rgb = codec.rgb_from_msg(msg)
+    return rgb if rgb.shape[:2] == shape else None
 
 
 def model_from_recording(

@@ -91,7 +91,7 @@ class DepthView:
         pts = np.asarray(cloud)
         if rgb is not None and np.shape(rgb) != pts.shape:
             raise ValueError(f"colour {np.shape(rgb)} does not match the cloud {pts.shape}: one rgb8 triple per point")
-        colour = None if rgb is None else np.asarray(rgb, np.float32) / 255.0
+        colour = None if rgb is None else np.asarray(rgb)
         if pts.ndim == 3 and min(pts.shape[:2]) == 1:  # a PCD with HEIGHT 1 is a list of points, not an image
             pts = pts.reshape(-1, 3)
             colour = None if colour is None else colour.reshape(-1, 3)
@@ -100,8 +100,8 @@ class DepthView:
             z = grid[..., 2].copy()
             z[~np.isfinite(z) | (z <= 0)] = np.nan
             K = _fit_intrinsics(grid)
-            if colour is not None:
-                colour = colour[::2, ::2]
+            if colour is not None:  # the grid's pixels only, before converting a frame's worth of them
+                colour = colour[::2, ::2].astype(np.float32) / 255.0
         else:
             H, W = VIRTUAL_SIZE
             K = VIRTUAL_K
@@ -115,7 +115,7 @@ class DepthView:
                 flat = (v * W + u)[ok]
                 nearest = np.flatnonzero(ok)[pts[ok, 2] == z[flat]]
                 grid_colour = np.full((H * W, 3), np.nan, np.float32)
-                grid_colour[(v * W + u)[nearest]] = colour[finite][nearest]
+                grid_colour[(v * W + u)[nearest]] = colour[finite][nearest].astype(np.float32) / 255.0
                 colour = grid_colour.reshape(H, W, 3)
             z = z.reshape(H, W)
             z[np.isinf(z)] = np.nan

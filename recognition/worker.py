@@ -242,15 +242,13 @@ class RecognitionWorker:
         if msg is None:
             return None
         try:
-            if msg.encoding not in ("rgb8", "bgr8"):
-                raise DecodeError(f"colour encoding {msg.encoding!r}, expected rgb8 or bgr8")
-            rgb = codec.image_from_msg(msg)
+            rgb = codec.rgb_from_msg(msg)
             if rgb.shape[:2] != shape:
                 raise DecodeError(f"colour is {rgb.shape[1]}x{rgb.shape[0]}, depth {shape[1]}x{shape[0]} (not registered to it)")
         except DecodeError as exc:
             self._warn_once(f"colour/{camera_id}", f"{camera_id}: recognising on depth alone: {exc}")
             return None
-        return rgb[..., ::-1] if msg.encoding == "bgr8" else rgb
+        return rgb
 
     def priors(self, camera_id: str, stamp_ns: int) -> list[Prior]:
         msg = self.marker_msgs.get(camera_id)

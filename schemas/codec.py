@@ -166,6 +166,14 @@ def image_to_msg(image: np.ndarray, stamp_ns: int, frame_id: str, encoding: str)
     return msg
 
 
+def rgb_from_msg(msg: m.RawImage) -> np.ndarray:
+    """A colour ``RawImage`` (rgb8 or bgr8) as (H, W, 3) uint8 in r, g, b order."""
+    if msg.encoding not in ("rgb8", "bgr8"):
+        raise DecodeError(f"colour encoding {msg.encoding!r}, expected rgb8 or bgr8")
+    image = image_from_msg(msg)
+    return image[..., ::-1] if msg.encoding == "bgr8" else image
+
+
 def image_from_msg(msg: m.RawImage) -> np.ndarray:
     """Array view of a ``RawImage``: (H, W, C) for colour, (H, W) for single-channel encodings."""
     if msg.encoding not in IMAGE_ENCODINGS:
