@@ -83,8 +83,12 @@ class RecognitionConfig(BaseModel):
     plane_noise_per_m2: float = Field(
         default=0.0043, ge=0, description="plane band grows as this x range^2 (3 sigma of Kinect depth noise, 1/m)"
     )
-    max_planes: int = Field(default=1, ge=0, description="dominant planes removed (the table; more for floor, walls)")
-    min_plane_fraction: float = Field(default=0.1, gt=0, le=1, description="a plane must hold this share of the scene")
+    max_planes: int = Field(
+        default=4, ge=0, description="planes removed: the first holds min_plane_fraction of the scene (the table, or the "
+        "floor; everything behind it goes too), each further one 1 % and a connected patch twice as wide as the largest "
+        "object (walls, a table seen across a room); with a workspace box (a localized camera) the first only"
+    )
+    min_plane_fraction: float = Field(default=0.1, gt=0, le=1, description="a dominant plane holds this share of the scene")
     cluster_tolerance_m: float = Field(default=0.035, gt=0, description="Euclidean clustering distance")
     cluster_min_points: int = Field(default=30, ge=3)
     cluster_max_points: int = Field(default=25000, ge=3)

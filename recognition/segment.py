@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import open3d as o3d
 
@@ -13,6 +14,9 @@ from recognition.errors import CloudError
 #: RANSAC hypotheses are scored on at most this many points (a seeded random sample): a plane that
 #: holds a tenth of the scene holds a tenth of the sample, and a frame's table has ~10k voxels.
 PLANE_SAMPLE = 3000
+#: A plane after the first is removed when it spans more than any object and holds this share of
+#: the scene (a floor or wall in view).
+STRUCTURE_SHARE = 0.01
 #: A piece split off a cluster under this share of it is a crumb of a noisy surface, not an object.
 SPLIT_CRUMB = 0.05
 
@@ -24,14 +28,18 @@ def remove_planes(
     min_fraction: float,
     noise_per_m2: float = 0.0,
     seed: int = 0,
+    min_extent_m: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mask (N,) of the points that are neither on nor behind a dominant plane (camera at the origin),
     and the planes found (P, 4): a, b, c, d with a x + b y + c z + d = 0, the normal towards the camera.
 
-    Up to max_planes planes are found, largest first, each only if its RANSAC inliers are at least
-    min_fraction of all points (so a box face is not taken for the table). A point is removed when it
-    lies behind the plane or within max(distance_m, noise_per_m2 * z^2) of it: depth noise grows with
-    the square of range, and a fixed band leaves the far end of a table behind as clutter. Seeded.
+    Up to max_planes planes are found, largest first. The first is removed if its RANSAC inliers are
+    at least min_fraction of all points (the table, or a floor), with everything behind it; each
+    further one if its inliers are STRUCTURE_SHARE of the points and one connected patch of them
+    spans more than min_extent_m (wider than any object: a wall, the table of a room seen from its
+    corner), so that a box face stays. A point is removed when it lies within max(distance_m,
+    noise_per_m2 * z^2) of a removed plane: depth noise grows with the square of range, and a fixed
+    band leaves the far end of a table behind as clutter. Seeded.
     """
     keep = np.ones(len(points), dtype=bool)
     planes: list[tuple[float, float, float, float]] = []
@@ -41,20 +49,43 @@ def remove_planes(
     band = np.maximum(distance_m, noise_per_m2 * pts[:, 2] ** 2)
     for _ in range(max_planes):
         rest = np.flatnonzero(keep)
-        if len(rest) < max(3, min_fraction * len(pts)):
+        if len(rest) < max(3, min(min_fraction, STRUCTURE_SHARE) * len(pts)):
             break
         sample = rest if len(rest) <= PLANE_SAMPLE else np.sort(rng.choice(rest, PLANE_SAMPLE, replace=False))
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[sample]))
         plane, inliers = pcd.segment_plane(distance_m, ransac_n=3, num_iterations=200)
-        if len(inliers) < min_fraction * len(pts) * len(sample) / len(rest):
-            break
         a, b, c, d = plane
         if d < 0:  # orient the normal towards the camera: the origin has positive signed distance
             a, b, c, d = -a, -b, -c, -d
         signed = pts[rest] @ np.array([a, b, c]) + d
-        keep[rest[signed < band[rest]]] = False
+        share = len(inliers) * len(rest) / (len(sample) * len(pts))  # of all points
+        dominant = share >= min_fraction and not planes
+        if not dominant and not (
+            planes and share >= STRUCTURE_SHARE and patch_extent(pts[rest[np.abs(signed) < distance_m]], np.array([a, b, c])) > min_extent_m
+        ):
+            break
+        keep[rest[(signed < band[rest]) & (dominant | (signed > -band[rest]))]] = False
         planes.append((a, b, c, d))
     return keep, np.array(planes, dtype=np.float64).reshape(-1, 4)
+
+
+def patch_extent(points: np.ndarray, normal: np.ndarray, cell_m: float = 0.02) -> float:
+    """The width (m) of the largest connected patch of points (N, 3) lying on a plane of the given
+    normal: the longer side of its bounding box in the plane (never more than the patch's largest
+    point-to-point distance, so an object's face never reads wider than the object)."""
+    if len(points) == 0:
+        return 0.0
+    n = normal / np.linalg.norm(normal)
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    cells = np.floor(points @ np.stack([u, np.cross(n, u)]).T / cell_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    image = np.zeros(cells.max(axis=0) + 1, np.uint8)
+    image[cells[:, 0], cells[:, 1]] = 1
+    _, _, stats, _ = cv2.connectedComponentsWithStats(image, connectivity=8)
+    biggest = stats[1:][np.argmax(stats[1:, cv2.CC_STAT_AREA])]
+    # stats are in OpenCV's (x = columns, y = rows): either way the longer side.
+    return float(max(biggest[cv2.CC_STAT_WIDTH], biggest[cv2.CC_STAT_HEIGHT]) * cell_m)
 
 
 @dataclass(frozen=True)

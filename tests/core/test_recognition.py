@@ -596,3 +596,33 @@ def test_a_look_alike_of_another_colour_is_not_the_model(demo_models: dict) -> N
         assert np.linalg.norm(found[key]["can"][:3, 3] - can[:3, 3]) < 0.02, key
     assert "can" not in found["grey", True]
     assert {"crate", "tote"} <= set(found["grey", True]) and {"crate", "tote"} <= set(found["red", True])
+
+
+def test_floor_and_walls_go_as_planes_and_an_object_face_stays() -> None:
+    """remove_planes on a synthetic room seen from the side, sampled as the pipeline's 1 cm voxels
+    are: a floor (most of the points), a strip of wall (4.5 %) and a 35 cm box on the floor whose
+    faces are planes of 1.8 %. With the largest object's diameter (0.6 m) as the width a further
+    plane must exceed, the wall goes and the box stays whole; on a share of the scene alone (the
+    rule without it) the wall stays."""
+    from recognition.segment import remove_planes
+
+    def grid(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
+        return np.stack(np.meshgrid(np.arange(*a, step), np.arange(*b, step)), -1).reshape(-1, 2)
+
+    floor = grid((-1.5, 1.5), (2.5, 4.5), 0.01)
+    floor = np.c_[floor[:, 0], np.full(len(floor), 1.0), floor[:, 1]]  # camera y down: the floor 1 m below
+    wall = grid((-1.5, 1.5), (-0.1, 0.0), 0.01)
+    wall = np.c_[wall, np.full(len(wall), 4.5)]  # the wall's visible strip, facing the camera
+    face = grid((-0.175, 0.175), (0.65, 1.0), 0.01)
+    box = np.vstack([np.c_[face, np.full(len(face), 3.0)],  # front, top and side of a 35 cm box
+                     np.c_[face[:, 0], np.full(len(face), 0.65), face[:, 1] + 2.35],
+                     np.c_[np.full(len(face), 0.175), face[:, 1], face[:, 0] + 3.175]])  # fmt: skip
+    points = np.vstack([floor, wall, box]).astype(np.float32)
+    n_room = len(floor) + len(wall)
+    assert 0.01 < len(face) / len(points) < len(wall) / len(points) < 0.1
+    keep, planes = remove_planes(points, 0.012, 4, 0.1, min_extent_m=0.6)  # the box's diameter
+    assert len(planes) == 2 and abs(planes[0][1]) > 0.99 and abs(planes[1][2]) > 0.99  # the floor, then the wall
+    assert not keep[:n_room].any()
+    assert keep[n_room:].mean() > 0.95  # the box's points on the floor's band (its bottom row) go with it
+    keep_old, planes_old = remove_planes(points, 0.012, 4, 0.1)
+    assert len(planes_old) == 1 and keep_old[len(floor):n_room].all()
