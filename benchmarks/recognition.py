@@ -106,7 +106,8 @@ class PpfBaseline:
     def of(cls, rec: Recognizer) -> "PpfBaseline":
         return cls(rec, {oid: ppf.train(m.points, m.normals, m.diameter_m) for oid, m in rec.db.models.items()})
 
-    def __call__(self, cloud: np.ndarray, world_T_camera: np.ndarray) -> dict[str, np.ndarray]:
+    def __call__(self, cloud: np.ndarray, world_T_camera: np.ndarray | None, objects: set[str] | None = None) -> dict[str, np.ndarray]:
+        """Each model's (or only ``objects``') best pose in the frame."""
         scene = self.rec.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
             return {}
@@ -114,6 +115,8 @@ class PpfBaseline:
         target.normals = o3d.utility.Vector3dVector(scene.normals.astype(np.float64))
         c, out = self.rec.config, {}
         for oid, trained in self.trained.items():
+            if objects is not None and oid not in objects:
+                continue
             model = self.rec.db.models[oid]
             refined = [refine_icp(model.points, model.normals, target, h.camera_T_object, c.icp_distance_m, c.icp_iterations,
                                   max_shift_m=model.diameter_m) for h in ppf.match(trained, scene.points, scene.normals)]  # fmt: skip

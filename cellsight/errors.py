@@ -11,3 +11,7 @@ class ConfigError(CellsightError, ValueError):
 
 class RunError(CellsightError):
     """A cell, its router or a recording could not run (the message says which and why)."""
+
+
+class DatasetError(CellsightError, ValueError):
+    """An annotated dataset (BOP format) is incomplete or malformed: the message names the file and the field."""
