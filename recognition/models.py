@@ -79,6 +79,12 @@ class ObjectModel:
         """Each point's colours as verification judges them (``recognition.verify.chroma_ranges``), (M, 4)."""
         return None if self.colours is None else chroma_ranges(self.points, self.colours)
 
+    @property
+    def stands_on_z(self) -> bool:
+        """Whether the object stands on its frame's +z (meshes, whole-surface points, recordings on a
+        board: the upright test applies); a captured cloud's frame is its camera's."""
+        return self.source != "cloud"
+
     @cached_property
     def diameter_m(self) -> float:
         """Largest distance between two model points (bounded from the axis-aligned box)."""

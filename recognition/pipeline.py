@@ -382,13 +382,15 @@ class Recognizer:
         """Coarse ICP from each start onto the cluster, fine ICP from the best few; the best result if
         it passes the acceptance tests, with the mask of the cluster points it explains.
 
-        up: world up in the camera frame (None: no upright test). turns: with ``up``, also try the start
+        up: world up in the camera frame (None: no upright test; nor for a model from a captured cloud,
+        whose frame is its camera's, not the object's). turns: with ``up``, also try the start
         that overlaps the target best turned about its upright axis (``_turned``). Accepted: fitness,
         coverage and RMSE within bounds; or, for a cluster several objects share, a fitness of at least
         min_fitness_shared (``fitness_to_verify``, when given) with enough explained points to be a
         cluster itself.
         """
         c = self.config
+        up = up if model.stands_on_z else None
         # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
         sparse_points, sparse_normals = self._sparse[model.object_id]
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)

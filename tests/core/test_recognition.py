@@ -626,3 +626,34 @@ def test_floor_and_walls_go_as_planes_and_an_object_face_stays() -> None:
     assert keep[n_room:].mean() > 0.95  # the box's points on the floor's band (its bottom row) go with it
     keep_old, planes_old = remove_planes(points, 0.012, 4, 0.1)
     assert len(planes_old) == 1 and keep_old[len(floor):n_room].all()
+
+
+def test_a_model_captured_as_a_cloud_is_found_by_a_localized_camera() -> None:
+    """`model build --cloud`: the model's frame is the capturing camera's (cam1's, looking down at
+    the table), not one whose +z is up. The upright test of a localized camera must not apply to
+    it: cam1's next frame, with its world pose, finds the crate where it was captured (2 cm). (Seen
+    from another side, one captured view is another object: cam2 and cam3 place it 9-10 cm off.)"""
+    from drivers.sim.render import SimCell
+    from drivers.sim.scenario import load_scenario
+
+    scenario = load_scenario()
+    crate = next(o for o in scenario.objects if o.id == "crate")
+    crate = crate.model_copy(update={"motion": crate.motion.model_copy(update={"kind": "static"})})
+    scenario = scenario.model_copy(update={"objects": [crate], "markers": [m for m in scenario.markers if m.object in (None, "crate")]})
+    cell = SimCell(scenario)
+    cam1, later = cell.render("cam1", 0.0, 0), cell.render("cam1", 0.0, 1)
+    cam1_T_crate = invert_pose(cam1.world_T_camera) @ crate.world_T_object(0.0)
+    pts = finite_points(depth_to_cloud(cam1.depth_mm, cam1.info.K))
+    local = (pts - cam1_T_crate[:3, 3]) @ cam1_T_crate[:3, :3]  # crate frame: base centre, z up
+    half = np.array(crate.size[:2]) / 2 + 0.01
+    captured = pts[np.all(np.abs(local[:, :2]) < half, axis=1) & (local[:, 2] > 0.01) & (local[:, 2] < crate.size[2] + 0.01)]
+    assert abs(cam1.world_T_camera[:3, 2] @ [0, 0, 1]) < 0.9  # cam1's +z, the model's, is far from up
+    cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
+    assert cfg.upright
+    db = ModelDatabase(cfg.descriptor, {})
+    db.add(model_from_cloud("crate", captured, cfg.descriptor))
+    found = Recognizer(db, cfg).recognize(depth_to_cloud(later.depth_mm, later.info.K), world_T_camera=later.world_T_camera)
+    assert [d.object_id for d in found] == ["crate"]
+    centre = db.models["crate"].points.mean(axis=0)  # the model's frame is cam1's: its points ~2 m from the origin
+    est = found[0].camera_T_object
+    assert np.linalg.norm(est[:3, :3] @ centre + est[:3, 3] - centre) < 0.02
