@@ -38,6 +38,12 @@ judged by the trial's other cameras, the share held back (``cross_view_caught_mo
 demo cell every object is unoccluded in some camera of its trial, so the same fusion is also run
 for every pair of cameras alone, scored for the objects partly occluded in both
 (``adds_recall_fused_pairs``; wrong objects any pair publishes in ``false_positives_fused_pairs``).
+Recognition in the cameras' points together (``recognition.fusion.found_in_cloud``): every camera's
+workspace points put in one camera's frame and recognised there, verified by that camera's frame,
+for every object at least 40 % visible in some camera (``adds_recall_fused_cloud``, wrong ones in
+``false_detections_fused_cloud``, before any cross-check); the worker searches so only for objects
+no camera found, and what that adds to the published objects is ``fused_cloud_added`` (and in the
+fused and distractor figures).
 
 Distractors (``false_positives_per_trial_distractors``): the cell with one of its objects taken away
 (each in turn) and four objects that are in no database put on the table with the others: boxes of
@@ -84,7 +90,9 @@ from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
 from recognition.models import model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from recognition.verify import DepthView  # noqa: E402
-from recognition.fusion import REFINE_VOXEL_M, CameraPoints, CameraView, WorldDetection, cross_checked, refined_in_cloud  # noqa: E402
+from recognition.fusion import (  # noqa: E402
+    REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, cross_checked, found_in_cloud, refined_in_cloud,
+)
 from schemas.geometry import invert_pose, make_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
 
@@ -239,6 +247,18 @@ def real_scenes() -> dict[str, float]:
     return out
 
 
+def searched(rec: Recognizer, published: list[FusedObject], views: list[CameraView], points: list[CameraPoints]) -> list[FusedObject]:
+    """What the worker adds with ``search_fused_cloud``: the objects no camera found, recognised in
+    all the cameras' points together seen from each camera in turn (the worker takes one a period),
+    then cross-checked by the other cameras' frames."""
+    missing = set(rec.db.models) - {o.object_id for o in published}
+    added: list[WorldDetection] = []
+    for cv in views:
+        added += found_in_cloud(missing - {a.detection.object_id for a in added}, cv, points,
+                                lambda cloud, W, view: rec.recognize(cloud, world_T_camera=W, view=view))  # fmt: skip
+    return cross_checked(added, views, rec.seen_through, 10**9)[0]
+
+
 def distractor(rng: np.random.Generator, i: int) -> ObjectSpec:
     """An object of no database: a box or a cylinder of a random size (see the module docstring)."""
     if rng.random() < 0.5:
@@ -264,17 +284,21 @@ def distractors(rec: Recognizer, trials: int, colour: bool) -> dict[str, float]:
         def false(oid: str, world_T_object: np.ndarray) -> bool:
             return oid not in truth or adds(shapes[oid], world_T_object, truth[oid]) >= 0.1 * shapes[oid].diameter_m
 
-        found, views = [], []
+        found, views, points = [], [], []
         for cam in s.cameras:
             frame = cell.render(cam.id, 0.0, trial)
             cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
             view = DepthView.of(cloud, frame.rgb if colour else None)
             views.append(CameraView(cam.id, 0, view, frame.world_T_camera))
+            points.append(CameraPoints(cam.id, 0, voxel_downsample(rec.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
+                                       frame.world_T_camera))  # fmt: skip
             for det in rec.recognize(cloud, world_T_camera=frame.world_T_camera, view=view):
                 found.append(WorldDetection(cam.id, 0, frame.world_T_camera @ det.camera_T_object, det, frame.world_T_camera))
                 per_camera += false(det.object_id, found[-1].world_T_object)
             frames += 1
-        published += sum(false(f.object_id, f.world_T_object) for f in cross_checked(found, views, rec.seen_through, 10**9)[0])
+        objects = cross_checked(found, views, rec.seen_through, 10**9)[0]
+        objects += searched(rec, objects, views, points)  # the absent object is always searched for
+        published += sum(false(f.object_id, f.world_T_object) for f in objects)
     suffix = "" if colour else "_depth_only"
     return {f"false_positives_per_trial_distractors{suffix}": published / trials,
             f"false_detections_per_frame_distractors{suffix}": per_camera / frames}  # fmt: skip
@@ -300,6 +324,8 @@ def run(quick: bool) -> dict[str, float]:
     moved_caught: list[bool] = []  # correct detections moved 20 cm: held back by the other cameras
     pair_hits: list[bool] = []  # per (trial, camera pair, object partly occluded in both): fused pose correct
     pair_false = 0
+    cloud_hits: list[bool] = []  # per (trial, camera, object present): found in the cameras' points together
+    cloud_false, cloud_added, cloud_times = 0, 0, []
     for trial in range(3 if quick else 12):
         s = random_layout(base, rng, tight=trial % 2 == 1)
         cell = SimCell(s)
@@ -351,6 +377,22 @@ def run(quick: bool) -> dict[str, float]:
             later.append((s, frame, classes))
         judge = recognisers["pcl"].seen_through
         published, held = cross_checked(in_world, views, judge, 10**9)
+        rec = recognisers["pcl"]
+        # Recognition in all the cameras' points together, seen from each camera, every object: the
+        # search's own recall and false detections (the worker searches only for what no camera found).
+        present = [o for o in s.objects if max(shares[c][o.id] for c in shares) >= SCORED]
+        for cv in views:
+            t0 = time.perf_counter()
+            in_cloud = {d.detection.object_id: d for d in found_in_cloud(set(shapes), cv, points,
+                        lambda cloud, W, view: rec.recognize(cloud, world_T_camera=W, view=view))}  # fmt: skip
+            cloud_times.append(time.perf_counter() - t0)
+            for oid, d in in_cloud.items():
+                cloud_false += adds(shapes[oid], d.world_T_object, next(o for o in s.objects if o.id == oid).world_T_object(0.0)) >= 0.1 * shapes[oid].diameter_m
+            cloud_hits += [o.id in in_cloud and adds(shapes[o.id], in_cloud[o.id].world_T_object, o.world_T_object(0.0)) < 0.1 * shapes[o.id].diameter_m
+                           for o in present]  # fmt: skip
+        added = searched(rec, published, views, points)
+        cloud_added += len(added)
+        published = published + added
         cfg = recognisers["pcl"].config
         refined = refined_in_cloud(published, points, recognisers["pcl"].db, cfg.icp_distance_m, cfg.descriptor.normal_radius_m, cfg.min_fitness)
         for before, after in zip(published, refined):
@@ -408,6 +450,11 @@ def run(quick: bool) -> dict[str, float]:
     out["objects_partly_occluded_in_both_of_a_pair"] = len(pair_hits)
     out["false_positives_fused_pairs"] = pair_false
     out["fused_held_back_right"] = fused_held_right
+    out["adds_recall_fused_cloud"] = float(np.mean(cloud_hits))
+    out["false_detections_fused_cloud"] = float(cloud_false)
+    out["fused_cloud_frames"] = float(len(cloud_times))
+    out["fused_cloud_ms_p50"] = 1000 * float(np.median(cloud_times))
+    out["fused_cloud_added"] = float(cloud_added)
     out["cross_view_caught_moved"] = float(np.mean(moved_caught)) if moved_caught else float("nan")
     out["frame_ms_p50"] = 1000 * float(np.median(times["pcl"]))
     out["frame_ms_p95"] = 1000 * float(np.percentile(times["pcl"], 95))

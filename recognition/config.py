@@ -189,6 +189,13 @@ class RecognitionConfig(BaseModel):
         "points takes ~0.15 s of a core); between fits an object keeps its last fitted pose while its fused pose stays "
         "within 5 mm and 2 deg of the one fitted",
     )
+    search_fused_cloud: bool = Field(
+        default=True,
+        description="worker: look for the objects no camera found in every localized camera's points together, put in one "
+        "camera's frame and verified against it, then cross-checked by the others (recognition.fusion.found_in_cloud); "
+        "one camera's frame a search_period_s, in turn, only while an object is missing (~0.17 s of a core a search)",
+    )
+    search_period_s: float = Field(default=2.0, gt=0, description="worker: at most one such search this often (s)")
     cloud_voxel_m: float = Field(
         default=0.03, ge=0, description="worker: voxel of the fused world point cloud it publishes on `points` (0: none)"
     )

@@ -2,7 +2,8 @@
 
 Each camera's detections are put in world frame by its pose (``WorldDetection``) and fused into one
 pose per object (``fuse``); a fused object another camera's frame saw through is held back
-(``cross_checked``); the rest are fitted to every camera's points around them (``refined_in_cloud``).
+(``cross_checked``); the rest are fitted to every camera's points around them (``refined_in_cloud``),
+and what no camera found is looked for in all their points together (``found_in_cloud``).
 ``fused_cloud`` is the cameras' points in one world cloud for viewing. ``recognition.worker`` owns
 the zenoh side and calls these.
 """
@@ -192,6 +193,34 @@ def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], mo
             continue
         out.append(replace(o, world_T_object=fit.camera_T_object))
     return out
+
+
+def points_in_frame(cameras: list[CameraPoints], world_T_camera: np.ndarray) -> np.ndarray:
+    """Every camera's points together, (N, 3) float32, in the frame of a camera at world_T_camera (4, 4)."""
+    if not cameras:
+        return np.zeros((0, 3), np.float32)
+    camera_T_world = geometry.invert_pose(world_T_camera)
+    out = []
+    for c in cameras:
+        T = camera_T_world @ c.world_T_camera
+        out.append(c.points @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(out).astype(np.float32)
+
+
+#: recognise(cloud (N, 3) camera frame, world_T_camera (4, 4), that camera's view): its detections.
+Recognise = Callable[[np.ndarray, np.ndarray, DepthView], list[Detection]]
+
+
+def found_in_cloud(missing: set[str], judge: CameraView, cameras: list[CameraPoints], recognise: Recognise) -> list[WorldDetection]:
+    """Objects no camera found (``missing``) recognised in every camera's points together, put in
+    the frame of ``judge``'s camera and verified against its frame: what one camera sees of an
+    object only partly, another completes. Detections of that camera (the caller cross-checks them
+    with the other cameras' frames, as any camera's)."""
+    if not missing:
+        return []
+    found = recognise(points_in_frame(cameras, judge.world_T_camera), judge.world_T_camera, judge.view)
+    return [WorldDetection(judge.camera_id, judge.stamp_ns, judge.world_T_camera @ d.camera_T_object, d, judge.world_T_camera)
+            for d in found if d.object_id in missing]  # fmt: skip
 
 
 def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ import numpy as np
 from recognition.cloud import depth_to_cloud, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.fusion import (
-    REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, cross_checked, display_cloud, fuse, fused_cloud,
+    REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, cross_checked, display_cloud, found_in_cloud, fuse, fused_cloud,
     refined_in_cloud,
 )
 from recognition.models import ModelDatabase
@@ -160,6 +160,9 @@ class RecognitionWorker:
         self.scenes: dict[str, CameraPoints] = {}  # camera -> its last recognised frame's points, to refine in
         self.refined: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # object -> (fused pose, its refinement), last refined
         self._refined_at = -np.inf  # monotonic s of the last refinement
+        self._searched_at = -np.inf  # monotonic s of the last search of the cameras' points together
+        self._search_turn = 0  # whose frame the next search is seen from
+        self.from_cloud: list[FusedObject] = []  # what the last search found (held until the next)
         self.held_back = 0  # fused objects another camera's frame contradicted
         self.clouds: dict[str, np.ndarray] = {}  # camera -> its newest frame's points, voxel-thinned, camera frame
         self.last_run: dict[str, float] = {}
@@ -287,7 +290,7 @@ class RecognitionWorker:
         view = DepthView.of(cloud, rgb) if self.config.min_cross_view_fitness > 0 else None
         if view is not None:
             self.views[camera_id] = CameraView(camera_id, stamp_ns, view, world_T_camera)
-        if self.config.refine_in_cloud:
+        if self.config.refine_in_cloud or self.config.search_fused_cloud:
             near = voxel_downsample(self.recognizer.workspace_points(cloud, world_T_camera), REFINE_VOXEL_M)
             self.scenes[camera_id] = CameraPoints(camera_id, stamp_ns, near, world_T_camera)
         found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view, rgb)
@@ -327,15 +330,17 @@ class RecognitionWorker:
         """The cameras' current detections fused, less what another camera's frame contradicts,
         each fitted to the cameras' points around it (``refined_in_cloud``)."""
         c = self.config
+        views = [v for v in self.views.values() if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])]
         if c.min_cross_view_fitness <= 0:
             objects = fuse(self.current_detections())
         else:
-            views = [v for v in self.views.values() if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])]
             objects, held = cross_checked(self.current_detections(), views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))
             for h in held:  # what a robot is not told, and why
                 log.debug("%s from %s held back: %s saw through it (%d of %d judged pixels on its surface)", h.object_id,
                           ", ".join(h.detected_by), h.camera_id, h.verdict.inliers, h.verdict.inliers + h.verdict.violations)  # fmt: skip
             self.held_back += len(held)
+        if c.search_fused_cloud:
+            objects = objects + self.searched(objects, views)
         if not c.refine_in_cloud or not objects:
             return objects
         now = time.monotonic()
@@ -344,13 +349,38 @@ class RecognitionWorker:
                     and _within(self.refined[o.object_id][0], o.world_T_object, REFINED_HOLD_M, REFINED_HOLD_DEG) else o
                     for o in objects]  # fmt: skip
         self._refined_at = now
-        newest = max(o.stamp_ns for o in objects)
-        cameras = [replace(p, world_T_camera=self.world_T_camera[p.camera_id]) for p in self.scenes.values()
-                   if self.placed(p.camera_id) and _still_at(p.world_T_camera, self.world_T_camera[p.camera_id])
-                   and newest - p.stamp_ns <= c.cross_view_max_age_s * 1e9]  # fmt: skip
+        cameras = self._cameras(max(o.stamp_ns for o in objects))
         refined = refined_in_cloud(objects, cameras, self.db, c.icp_distance_m, c.descriptor.normal_radius_m, c.min_fitness)
         self.refined = {o.object_id: (o.world_T_object, r.world_T_object) for o, r in zip(objects, refined)}
         return refined
+
+    def _cameras(self, newest_ns: int) -> list[CameraPoints]:
+        """The localized cameras' last recognised points, each with its newest pose, from frames within
+        cross_view_max_age_s of newest_ns (ns) and taken where the camera still is."""
+        return [replace(p, world_T_camera=self.world_T_camera[p.camera_id]) for p in self.scenes.values()
+                if self.placed(p.camera_id) and _still_at(p.world_T_camera, self.world_T_camera[p.camera_id])
+                and newest_ns - p.stamp_ns <= self.config.cross_view_max_age_s * 1e9]  # fmt: skip
+
+    def searched(self, objects: list[FusedObject], views: list[CameraView]) -> list[FusedObject]:
+        """The objects no camera found (not in ``objects``), looked for in every camera's points
+        together (``found_in_cloud``), seen from one camera a ``search_period_s`` in turn and
+        cross-checked by the others; between searches, what the last one found and is still missing."""
+        c = self.config
+        missing = set(self.db.models) - {o.object_id for o in objects}
+        if not missing or not views:
+            return []
+        now = time.monotonic()
+        if now - self._searched_at < c.search_period_s:
+            return [o for o in self.from_cloud if o.object_id in missing]
+        self._searched_at = now
+        judge = sorted(views, key=lambda v: v.camera_id)[self._search_turn % len(views)]
+        self._search_turn += 1
+        cameras = self._cameras(max(v.stamp_ns for v in views))
+        found = found_in_cloud(missing, judge, cameras, lambda cloud, W, view: self.recognizer.recognize(cloud, world_T_camera=W, view=view))
+        self.from_cloud = cross_checked(found, views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))[0]
+        for o in self.from_cloud:
+            log.info("%s found in %d cameras' points together, seen from %s", o.object_id, len(cameras), judge.camera_id)
+        return self.from_cloud
 
     def current_detections(self) -> list[WorldDetection]:
         """The cameras' latest detections, put in world frame with each camera's newest pose.

@@ -16,7 +16,8 @@ from recognition.align import rot_z
 from recognition.cloud import depth_to_cloud, voxel_downsample
 from recognition.models import ModelDatabase
 from recognition.pipeline import Detection, Recognizer
-from recognition.fusion import REFINE_VOXEL_M, CameraPoints, FusedObject, WorldDetection, fuse, refined_in_cloud
+from recognition.verify import DepthView
+from recognition.fusion import REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, found_in_cloud, fuse, refined_in_cloud
 from recognition.worker import RecognitionWorker
 from schemas import codec, geometry, keys
 from schemas import messages as m
@@ -270,3 +271,65 @@ def test_between_fits_an_object_keeps_its_fitted_pose_while_it_stays_put(client_
         np.testing.assert_array_equal(seen_at(make_pose(t=[0.001, 0.0, 0.0]) @ off), fitted)  # held
         moved = make_pose(t=[0.01, 0.0, 0.0]) @ off
         np.testing.assert_allclose(seen_at(moved), moved, atol=1e-12)  # as fused, until the next fit
+
+
+def _demo_frames(recognizer: Recognizer, seed: int) -> tuple[list[CameraView], list[CameraPoints]]:
+    """Every demo camera's rendered frame as the worker keeps it: its view and its workspace points."""
+    views, points = [], []
+    for cam in load_scenario().cameras:
+        frame = SimCell(load_scenario()).render(cam.id, 0.0, seed)
+        cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
+        views.append(CameraView(cam.id, 0, DepthView.of(cloud, frame.rgb), frame.world_T_camera))
+        points.append(CameraPoints(cam.id, 0, voxel_downsample(recognizer.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
+                                   frame.world_T_camera))  # fmt: skip
+    return views, points
+
+
+def test_objects_are_found_in_every_cameras_points_together(demo_models: dict) -> None:
+    """`found_in_cloud`: the four demo cameras' points put in cam1's frame and verified against
+    cam1's; each object asked for is found within 2 cm of where it stands, only those asked for
+    are reported, and nothing asked is nothing searched."""
+    cfg = demo_config().recognition
+    recognizer = Recognizer(ModelDatabase(cfg.descriptor, dict(demo_models)), cfg)
+    views, points = _demo_frames(recognizer, 5)
+    calls = []
+
+    def recognise(cloud, world_T_camera, view):
+        calls.append(len(cloud))
+        return recognizer.recognize(cloud, world_T_camera=world_T_camera, view=view)
+
+    truth = {o.id: o.world_T_object(0.0) for o in load_scenario().objects}
+    found = found_in_cloud({"tote", "can"}, views[0], points, recognise)
+    assert sorted(d.detection.object_id for d in found) == ["can", "tote"]
+    assert calls == [sum(len(p.points) for p in points)]  # every camera's points, in one search
+    for d in found:
+        assert d.camera_id == "cam1" and np.linalg.norm(d.world_T_object[:3, 3] - truth[d.detection.object_id][:3, 3]) < 0.02
+    assert found_in_cloud(set(), views[0], points, recognise) == [] and len(calls) == 1
+
+
+def test_the_worker_searches_the_cameras_points_for_what_no_camera_found(client_transport: TransportConfig, demo_database) -> None:
+    """With the crate and the can detected and the tote not, `fused` adds the tote found in the
+    cameras' points together (within 2 cm); within `search_period_s` it holds that result without
+    searching again, and once a camera detects the tote itself the search's result is not added."""
+    cfg, db = demo_database
+    config = cfg.recognition.model_copy(update={"search_fused_cloud": True, "search_period_s": 3600.0})
+    truth = {o.id: o.world_T_object(0.0) for o in load_scenario().objects}
+    with Bus(client_transport, CELL) as bus:
+        worker = RecognitionWorker(bus, config, db)
+        views, points = _demo_frames(worker.recognizer, 5)
+        for v, p in zip(views, points):
+            worker.views[v.camera_id], worker.scenes[p.camera_id], worker.world_T_camera[v.camera_id] = v, p, v.world_T_camera
+            worker.camera_state[v.camera_id] = m.CameraState.State.LOCALIZED
+
+        def seen(oid: str) -> WorldDetection:
+            camera_T_object = geometry.invert_pose(views[1].world_T_camera) @ truth[oid]
+            return WorldDetection("cam2", 0, truth[oid], Detection(oid, camera_T_object, 0.9, 1.0, 0.005, 100), views[1].world_T_camera)
+
+        worker.latest = {("cam2", oid): seen(oid) for oid in ("crate", "can")}
+        objects = {o.object_id: o for o in worker.fused()}
+        assert sorted(objects) == ["can", "crate", "tote"]
+        assert np.linalg.norm(objects["tote"].world_T_object[:3, 3] - truth["tote"][:3, 3]) < 0.02
+        searched_at = worker._searched_at
+        assert sorted(o.object_id for o in worker.fused()) == ["can", "crate", "tote"] and worker._searched_at == searched_at
+        worker.latest[("cam2", "tote")] = seen("tote")
+        assert [o.camera_ids for o in worker.fused() if o.object_id == "tote"] == [["cam2"]]
