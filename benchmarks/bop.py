@@ -22,7 +22,9 @@ given, so the cell's workspace crops the frames as in the running cell) and PCL'
 re-packed as depth + colour images (intrinsics fitted to their organised clouds), none of which
 holds a demo object: every detection there is false. The simulated frames are recognised once more
 without their pose (``..._camera_frame``), as ``cellsight recognize`` sees a saved frame: the room's
-floor and walls in view, which the planes removed after the first take away. (PCL's milk carton is no BOP model: it is one
+floor and walls in view, which the planes removed after the first take away; and once more with
+``level_support`` (``..._camera_frame_level_support``: the dominant plane taken as level, so the
+upright test and the support apply as with a pose). (PCL's milk carton is no BOP model: it is one
 captured view, and a BOP model is the whole surface; ``benchmarks.recognition`` finds it.) So the
 reader, the model build from files in millimetres and the scoring run on every change, and a
 held-back dataset is one flag away.
@@ -116,13 +118,14 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
         ours += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
     # Frames with the camera's world pose once more without it, as `cellsight recognize` sees a
     # saved frame: the whole view, the room's floor and walls included.
-    alone: list[bool] = []
-    false_alone = 0
-    for frame in [f for f in chosen if f.world_T_camera is not None]:
-        cloud, rgb = frame.load()
-        s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in rec.recognize(cloud, rgb=rgb)], surface, diameter)
-        false_alone += len(s.false)
-        alone += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
+    alone: dict[bool, list[bool]] = {False: [], True: []}  # level_support -> per scored instance: found
+    false_alone = {False: 0, True: 0}
+    for level, r in ((False, rec), (True, Recognizer(db, cfg.model_copy(update={"level_support": True})))):
+        for frame in [f for f in chosen if f.world_T_camera is not None]:
+            cloud, rgb = frame.load()
+            s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in r.recognize(cloud, rgb=rgb)], surface, diameter)
+            false_alone[level] += len(s.false)
+            alone[level] += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
     # The baseline in a pass of its own, so that nothing it leaves behind is in our timings.
     baseline = PpfBaseline.of(rec)
     for frame in track(chosen, description="point-pair voting"):
@@ -144,9 +147,10 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
                 out[f"{name}_{cls}"] = float(np.mean(sel))
     out["bop_false_detections"] = float(false)
     out["bop_false_detections_per_frame"] = false / len(chosen)
-    if alone:
-        out["bop_adds_recall_camera_frame"] = float(np.mean(alone))
-        out["bop_false_detections_camera_frame"] = float(false_alone)
+    for level, suffix in ((False, ""), (True, "_level_support")):
+        if alone[level]:
+            out[f"bop_adds_recall_camera_frame{suffix}"] = float(np.mean(alone[level]))
+            out[f"bop_false_detections_camera_frame{suffix}"] = float(false_alone[level])
     out["bop_frame_ms_p50"] = 1000 * float(np.median(times))
     out["bop_frame_ms_p95"] = 1000 * float(np.percentile(times, 95))
     if ppf_times:

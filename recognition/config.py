@@ -154,6 +154,12 @@ class RecognitionConfig(BaseModel):
         description="objects stand on their base (object +z within 45 deg of world up): rejects the flipped poses a "
         "symmetric shape allows; applies once the camera's world pose is known",
     )
+    level_support: bool = Field(
+        default=False,
+        description="without the camera's world pose (cellsight recognize, a dataset's frames): take the first removed "
+        "plane (the table, or the floor) as level, its normal as world up, so that the upright test applies and objects "
+        "stand on the level plane nearest the camera; for scenes whose objects all stand on their base",
+    )
     object_markers: list[ObjectMarkerConfig] = Field(default_factory=list)
     @model_validator(mode="after")
     def _box(self) -> "RecognitionConfig":

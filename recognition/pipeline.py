@@ -207,9 +207,12 @@ class Recognizer:
         scene = self.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
             return []
-        # World up in the camera frame, when known: the upright test needs it.
-        up = world_T_camera[2, :3].copy() if world_T_camera is not None and self.config.upright else None
         c = self.config
+        # World up in the camera frame, when known: the upright test needs it. Without the camera's
+        # pose, the dominant plane's normal if the scene is declared to stand on it.
+        up = world_T_camera[2, :3].copy() if world_T_camera is not None and c.upright else None
+        if world_T_camera is None and c.upright and c.level_support and len(scene.planes):
+            up = scene.planes[0][:3] / np.linalg.norm(scene.planes[0][:3])
         merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
                                     scene.graph)
         clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
@@ -535,15 +538,14 @@ class Recognizer:
 
 
 def _support(planes: np.ndarray, up: np.ndarray | None) -> np.ndarray | None:
-    """The first removed plane (a, b, c, d; normal towards the camera) that is level (normal within
-    20 deg of world up ``up``, camera frame), normalised; None without one or without ``up``."""
+    """Of the removed planes (a, b, c, d; normal towards the camera) that are level (normal within
+    20 deg of world up ``up``, camera frame), the one nearest the camera (a table over the floor),
+    normalised; None without one or without ``up``."""
     if up is None:
         return None
-    for plane in planes:
-        n = np.linalg.norm(plane[:3])
-        if plane[:3] @ up >= SUPPORT_COS * n * np.linalg.norm(up):
-            return plane / n
-    return None
+    unit = planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    level = unit[unit[:, :3] @ (up / np.linalg.norm(up)) >= SUPPORT_COS]
+    return level[np.argmin(level[:, 3])] if len(level) else None
 
 
 def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndarray) -> np.ndarray:
