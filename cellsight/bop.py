@@ -105,6 +105,8 @@ class BopDataset:
 
     @classmethod
     def open(cls, root: str | Path, split: str = "test", models_dir: str = "models") -> "BopDataset":
+        """The dataset at ``root``: every model of ``models_dir``, the frames of every scene folder of
+        ``split``. A DatasetError names the file and field that are missing or malformed."""
         root = Path(root)
         if not root.is_dir():
             raise DatasetError(f"{root}: no such dataset folder")
@@ -195,6 +197,8 @@ def _scene_frames(scene_dir: Path, models: dict[str, BopModel], targets: set[tup
     info = _read_json(info_path) if info_path.is_file() else {}
     if not all(isinstance(x, dict) for x in (cameras, gt, info)):
         raise DatasetError(f"{scene_dir}: scene_camera/scene_gt/scene_gt_info must map image ids to entries")
+    if not all(k.isdigit() for k in cameras):
+        raise DatasetError(f"{scene_dir / 'scene_camera.json'}: its keys must be image ids")
     frames = []
     for key, cam in sorted(cameras.items(), key=lambda kv: int(kv[0])):
         image_id = int(key)
@@ -204,13 +208,15 @@ def _scene_frames(scene_dir: Path, models: dict[str, BopModel], targets: set[tup
         try:
             K = np.asarray(cam["cam_K"], dtype=np.float64).reshape(3, 3)
             depth_scale = float(cam.get("depth_scale", 1.0))
-        except (KeyError, ValueError, TypeError):
+        except (KeyError, ValueError, TypeError, AttributeError):
             raise DatasetError(f"{where}: cam_K must be 9 numbers and depth_scale a number (mm per unit)") from None
+        if not depth_scale > 0:
+            raise DatasetError(f"{where}: depth_scale {depth_scale:g} must be positive (mm per depth unit)")
         depth = _image(scene_dir / "depth", image_id)
         if depth is None:
             raise DatasetError(f"{scene_dir / 'depth'}: no image {image_id:06d}")
         truth = []
-        rows, shares = gt.get(key, []), [r.get("visib_fract") for r in info.get(key, [])]
+        rows, shares = gt.get(key, []), [r.get("visib_fract") if isinstance(r, dict) else None for r in info.get(key, [])]
         for i, row in enumerate(rows):
             if not isinstance(row, dict) or not str(row.get("obj_id", "")).isdigit():
                 raise DatasetError(f"{gt_path} image {image_id}: entry {i} has no obj_id")

@@ -142,6 +142,9 @@ def _minimal(root: Path) -> Path:
          "cam_R_m2c is no rotation"),
         (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"0": {"depth_scale": 1}}'), "cam_K must be 9 numbers"),
         (lambda r: (r / "test" / "000001" / "depth" / "000000.png").unlink(), "no image 000000"),
+        (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"0": {"cam_K": [1,0,0,0,1,0,0,0,1], "depth_scale": 0}}'),
+         "depth_scale 0 must be positive"),
+        (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"first": {}}'), "keys must be image ids"),
     ],
 )
 def test_a_malformed_dataset_is_refused_naming_what_is_wrong(tmp_path: Path, damage, message: str) -> None:
