@@ -18,7 +18,9 @@ it, not to ours), its best pose per object scored the same way.
 
 Without ``--dataset`` it measures a dataset it writes first: the simulated demo cell (crate, can,
 tote; random layouts, every camera, ground truth from the simulator; the cameras' poses in the cell
-given, so the cell's workspace crops the frames as in the running cell) and PCL's real Kinect frames
+given, so the cell's workspace crops the frames as in the running cell; as many layouts again seen
+from close, each camera 0.8 m from the table's centre and 0.5 m above it, as datasets are taken:
+``bop_adds_recall_near`` / ``_far`` split at 1.2 m) and PCL's real Kinect frames
 re-packed as depth + colour images (intrinsics fitted to their organised clouds), none of which
 holds a demo object: every detection there is false. The simulated frames are recognised once more
 without their pose (``..._camera_frame``), as ``cellsight recognize`` sees a saved frame: the room's
@@ -54,8 +56,10 @@ from recognition.cloud import read_coloured_cloud  # noqa: E402
 from recognition.config import RecognitionConfig  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from schemas.geometry import invert_pose  # noqa: E402
+from schemas.spec import PoseSpec  # noqa: E402
 
 SCORED, UNOCCLUDED = 0.40, 0.95
+NEAR_M = 1.2  # instances nearer the camera than this (m) are scored apart too (``bop_adds_recall_near``)
 #: PCL's real Kinect frames (organised clouds, fx = fy = 525 px), none holding a demo object.
 REAL_FRAMES = ("milk_cartoon_all_small_clorox.pcd", "office1.pcd", "five_people.pcd",
                *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))
@@ -70,7 +74,8 @@ def kinect_frame(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def write_default(root: Path, layouts: int) -> Path:
-    """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts, the real frames scene 100."""
+    """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts from
+    the cell's cameras, layouts+1..2 layouts from close, the real frames scene 100."""
     base = load_scenario()
     ids = {o.id: i + 1 for i, o in enumerate(base.objects)}
     w = BopWriter(root)
@@ -78,8 +83,12 @@ def write_default(root: Path, layouts: int) -> Path:
         mesh = object_mesh(obj).paint_uniform_color(obj.color)
         w.add_model(ids[obj.id], np.asarray(mesh.vertices), np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors))
     rng = np.random.default_rng(7)
-    for scene in range(1, layouts + 1):
-        s = random_layout(base, rng, tight=scene % 2 == 0)
+    for scene in range(1, 2 * layouts + 1):
+        # Scenes past `layouts` are seen from close: each camera moved in along its line to 0.8 m
+        # from the table's centre, 0.5 m above it, as datasets' frames are taken.
+        near = [c.model_copy(update={"pose": PoseSpec(position=(*(0.8 * np.array(c.pose.position[:2]) / np.hypot(*c.pose.position[:2])), 1.25),
+                                                      look_at=(0.0, 0.0, 0.8)), "motion": []}) for c in base.cameras]  # fmt: skip
+        s = random_layout(base if scene <= layouts else base.model_copy(update={"cameras": near}), rng, tight=scene % 2 == 0)
         cell = SimCell(s)
         for image_id, cam in enumerate(s.cameras):
             frame = cell.render(cam.id, 0.0, scene)
@@ -106,6 +115,7 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
     if frames is not None and frames < len(chosen):
         chosen = [chosen[i] for i in np.linspace(0, len(chosen) - 1, frames).round().astype(int)]
     ours: list[tuple[str, bool]] = []  # (class, found) per scored instance
+    near_far: list[tuple[bool, bool]] = []  # (nearer than NEAR_M, found) per scored instance
     theirs: list[tuple[str, bool]] = []
     false, times, ppf_times = 0, [], []
     for frame in track(chosen, description="recognising"):
@@ -116,6 +126,8 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
         s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
         false += len(s.false)
         ours += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
+        near_far += [(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M, hit)
+                     for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]  # fmt: skip
     # Frames with the camera's world pose once more without it, as `cellsight recognize` sees a
     # saved frame: the whole view, the room's floor and walls included.
     alone: dict[bool, list[bool]] = {False: [], True: []}  # level_support -> per scored instance: found
@@ -145,6 +157,11 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
             sel = [hit for c, hit in rows if c == cls]
             if sel:
                 out[f"{name}_{cls}"] = float(np.mean(sel))
+    for near, band in ((True, "near"), (False, "far")):
+        sel = [hit for n, hit in near_far if n == near]
+        if sel:
+            out[f"bop_adds_recall_{band}"] = float(np.mean(sel))
+            out[f"bop_instances_{band}"] = float(len(sel))
     out["bop_false_detections"] = float(false)
     out["bop_false_detections_per_frame"] = false / len(chosen)
     for level, suffix in ((False, ""), (True, "_level_support")):

@@ -156,9 +156,10 @@ class RecognitionConfig(BaseModel):
     )
     level_support: bool = Field(
         default=False,
-        description="without the camera's world pose (cellsight recognize, a dataset's frames): take the first removed "
-        "plane (the table, or the floor) as level, its normal as world up, so that the upright test applies and objects "
-        "stand on the level plane nearest the camera; for scenes whose objects all stand on their base",
+        description="without the camera's world pose (cellsight recognize, a dataset's frames): take the removed plane "
+        "whose normal is nearest the image's up (the table, or the floor; the camera mounted upright) as level, its normal "
+        "as world up, so that the upright test applies and objects stand on the level plane nearest the camera; for scenes "
+        "whose objects all stand on their base",
     )
     object_markers: list[ObjectMarkerConfig] = Field(default_factory=list)
     @model_validator(mode="after")

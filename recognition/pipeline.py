@@ -209,10 +209,12 @@ class Recognizer:
             return []
         c = self.config
         # World up in the camera frame, when known: the upright test needs it. Without the camera's
-        # pose, the dominant plane's normal if the scene is declared to stand on it.
+        # pose, if the scene is declared to stand on a level plane: of the removed planes, the one
+        # whose normal is nearest the image's up (-y; a camera is mounted upright), not a wall.
         up = world_T_camera[2, :3].copy() if world_T_camera is not None and c.upright else None
         if world_T_camera is None and c.upright and c.level_support and len(scene.planes):
-            up = scene.planes[0][:3] / np.linalg.norm(scene.planes[0][:3])
+            unit = scene.planes[:, :3] / np.linalg.norm(scene.planes[:, :3], axis=1, keepdims=True)
+            up = unit[np.argmax(-unit[:, 1])]
         merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
                                     scene.graph)
         clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
@@ -329,7 +331,8 @@ class Recognizer:
         camera measured surfaces behind where the object would be: under ``min_cross_view_fitness``
         of the ``CROSS_VIEW_PIXELS`` or more it could judge), else None."""
         model, c = self.db.models[object_id], self.config
-        v = verdict(view, model.points, model.normals, camera_T_object, c.icp_distance_m, c.plane_noise_per_m2)
+        v = verdict(view, model.points, model.normals, camera_T_object, c.icp_distance_m, c.plane_noise_per_m2,
+                    spacing_m=c.descriptor.voxel_m)
         judged = v.inliers + v.violations
         return v if judged >= CROSS_VIEW_PIXELS and v.fitness < c.min_cross_view_fitness else None
 
@@ -338,7 +341,7 @@ class Recognizer:
         (``recognition.verify``)."""
         model, c = self.db.models[det.object_id], self.config
         return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes,
-                       model.chroma_range, c.colour_tolerance)  # fmt: skip
+                       model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m)  # fmt: skip
 
     def _match_cluster(
         self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None

@@ -172,7 +172,7 @@ class Verdict:
 
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
             tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None,
-            chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1) -> Verdict:  # fmt: skip
+            chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1, spacing_m: float = 0.01) -> Verdict:  # fmt: skip
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
     camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
 
@@ -182,7 +182,8 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
 
     chroma_range (M, 4): each model point's colours (``chroma_ranges``), judged against the view's
     colour where both have one: agreeing when its chromaticity is within ``colour_tolerance`` of
-    the range in r and in g."""
+    the range in r and in g. spacing_m: the model points' spacing (m; their voxel), which sets how
+    far apart they land in the image and so how much of the silhouette is gaps between them."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
     p = points @ R.T + t
     n = normals @ R.T
@@ -211,7 +212,8 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     inside = 0
     if planes is not None and len(planes) and occluded.any():
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
-    outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2)
+    gap_px = view.K[0, 0] * spacing_m / float(np.median(z)) if len(z) else 0.0
+    outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2, gap_px)
     judged = agreeing = 0
     if chroma_range is not None and view.chroma is not None:
         scene = view.chroma.reshape(-1, 2)[flat[inlier]]
@@ -266,15 +268,22 @@ def _rays(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance_m: float,
-             noise_per_m2: float) -> tuple[int, int, int]:  # fmt: skip
+             noise_per_m2: float, gap_px: float = 0.0) -> tuple[int, int, int]:  # fmt: skip
     """(ring pixels, measured, continuing) around the silhouette of the seen model points p (M, 3,
     camera frame) with outward normals n, at pixels (u, v): a ring pixel continues when the measured
     surface there lies on the tangent plane of the nearest model point (within the tolerance, normals
-    within ``SAME_SURFACE_DEG``): the model's surface would go on past its own outline."""
+    within ``SAME_SURFACE_DEG``): the model's surface would go on past its own outline.
+
+    gap_px: how far apart neighbouring model points land (px). Up close they land further apart
+    than ``OUTLINE_PX[0]``: the silhouette is closed over such gaps and the ring starts beyond its
+    ragged edge, else ring pixels fall between the model's own points, on its own surface (a crate
+    at 0.76 m read 0.24 of its ring continuing)."""
     if len(u) == 0:
         return 0, 0, 0
     H, W = view.z.shape
-    inner, outer = OUTLINE_PX
+    inner = max(OUTLINE_PX[0], int(np.ceil(gap_px / 2)))
+    outer = inner + OUTLINE_PX[1] - OUTLINE_PX[0]
+    closing = max(2, int(np.ceil(gap_px / np.sqrt(2))))
     # Work in the silhouette's box plus the ring: a hypothesis covers a small part of the frame.
     u0, v0 = max(int(u.min()) - outer - 1, 0), max(int(v.min()) - outer - 1, 0)
     u1, v1 = min(int(u.max()) + outer + 2, W), min(int(v.max()) + outer + 2, H)
@@ -282,7 +291,7 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
     source = np.ones(box, np.uint8)  # zero at the model's pixels: the distance transform's sources
     source[v - v0, u - u0] = 0
     disc = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))  # noqa: E731
-    silhouette = cv2.morphologyEx(1 - source, cv2.MORPH_CLOSE, disc(2))  # the gaps between model points filled
+    silhouette = cv2.morphologyEx(1 - source, cv2.MORPH_CLOSE, disc(closing))  # the gaps between model points filled
     ring = (cv2.dilate(silhouette, disc(outer)) > 0) & ~(cv2.dilate(silhouette, disc(inner)) > 0)
     rv, ru = np.nonzero(ring)
     if len(rv) == 0:
