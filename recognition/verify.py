@@ -275,9 +275,9 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
     within ``SAME_SURFACE_DEG``): the model's surface would go on past its own outline.
 
     gap_px: how far apart neighbouring model points land (px). Up close they land further apart
-    than ``OUTLINE_PX[0]``: the silhouette is closed over such gaps and the ring starts beyond its
-    ragged edge, else ring pixels fall between the model's own points, on its own surface (a crate
-    at 0.76 m read 0.24 of its ring continuing)."""
+    than ``OUTLINE_PX[0]``: the silhouette is closed over such gaps (diagonal ones too) and the
+    ring starts half a gap out, else ring pixels fall between the model's own points, on its own
+    surface, and read as the surface continuing."""
     if len(u) == 0:
         return 0, 0, 0
     H, W = view.z.shape
