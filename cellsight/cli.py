@@ -535,6 +535,8 @@ def recognize_cmd(
     cy: Annotated[Optional[float], typer.Option(help="depth image principal point y, px")] = None,
     scale: Annotated[Optional[float], typer.Option(
         help="metres per unit of the scene (default: 1 for a cloud, 0.001 for a depth image in mm; 0.0001 for 0.1 mm depth)")] = None,
+    standing: Annotated[bool, typer.Option("--standing", help="every object stands on its base on the table or floor: "
+                                           "take that plane as level ([recognition] level_support)")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
     cell_config: CellConfigOpt = None,
     verbose: VerboseOpt = False,
@@ -546,7 +548,8 @@ def recognize_cmd(
     _setup_logging(verbose)
     cfg = _load(cell_config)
     db = ModelDatabase.load(models)
-    result = recognize_file(scene, db, cfg.recognition.model_copy(update={"descriptor": db.descriptor}),
+    update = {"descriptor": db.descriptor} | ({"level_support": True} if standing else {})
+    result = recognize_file(scene, db, cfg.recognition.model_copy(update=update),
                             fx=fx, fy=fy, cx=cx, cy=cy, scale=scale, rgb=rgb)
     typer.echo(result.to_json() if as_json else result.to_text())
     if not result.detections:
