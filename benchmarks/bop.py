@@ -103,6 +103,9 @@ def write_default(root: Path, layouts: int) -> Path:
 
 
 def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: RecognitionConfig) -> dict[str, float]:
+    """Ours and the point-pair baseline on ``frames`` of the dataset's frames (all if None), the
+    database built from its models with views at ``distance_m`` (m): the figures of the module
+    docstring."""
     meshes = {m.object_id: m.path for m in dataset.models.values() if m.is_mesh}
     points = {m.object_id: m.path for m in dataset.models.values() if not m.is_mesh}
     t0 = time.perf_counter()
