@@ -22,6 +22,9 @@ DISTANCE_STEP = 0.05
 ANGLE_BINS = 30
 #: Sampled model points at most (all ordered pairs are hashed: 600 is 360k entries).
 MAX_MODEL_POINTS = 600
+#: Reference points voting at once: their distances to every scene sample and their accumulators
+#: (references x model points x angle bins) are held together.
+REFS_AT_ONCE = 256
 
 
 @dataclass(frozen=True)
@@ -101,11 +104,20 @@ def train(points: np.ndarray, normals: np.ndarray, diameter_m: float) -> PpfMode
 def match(model: PpfModel, points: np.ndarray, normals: np.ndarray, ref_every: int = 5, top: int = 3) -> list[PpfPose]:
     """Pose hypotheses of the model in a scene (points, unit normals (N, 3), camera frame, m), best first.
 
-    The scene is sampled like the model; every ``ref_every``-th sample is a reference point."""
+    The scene is sampled like the model; every ``ref_every``-th sample is a reference point. The
+    references vote in chunks (``REFS_AT_ONCE``), so memory stays bounded on a whole frame."""
     s, sn = _sample(points, normals, model.step_m)
     refs = np.arange(0, len(s), ref_every)
     if len(refs) == 0 or len(model.points) < 2:
         return []
+    chunks = [_vote(model, s, sn, refs[i:i + REFS_AT_ONCE]) for i in range(0, len(refs), REFS_AT_ONCE)]
+    poses, votes = np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
+    return _cluster(poses, votes, 0.1 * model.diameter_m, np.radians(2 * 360 / ANGLE_BINS))[:top]
+
+
+def _vote(model: PpfModel, s: np.ndarray, sn: np.ndarray, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each reference point's (indices into the scene samples s, normals sn (S, 3)) best pose
+    (R, 4, 4) and its votes (R,)."""
     near = np.linalg.norm(s[refs][:, None, :] - s[None, :, :], axis=2) <= model.diameter_m
     near[np.arange(len(refs)), refs] = False
     r, o = np.nonzero(near)  # r indexes refs, o the scene samples
@@ -128,8 +140,7 @@ def match(model: PpfModel, points: np.ndarray, normals: np.ndarray, ref_every: i
     angle = (a_idx + 0.5) * 2 * np.pi / ANGLE_BINS
     Rx = np.tile(np.eye(4), (len(refs), 1, 1))
     Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = np.cos(angle), -np.sin(angle), np.sin(angle), np.cos(angle)
-    poses = np.linalg.inv(T_s) @ Rx @ T_m
-    return _cluster(poses, votes, 0.1 * model.diameter_m, np.radians(2 * 360 / ANGLE_BINS))[:top]
+    return np.linalg.inv(T_s) @ Rx @ T_m, votes
 
 
 def _cluster(poses: np.ndarray, votes: np.ndarray, dist_m: float, angle_rad: float) -> list[PpfPose]:
