@@ -24,7 +24,9 @@ import numpy as np
 import open3d as o3d
 
 from cellsight.errors import DatasetError
+from cellsight.recognize_cmd import read_depth_image, read_registered_rgb
 from recognition.cloud import depth_to_cloud
+from recognition.errors import CloudError
 from schemas.geometry import invert_pose
 
 log = logging.getLogger(__name__)
@@ -79,18 +81,13 @@ class BopFrame:
     def load(self) -> tuple[np.ndarray, np.ndarray | None]:
         """The organised cloud (H, W, 3, m; NaN without depth) and the registered colour (H, W, 3
         uint8 rgb), or None when the frame has no colour image of the depth's size."""
-        depth = cv2.imread(str(self.depth_path), cv2.IMREAD_UNCHANGED)
-        if depth is None or depth.ndim != 2:
-            raise DatasetError(f"{self.depth_path}: not a single-channel depth image")
+        depth = read_depth_image(self.depth_path)
         rgb = None
         if self.rgb_path is not None:
-            bgr = cv2.imread(str(self.rgb_path), cv2.IMREAD_COLOR)
-            if bgr is None:
-                raise DatasetError(f"{self.rgb_path}: not a colour image")
-            if bgr.shape[:2] == depth.shape:
-                rgb = np.ascontiguousarray(bgr[..., ::-1])
-            else:
-                log.debug("%s is %s, the depth %s: colour not registered, not used", self.rgb_path, bgr.shape[:2], depth.shape)
+            try:
+                rgb = read_registered_rgb(self.rgb_path, self.depth_path, depth.shape)
+            except CloudError as exc:
+                log.debug("frame %d/%d recognised on depth alone: %s", self.scene_id, self.image_id, exc)
         return depth_to_cloud(depth, self.K, self.depth_scale_m), rgb
 
 

@@ -76,23 +76,33 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
             raise CloudError(f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
                              f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? give --scale 0.001")
         return cloud, colours
-    depth = cv2.imread(str(scene), cv2.IMREAD_UNCHANGED)
-    if depth is None or depth.ndim != 2:
-        raise CloudError(f"{scene}: not a PCD/PLY cloud nor a single-channel depth image")
-    colours = None
-    if rgb is not None:
-        bgr = cv2.imread(str(rgb), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise CloudError(f"{rgb}: not a colour image (PNG, JPEG)")
-        if bgr.shape[:2] != depth.shape:
-            raise CloudError(f"{rgb} is {bgr.shape[1]}x{bgr.shape[0]} but the depth image {scene} is "
-                             f"{depth.shape[1]}x{depth.shape[0]}: the colour must be registered to the depth")
-        colours = np.ascontiguousarray(bgr[..., ::-1])
+    depth = read_depth_image(scene)
+    colours = None if rgb is None else read_registered_rgb(rgb, scene, depth.shape)
     K = CameraInfo.kinect_v1(depth.shape[1], depth.shape[0]).K
     for (r, c), v in (((0, 0), fx), ((1, 1), fy), ((0, 2), cx), ((1, 2), cy)):
         if v is not None:
             K[r, c] = v
     return depth_to_cloud(depth, K, 0.001 if scale is None else scale), colours
+
+
+def read_depth_image(path: Path) -> np.ndarray:
+    """A single-channel depth image (H, W) as stored (16-bit units), or a CloudError naming it."""
+    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if depth is None or depth.ndim != 2:
+        raise CloudError(f"{path}: not a PCD/PLY cloud nor a single-channel depth image")
+    return depth
+
+
+def read_registered_rgb(path: Path, depth_path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """A colour image registered to the depth image at depth_path, of its size ``shape`` (H, W), as
+    (H, W, 3) uint8 rgb; a CloudError if it is no image or of another size."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise CloudError(f"{path}: not a colour image (PNG, JPEG)")
+    if bgr.shape[:2] != shape:
+        raise CloudError(f"{path} is {bgr.shape[1]}x{bgr.shape[0]} but the depth image {depth_path} is "
+                         f"{shape[1]}x{shape[0]}: the colour must be registered to the depth")
+    return np.ascontiguousarray(bgr[..., ::-1])
 
 
 def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, **intrinsics) -> RecognizeResult:
