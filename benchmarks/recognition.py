@@ -80,6 +80,7 @@ import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
+from cellsight.bop import adds_m  # noqa: E402
 from cellsight.model_build import database_from_scenario  # noqa: E402
 from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, apart, footprint, load_scenario  # noqa: E402
@@ -163,9 +164,8 @@ def shape_of(obj: ObjectSpec) -> Shape:
 
 
 def adds(shape: Shape, est: np.ndarray, gt: np.ndarray) -> float:
-    a = shape.points @ gt[:3, :3].T + gt[:3, 3]
-    b = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(shape.points @ est[:3, :3].T + est[:3, 3]))
-    return float(np.mean(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a)).compute_point_cloud_distance(b)))
+    """ADD-S (m) of an estimated pose against the true one (``cellsight.bop.adds_m``)."""
+    return adds_m(shape.points, est, gt)
 
 
 def mssd(shape: Shape, est: np.ndarray, gt: np.ndarray) -> float:
