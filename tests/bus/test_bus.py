@@ -60,24 +60,31 @@ def test_every_message_type_arrives_exactly(client_transport: TransportConfig) -
     with Bus(client_transport, CELL) as pub_bus, Bus(client_transport, CELL) as sub_bus:
         sub = sub_bus.subscribe(keys.everything(CELL), capacity=10_000)
         pubs = {k: pub_bus.publisher(k) for k in msgs}
-        wait_until(lambda: _probe(pubs, sub), 5.0, "subscription to be routed")
+        # Each publisher learns of the subscriber on its own: route every key, not just one.
+        for k in msgs:
+            wait_until(lambda: _probe({k: pubs[k]}, sub, msgs[k]), 5.0, f"a route for {k}")
         sub.drain()
         for _ in range(n):
             for k, msg in msgs.items():
                 pubs[k].put(msg)
-        wait_until(lambda: len(sub.inbox._items) >= n * len(msgs), 5.0, "all messages")
+        wait_until(lambda: len(sub.inbox._items) >= n * len(msgs), 15.0, "all messages")
         got = sub.drain()
-    assert len(got) == n * len(msgs)
+    per_key = Counter(item.key for item in got)
+    assert per_key == {k: n for k in msgs}
     for item in got:
         assert item.msg == msgs[item.key], item.key
     assert sum(sub.bad.values()) == 0
 
 
-def _probe(pubs, sub) -> bool:
-    """Publish one status message until the subscriber sees it (routes take a moment)."""
-    key = keys.status(CELL, "cam1")
-    pubs[key].put(m.DriverStatus(camera_id="cam1", stamp_ns=1))
-    return sub.get(timeout_s=0.05) is not None
+def _probe(pubs, sub, msg=None) -> bool:
+    """Publish one message until the subscriber sees it on that key (routes take a moment).
+
+    ``pubs`` holds one publisher; ``msg`` defaults to a driver status.
+    """
+    ((key, pub),) = pubs.items()
+    pub.put(msg if msg is not None else m.DriverStatus(camera_id="cam1", stamp_ns=1))
+    item = sub.get(timeout_s=0.05)
+    return item is not None and item.key == key
 
 
 def test_bad_payloads_are_counted_and_good_ones_still_arrive(client_transport: TransportConfig) -> None:
