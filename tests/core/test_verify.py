@@ -71,6 +71,19 @@ def test_a_pixel_explains_one_object() -> None:
     assert [explained.admit(v) for v in (a, b, c)] == [True, False, True]
 
 
+def test_up_close_two_hypotheses_on_one_surface_share_its_pixels() -> None:
+    """A wall 0.5 m away and two 20 cm patches of 1 cm spacing on it, half a spacing apart: their
+    points land ~5 px apart at the view's resolution, each on pixels the other's miss. What they
+    explain is the surface between their points too: the second one competes for the same surface."""
+    view = DepthView.of(wall(0.5))
+    points, normals = patch(step_m=0.01)
+    a, b = (verdict(view, points, normals, make_pose(t=[dx, dx, 0.5]), TOL, NOISE) for dx in (0.0, 0.005))
+    # a.inliers: the pixels its points land on; a.pixels: those and the surface between them.
+    assert len(np.intersect1d(a.pixels, b.pixels)) > 0.8 * len(a.pixels) > 4 * a.inliers
+    explained = Explained()
+    assert [explained.admit(v) for v in (a, b)] == [True, False]
+
+
 def test_what_a_found_object_hides_is_no_evidence_against_the_one_behind_it() -> None:
     """A wall at 2 m with a near panel covering its left half (x < 0) at 1.5 m. A patch on the wall
     straddling the panel's edge is half hidden: its support is half. Once the panel is a found
