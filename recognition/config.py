@@ -159,7 +159,13 @@ class RecognitionConfig(BaseModel):
         description="without the camera's world pose (cellsight recognize, a dataset's frames): take the removed plane "
         "whose normal is nearest the image's up (the table, or the floor; the camera mounted upright) as level, its normal "
         "as world up, so that the upright test applies and objects stand on the level plane nearest the camera; for scenes "
-        "whose objects all stand on their base",
+        "whose objects all stand on their base (stand_on_level tries them both ways)",
+    )
+    stand_on_level: bool = Field(
+        default=True,
+        description="without the camera's world pose and level_support: try each object both any way up and standing "
+        "on that level plane (its normal as world up, the upright test, the pieces path), and let verification choose; "
+        "about twice the work of a frame",
     )
     object_markers: list[ObjectMarkerConfig] = Field(default_factory=list)
     @model_validator(mode="after")
