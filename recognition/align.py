@@ -101,14 +101,35 @@ class IcpResult:
     rmse_m: float
 
 
-def facing_camera(model_points: np.ndarray, model_normals: np.ndarray, camera_T_objects: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class ImageBounds:
+    """The image a scene was measured in: pinhole K (3, 3) and size (H, W) px."""
+
+    K: np.ndarray
+    size: tuple[int, int]
+
+    def inside(self, points: np.ndarray) -> np.ndarray:
+        """Mask (...,) of camera-frame points (..., 3) in front of the camera that project into the image."""
+        z = points[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.K[0, 0] * points[..., 0] / z + self.K[0, 2]
+            v = self.K[1, 1] * points[..., 1] / z + self.K[1, 2]
+            return (z > 0) & (u >= 0) & (u < self.size[1]) & (v >= 0) & (v < self.size[0])
+
+
+def facing_camera(model_points: np.ndarray, model_normals: np.ndarray, camera_T_objects: np.ndarray,
+                  image: ImageBounds | None = None) -> np.ndarray:  # fmt: skip
     """Mask (S, N) of the model points (N, 3), object frame, whose normal faces the camera at each
-    pose (S, 4, 4): a cheap visibility cull."""
+    pose (S, 4, 4): a cheap visibility cull; with the image, only those landing inside it (an object
+    cut by the frame's border is not missing what lies beyond it)."""
     T = np.asarray(camera_T_objects, dtype=np.float64).reshape(-1, 4, 4)
     R, t = T[:, :3, :3], T[:, :3, 3]
     # n_cam . -p_cam = -(R n) . (R p + t) = -(n . p) - (R n) . t
     n_dot_p = np.einsum("ij,ij->i", model_normals, model_points)
-    return -n_dot_p[None, :] - np.einsum("sij,nj,si->sn", R, model_normals, t) > 0
+    facing = -n_dot_p[None, :] - np.einsum("sij,nj,si->sn", R, model_normals, t) > 0
+    if image is not None:
+        facing &= image.inside(model_points @ R.transpose(0, 2, 1) + t[:, None, :])
+    return facing
 
 
 def icp_pass(
@@ -145,16 +166,18 @@ def refine_icp(
     iterations: int = 30,
     max_shift_m: float = np.inf,
     index: PointIndex | None = None,
+    image: ImageBounds | None = None,
 ) -> IcpResult:
     """An ``icp_pass`` of the model points facing the camera at the start, at max_distance_m, then
     scored again with those facing it at the refined pose, so that the fitness counts the surface
-    the camera should actually see. index: the scene's points, when the caller has them indexed."""
-    facing = facing_camera(model_points, model_normals, camera_T_object)[0]
+    the camera should actually see (within the image, when given). index: the scene's points, when
+    the caller has them indexed."""
+    facing = facing_camera(model_points, model_normals, camera_T_object, image)[0]
     first = icp_pass(model_points[facing], scene, camera_T_object, max_distance_m, iterations, max_shift_m)
     if first.fitness == 0:
         return first
     T = first.camera_T_object
-    facing = facing_camera(model_points, model_normals, T)[0]
+    facing = facing_camera(model_points, model_normals, T, image)[0]
     if facing.sum() < 3:
         return IcpResult(T, 0.0, float("inf"))
     index = PointIndex(np.asarray(scene.points)) if index is None else index

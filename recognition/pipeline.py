@@ -24,7 +24,8 @@ import numpy as np
 import open3d as o3d
 
 from recognition.align import (
-    IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z, views_to_scene,
+    ImageBounds, IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z,
+    views_to_scene,
 )
 from recognition.cloud import PointIndex, estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
@@ -32,7 +33,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
-from recognition.verify import DepthView, Explained, Verdict, verdict
+from recognition.verify import DepthView, Explained, Verdict, fit_intrinsics, verdict
 from schemas.geometry import invert_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -125,6 +126,7 @@ class SceneCloud:
     normals: np.ndarray
     graph: PointGraph
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
+    image: ImageBounds | None = None  # the image an organised cloud was measured in
 
 
 @dataclass(frozen=True)
@@ -136,13 +138,14 @@ class Target:
     points: np.ndarray
     cloud: o3d.geometry.PointCloud
     index: PointIndex
+    image: ImageBounds | None = None  # model points landing outside it are not looked for
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
         points = scene.points[idx]
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
         cloud.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
-        return cls(points, cloud, PointIndex(points))
+        return cls(points, cloud, PointIndex(points), scene.image)
 
 
 class Recognizer:
@@ -207,7 +210,10 @@ class Recognizer:
         normals, _ = estimate_normals(pts, d.normal_radius_m, neighbours=neighbours)
         ok = np.flatnonzero(np.all(np.isfinite(normals), axis=1))
         graph = PointGraph.from_neighbours(neighbours).subgraph(ok, c.cluster_tolerance_m)
-        return SceneCloud(pts[ok], normals[ok], graph, planes)
+        grid = np.asarray(cloud)
+        # Only which pixels a model point lands on is asked of it: a sparse fit is ample.
+        image = ImageBounds(fit_intrinsics(grid, 16), grid.shape[:2]) if grid.ndim == 3 and min(grid.shape[:2]) > 1 else None
+        return SceneCloud(pts[ok], normals[ok], graph, planes, image)
 
     def recognize(
         self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None,
@@ -458,11 +464,11 @@ class Recognizer:
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
         if up is not None:
             poses = _stand_up(poses, up, self._centre[model.object_id])
-        facings = facing_camera(sparse_points, sparse_normals, poses)
+        facings = facing_camera(sparse_points, sparse_normals, poses, target.image)
         if turns and up is not None:
             shares = self._overlap(sparse_points, facings, poses, target.index)
             turned = _turned(poses[np.argmax(shares)], self._centre[model.object_id])
-            turned_facings = facing_camera(sparse_points, sparse_normals, turned)
+            turned_facings = facing_camera(sparse_points, sparse_normals, turned, target.image)
             shares = np.r_[shares, self._overlap(sparse_points, turned_facings, turned, target.index)]
             poses, facings = np.concatenate([poses, turned]), np.concatenate([facings, turned_facings])
             keep = np.argsort(-shares, kind="stable")[:ICP_STARTS]
@@ -489,7 +495,7 @@ class Recognizer:
                 continue  # two starts that screened into one pose refine into one pose
             refined.append(coarse.camera_T_object)
             res = refine_icp(dense_points, dense_normals, target.cloud, coarse.camera_T_object, c.icp_distance_m,
-                             c.icp_iterations, max_shift_m=model.diameter_m, index=target.index)
+                             c.icp_iterations, max_shift_m=model.diameter_m, index=target.index, image=target.image)
             if not _upright(res.camera_T_object, up):
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):

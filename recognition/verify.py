@@ -99,7 +99,7 @@ class DepthView:
             grid = pts[::2, ::2].astype(np.float64)
             z = grid[..., 2].copy()
             z[~np.isfinite(z) | (z <= 0)] = np.nan
-            K = _fit_intrinsics(grid)
+            K = fit_intrinsics(grid)
             if colour is not None:  # the grid's pixels only, before converting a frame's worth of them
                 colour = colour[::2, ::2].astype(np.float32) / 255.0
         else:
@@ -369,12 +369,13 @@ def _project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.nd
     return np.where(ok, u, 0).astype(np.int64), np.where(ok, v, 0).astype(np.int64), ok
 
 
-def _fit_intrinsics(grid: np.ndarray) -> np.ndarray:
+def fit_intrinsics(grid: np.ndarray, step: int = 4) -> np.ndarray:
     """Pinhole K of an organised cloud (H, W, 3) from its own points: x/z and y/z are affine in the
-    pixel column and row (least squares over every 4th row and column: as good as all of them)."""
+    pixel column and row (least squares over every ``step``-th row and column: at 4 as good as all
+    of them)."""
     H, W = grid.shape[:2]
-    sample = grid[::4, ::4]
-    vv, uu = np.mgrid[0:H:4, 0:W:4]
+    sample = grid[::step, ::step]
+    vv, uu = np.mgrid[0:H:step, 0:W:step]
     ok = np.all(np.isfinite(sample), axis=2) & (sample[..., 2] > 0)
     if ok.sum() < 10:
         return VIRTUAL_K * np.array([[W / 320], [H / 240], [1.0]])
