@@ -2,7 +2,7 @@
 
 ``--dataset DIR`` measures any dataset in the format public pose datasets ship in (BOP: LM-O,
 YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (mm; meshes rendered
-from 42 viewpoints at ``--distance``, point models by hidden-point removal, their colours where the
+from 42 viewpoints at each ``--distance``, point models by hidden-point removal, their colours where the
 files carry them) and every frame of ``--split`` (the challenge's target images where the dataset
 lists them; ``--frames N`` keeps N spread over them) goes through ``Recognizer.recognize`` as
 ``cellsight recognize`` runs it: camera frame, no workspace box, colour judged where the frame has
@@ -20,7 +20,10 @@ Without ``--dataset`` it measures a dataset it writes first: the simulated demo 
 tote; random layouts, every camera, ground truth from the simulator; the cameras' poses in the cell
 given, so the cell's workspace crops the frames as in the running cell; as many layouts again seen
 from close, each camera 0.8 m from the table's centre and 0.5 m above it, as datasets are taken:
-``bop_adds_recall_near`` / ``_far`` split at 1.2 m) and PCL's real Kinect frames
+``bop_adds_recall_near`` / ``_far`` split at 1.2 m; as many again with every object lying on its
+side, from far and close, as a dataset's objects may lie, the frames without the cameras' poses:
+``bop_adds_recall_lying``, apart from the other figures and without the baseline, which takes ~30 s
+a frame with the whole room in view) and PCL's real Kinect frames
 re-packed as depth + colour images (intrinsics fitted to their organised clouds), none of which
 holds a demo object: every detection there is false. The simulated frames are recognised once more
 without their pose (``..._camera_frame``), as ``cellsight recognize`` sees a saved frame: the room's
@@ -51,9 +54,10 @@ from cellsight.bop import BopDataset, BopWriter, depth_of_organised, score  # no
 from cellsight.config import load_config  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
-from drivers.sim.scenario import load_scenario  # noqa: E402
+from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
 from recognition.cloud import read_coloured_cloud  # noqa: E402
 from recognition.config import RecognitionConfig  # noqa: E402
+from recognition.models import VIEW_DISTANCES_M  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from schemas.geometry import invert_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
@@ -73,9 +77,31 @@ def kinect_frame(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return depth, K, rgb
 
 
+def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
+    """The scenario's objects laid on their side at random table positions and yaws, apart as
+    ``random_layout`` keeps upright ones: each object turned a quarter about its x axis, its height
+    along the table."""
+    def stand_in(o: ObjectSpec) -> ObjectSpec:  # its outline lying down, as an upright box's
+        width = 2 * o.size[0] if o.shape == "cylinder" else o.size[0]
+        return o.model_copy(update={"shape": "box", "size": (width, o.size[2], 0.1)})
+    placed = {o.id: o.world_T_object(0.0) for o in random_layout(s.model_copy(update={"objects": [stand_in(o) for o in s.objects]}), rng, tight=False).objects}  # fmt: skip
+    objects = []
+    for o in s.objects:
+        T = placed[o.id]
+        yaw = float(np.arctan2(T[1, 0], T[0, 0]))
+        half_height = o.size[0] if o.shape == "cylinder" else 0.5 * o.size[1]  # what was its y (or radius) is now up
+        # The base centre sits half the object's length back from the outline's centre.
+        base = T[:2, 3] + 0.5 * o.size[2] * np.array([-np.sin(yaw), np.cos(yaw)])
+        pose = PoseSpec(position=(float(base[0]), float(base[1]), T[2, 3] + half_height), rpy_deg=(90.0, 0.0, float(np.degrees(yaw))))
+        objects.append(o.model_copy(update={"pose": pose, "motion": o.motion.model_copy(update={"kind": "static"})}))
+    return s.model_copy(update={"objects": objects})
+
+
 def write_default(root: Path, layouts: int) -> Path:
     """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts from
-    the cell's cameras, layouts+1..2 layouts from close, the real frames scene 100."""
+    the cell's cameras, layouts+1..2 layouts from close, 2 layouts+1..3 layouts with the objects on
+    their side (every other one from close, without the cameras' poses), the real frames scene
+    100."""
     base = load_scenario()
     ids = {o.id: i + 1 for i, o in enumerate(base.objects)}
     w = BopWriter(root)
@@ -83,33 +109,38 @@ def write_default(root: Path, layouts: int) -> Path:
         mesh = object_mesh(obj).paint_uniform_color(obj.color)
         w.add_model(ids[obj.id], np.asarray(mesh.vertices), np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors))
     rng = np.random.default_rng(7)
-    for scene in range(1, 2 * layouts + 1):
-        # Scenes past `layouts` are seen from close: each camera moved in along its line to 0.8 m
-        # from the table's centre, 0.5 m above it, as datasets' frames are taken.
-        near = [c.model_copy(update={"pose": PoseSpec(position=(*(0.8 * np.array(c.pose.position[:2]) / np.hypot(*c.pose.position[:2])), 1.25),
-                                                      look_at=(0.0, 0.0, 0.8)), "motion": []}) for c in base.cameras]  # fmt: skip
-        s = random_layout(base if scene <= layouts else base.model_copy(update={"cameras": near}), rng, tight=scene % 2 == 0)
+    # Seen from close: each camera moved in along its line to 0.8 m from the table's centre, 0.5 m
+    # above it, as datasets' frames are taken.
+    near = [c.model_copy(update={"pose": PoseSpec(position=(*(0.8 * np.array(c.pose.position[:2]) / np.hypot(*c.pose.position[:2])), 1.25),
+                                                  look_at=(0.0, 0.0, 0.8)), "motion": []}) for c in base.cameras]  # fmt: skip
+    for scene in range(1, 3 * layouts + 1):
+        close = layouts < scene <= 2 * layouts or (scene > 2 * layouts and scene % 2 == 0)
+        s = base.model_copy(update={"cameras": near}) if close else base
+        s = random_layout(s, rng, tight=scene % 2 == 0) if scene <= 2 * layouts else lying_layout(s, rng)
         cell = SimCell(s)
         for image_id, cam in enumerate(s.cameras):
             frame = cell.render(cam.id, 0.0, scene)
             truth = [(ids[o.id], invert_pose(frame.world_T_camera) @ o.world_T_object(0.0), visible_share(cell, s, cam.id, o))
                      for o in s.objects]  # fmt: skip
+            # Lying objects are no cell's (its upright test turns them down): their frames go without
+            # the camera's pose, as a dataset's.
             w.add_frame(scene, image_id, frame.depth_mm * 0.001, frame.info.K, truth, frame.rgb, depth_scale_mm=1.0,
-                        world_T_camera=frame.world_T_camera)
+                        world_T_camera=frame.world_T_camera if scene <= 2 * layouts else None)
     for image_id, name in enumerate(REAL_FRAMES):
         depth, K, rgb = kinect_frame(name)
         w.add_frame(100, image_id, depth, K, [], rgb)
     return w.close()
 
 
-def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: RecognitionConfig) -> dict[str, float]:
+def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, ...], cfg: RecognitionConfig,
+            lying_scenes: frozenset[int] = frozenset()) -> dict[str, float]:  # fmt: skip
     """Ours and the point-pair baseline on ``frames`` of the dataset's frames (all if None), the
-    database built from its models with views at ``distance_m`` (m): the figures of the module
-    docstring."""
+    database built from its models with views at ``distances_m`` (m): the figures of the module
+    docstring; ``bop_adds_recall_lying`` over the scenes in ``lying_scenes``."""
     meshes = {m.object_id: m.path for m in dataset.models.values() if m.is_mesh}
     points = {m.object_id: m.path for m in dataset.models.values() if not m.is_mesh}
     t0 = time.perf_counter()
-    db = build_database(cfg.descriptor, meshes=meshes, points=points, scale=0.001, distance_m=distance_m)
+    db = build_database(cfg.descriptor, meshes=meshes, points=points, scale=0.001, distances_m=distances_m)
     build_s = time.perf_counter() - t0
     rec = Recognizer(db, cfg)
     surface = {oid: m.points for oid, m in db.models.items()}
@@ -119,15 +150,20 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
         chosen = [chosen[i] for i in np.linspace(0, len(chosen) - 1, frames).round().astype(int)]
     ours: list[tuple[str, bool]] = []  # (class, found) per scored instance
     near_far: list[tuple[bool, bool]] = []  # (nearer than NEAR_M, found) per scored instance
+    lying: list[bool] = []  # found, per scored instance of lying_scenes
     theirs: list[tuple[str, bool]] = []
     false, times, ppf_times = 0, [], []
     for frame in track(chosen, description="recognising"):
         cloud, rgb = frame.load()
         t0 = time.perf_counter()
         found = rec.recognize(cloud, world_T_camera=frame.world_T_camera, rgb=rgb)
-        times.append(time.perf_counter() - t0)
+        if frame.scene_id not in lying_scenes:
+            times.append(time.perf_counter() - t0)
         s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
         false += len(s.false)
+        if frame.scene_id in lying_scenes:
+            lying += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
+            continue
         ours += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
         near_far += [(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M, hit)
                      for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]  # fmt: skip
@@ -141,10 +177,11 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
             s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in r.recognize(cloud, rgb=rgb)], surface, diameter)
             false_alone[level] += len(s.false)
             alone[level] += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
-    # The baseline in a pass of its own, so that nothing it leaves behind is in our timings.
+    # The baseline in a pass of its own, so that nothing it leaves behind is in our timings; not on
+    # the lying frames (the whole room in view, ~30 s a frame).
     baseline = PpfBaseline.of(rec)
     for frame in track(chosen, description="point-pair voting"):
-        if not frame.truth:
+        if not frame.truth or frame.scene_id in lying_scenes:
             continue
         cloud, _ = frame.load()
         t0 = time.perf_counter()
@@ -165,6 +202,9 @@ def measure(dataset: BopDataset, frames: int | None, distance_m: float, cfg: Rec
         if sel:
             out[f"bop_adds_recall_{band}"] = float(np.mean(sel))
             out[f"bop_instances_{band}"] = float(len(sel))
+    if lying:
+        out["bop_adds_recall_lying"] = float(np.mean(lying))
+        out["bop_instances_lying"] = float(len(lying))
     out["bop_false_detections"] = float(false)
     out["bop_false_detections_per_frame"] = false / len(chosen)
     for level, suffix in ((False, ""), (True, "_level_support")):
@@ -189,13 +229,14 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     if args.dataset is not None:
         cfg = load_config(args.cell_config).recognition if args.cell_config else RecognitionConfig()
         dataset = BopDataset.open(args.dataset, args.split)
-        return measure(dataset, args.frames or (10 if quick else None), args.distance, cfg)
+        return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg)
     # The simulated frames carry the cameras' poses in the cell, so the cell's workspace crops them,
     # as in the running cell; PCL's real frames have none and are recognised in the camera frame.
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
+    layouts = 2 if quick else 6
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = BopDataset.open(write_default(Path(tmp), 2 if quick else 6))
-        return measure(dataset, args.frames, args.distance, cfg)
+        dataset = BopDataset.open(write_default(Path(tmp), layouts))
+        return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 3 * layouts + 1)))
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
@@ -204,7 +245,8 @@ def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, help="at most this many frames, spread over the split (--quick: 10 of a given dataset)")
     parser.add_argument("--cell-config", type=Path, help="cell config TOML whose [recognition] is used (default: the defaults; "
                         "its workspace crops frames whose scene_camera.json gives the camera's world pose)")
-    parser.add_argument("--distance", type=float, default=2.0, help="virtual camera distance for the models' rendered views, m")
+    parser.add_argument("--distance", type=float, nargs="+", default=list(VIEW_DISTANCES_M),
+                        help="virtual camera distances for the models' views, m (default: as cellsight model build)")
 
 
 if __name__ == "__main__":

@@ -486,7 +486,9 @@ def model_build(
     points: Annotated[Optional[list[str]], typer.Option("--points", help="ID=FILE: points over the whole surface (PLY/PCD/XYZ), metres, object frame")] = None,
     recording: Annotated[Optional[list[str]], typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board")] = None,
     board: Annotated[Optional[Path], typer.Option("--board", help="marker board TOML of the recordings (see drivers/sim/capture_board.toml)")] = None,
-    distance: Annotated[float, typer.Option(help="virtual camera distance for rendered views, m")] = 2.0,
+    distance: Annotated[Optional[list[float]], typer.Option(
+        help="virtual camera distance for the views of --mesh and --points models and the scenario's, m; repeat for "
+             "several (default: 2.0 and 0.8)")] = None,
     scale: Annotated[float, typer.Option(help="metres per unit of the --mesh, --cloud and --points files (0.001: millimetres)")] = 1.0,
     cell_config: CellConfigOpt = None,
 ) -> None:
@@ -494,6 +496,7 @@ def model_build(
     from rich.progress import Progress
 
     from cellsight.model_build import VIEWS_PER_OBJECT, build_database, load_board
+    from recognition.models import VIEW_DISTANCES_M
     from drivers.sim.scenario import load_scenario
 
     def pairs(items: list[str] | None, what: str) -> dict[str, Path]:
@@ -512,11 +515,15 @@ def model_build(
     cfg = _load(cell_config)
     sc = load_scenario(scenario) if (scenario or demo) else None
     board_cfg = load_board(board) if board else None
-    total = VIEWS_PER_OBJECT * ((len(sc.objects) if sc else 0) + len(meshes) + len(clouds) + len(surfaces) + len(recordings))
+    distances = tuple(distance) if distance else VIEW_DISTANCES_M
+    if not all(d > 0 for d in distances):
+        raise _fail(f"--distance {list(distances)}: each must be positive", 2)
+    rendered = len(distances) * ((len(sc.objects) if sc else 0) + len(meshes) + len(surfaces))
+    total = VIEWS_PER_OBJECT * (rendered + len(clouds) + len(recordings))
     with Progress(console=_stderr(), transient=True) as bar:
         task = bar.add_task("rendering and describing views", total=total)
         db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, points=surfaces, recordings=recordings,
-                            board=board_cfg, distance_m=distance, scale=scale, progress=lambda: bar.advance(task))
+                            board=board_cfg, distances_m=distances, scale=scale, progress=lambda: bar.advance(task))
     db.save(out)
     for oid, mdl in sorted(db.models.items()):
         colour = "in colour" if mdl.colours is not None else "no colour: verified on depth alone"

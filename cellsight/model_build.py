@@ -4,7 +4,7 @@ recordings of an object on a marker board."""
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -14,23 +14,26 @@ from drivers.sim.scenario import Scenario
 from recognition.cloud import read_coloured_cloud
 from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
-from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh, model_from_points, read_mesh
+from recognition.models import (
+    VIEW_DISTANCES_M, ModelDatabase, model_from_cloud, model_from_mesh, model_from_points, read_mesh,
+)
 from recognition.recording import model_from_recording
 
 log = logging.getLogger(__name__)
-#: Views rendered per object: an icosahedron subdivided once.
+#: Views rendered per object and distance: an icosahedron subdivided once.
 VIEWS_PER_OBJECT = 42
 
 
 def database_from_scenario(
-    scenario: Scenario, params: DescriptorConfig, progress: Callable[[], None] | None = None, distance_m: float = 2.0
+    scenario: Scenario, params: DescriptorConfig, progress: Callable[[], None] | None = None,
+    distances_m: Sequence[float] = VIEW_DISTANCES_M,
 ) -> ModelDatabase:
     """Every object of a scenario, rendered from its shape (box, cylinder, sphere or mesh file), in
     its colour."""
     db = ModelDatabase(params, {})
     for obj in scenario.objects:
         mesh = object_mesh(obj).paint_uniform_color(obj.color)
-        db.add(model_from_mesh(obj.id, mesh, params, distance_m=distance_m, progress=progress))
+        db.add(model_from_mesh(obj.id, mesh, params, distances_m=distances_m, progress=progress))
     return db
 
 
@@ -43,7 +46,7 @@ def build_database(
     points: dict[str, Path] | None = None,
     recordings: dict[str, Path] | None = None,
     board: BoardConfig | None = None,
-    distance_m: float = 2.0,
+    distances_m: Sequence[float] = VIEW_DISTANCES_M,
     scale: float = 1.0,
     progress: Callable[[], None] | None = None,
 ) -> ModelDatabase:
@@ -52,10 +55,10 @@ def build_database(
     cloud and point files (0.001 for files in millimetres, as many model libraries ship them)."""
     if not scale > 0:
         raise ModelError(f"scale {scale:g}: metres per unit of the model files must be positive")
-    db = database_from_scenario(scenario, params, progress, distance_m) if scenario else ModelDatabase(params, {})
+    db = database_from_scenario(scenario, params, progress, distances_m) if scenario else ModelDatabase(params, {})
     for oid, path in (meshes or {}).items():
         _check_new(db, oid)
-        db.add(model_from_mesh(oid, read_mesh(path).scale(scale, np.zeros(3)), params, distance_m=distance_m, progress=progress))
+        db.add(model_from_mesh(oid, read_mesh(path).scale(scale, np.zeros(3)), params, distances_m=distances_m, progress=progress))
     for oid, path in (clouds or {}).items():
         _check_new(db, oid)
         pts, rgb = read_coloured_cloud(path)
@@ -63,7 +66,7 @@ def build_database(
     for oid, path in (points or {}).items():
         _check_new(db, oid)
         pts, rgb = read_coloured_cloud(path)
-        db.add(model_from_points(oid, pts * scale, params, distance_m=distance_m, colours=rgb, progress=progress))
+        db.add(model_from_points(oid, pts * scale, params, distances_m=distances_m, colours=rgb, progress=progress))
     if recordings and board is None:
         raise ModelError("a recording needs its marker board: give --board BOARD.toml")
     for oid, path in (recordings or {}).items():

@@ -213,7 +213,7 @@ def test_model_database_round_trips_and_refuses_damage(tmp_path: Path, milk: np.
     db = ModelDatabase(params, {})
     db.add(model_from_cloud("milk", milk, params, subdivisions=0))
     box = o3d.geometry.TriangleMesh.create_box(0.2, 0.1, 0.05).paint_uniform_color([0.8, 0.2, 0.15])
-    db.add(model_from_mesh("box", box, params, subdivisions=0))
+    db.add(model_from_mesh("box", box, params, subdivisions=0, distances_m=(1.5,)))
     loaded = ModelDatabase.load(db.save(tmp_path / "db"))
     assert sorted(loaded.models) == ["box", "milk"]
     for oid in db.models:
@@ -299,7 +299,7 @@ def test_a_model_from_surface_points_finds_the_demo_crate(tmp_path: Path) -> Non
     surface = np.asarray(object_mesh(crate).sample_points_uniformly(20000).points)
     np.savetxt(tmp_path / "crate.xyz", surface)
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
-    db = build_database(cfg.descriptor, points={"crate": tmp_path / "crate.xyz"}, distance_m=2.0)
+    db = build_database(cfg.descriptor, points={"crate": tmp_path / "crate.xyz"}, distances_m=(2.0,))
     model = db.models["crate"]
     assert model.source == "points" and len(model.views) >= 20
     outward = np.einsum("ij,ij->i", model.normals, model.points - model.points.mean(axis=0)) > 0
