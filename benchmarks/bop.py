@@ -97,10 +97,10 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
     return s.model_copy(update={"objects": objects})
 
 
-def write_default(root: Path, layouts: int) -> Path:
+def write_default(root: Path, layouts: int, lying: int) -> Path:
     """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts from
-    the cell's cameras, layouts+1..2 layouts from close, 2 layouts+1..3 layouts with the objects on
-    their side (every other one from close, without the cameras' poses), the real frames scene
+    the cell's cameras, layouts+1..2 layouts from close, ``lying`` more after them with the objects
+    on their side (every other one from close, without the cameras' poses), the real frames scene
     100."""
     base = load_scenario()
     ids = {o.id: i + 1 for i, o in enumerate(base.objects)}
@@ -113,7 +113,7 @@ def write_default(root: Path, layouts: int) -> Path:
     # above it, as datasets' frames are taken.
     near = [c.model_copy(update={"pose": PoseSpec(position=(*(0.8 * np.array(c.pose.position[:2]) / np.hypot(*c.pose.position[:2])), 1.25),
                                                   look_at=(0.0, 0.0, 0.8)), "motion": []}) for c in base.cameras]  # fmt: skip
-    for scene in range(1, 3 * layouts + 1):
+    for scene in range(1, 2 * layouts + lying + 1):
         close = layouts < scene <= 2 * layouts or (scene > 2 * layouts and scene % 2 == 0)
         s = base.model_copy(update={"cameras": near}) if close else base
         s = random_layout(s, rng, tight=scene % 2 == 0) if scene <= 2 * layouts else lying_layout(s, rng)
@@ -233,10 +233,10 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     # The simulated frames carry the cameras' poses in the cell, so the cell's workspace crops them,
     # as in the running cell; PCL's real frames have none and are recognised in the camera frame.
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
-    layouts = 2 if quick else 6
+    layouts, lying = (1, 1) if quick else (6, 6)
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = BopDataset.open(write_default(Path(tmp), layouts))
-        return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 3 * layouts + 1)))
+        dataset = BopDataset.open(write_default(Path(tmp), layouts, lying))
+        return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)))
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
