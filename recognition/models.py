@@ -330,9 +330,9 @@ def model_from_points(
     progress: Callable[[], None] | None = None,
 ) -> ObjectModel:
     """A model from points over an object's whole surface (object frame, metres), as model libraries
-    ship them: views from sphere viewpoints (one sphere per distance, m) through hidden-point removal, normals pointing away
-    from the points' centroid (right for convex shapes and most boxes and bottles). colours: the
-    points' rgb (N, 3) uint8, if the file has them."""
+    ship them: views from sphere viewpoints (one sphere per distance, m) through hidden-point
+    removal, normals pointing away from the points' centroid (right for convex shapes and most
+    boxes and bottles). colours: the points' rgb (N, 3) uint8, if the file has them."""
     pts, colours = _finite(points, colours)
     if len(pts) < MIN_VIEW_POINTS:
         raise ModelError(f"object {object_id!r}: the points have {len(pts)} finite ones, need {MIN_VIEW_POINTS}")

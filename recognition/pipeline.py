@@ -80,7 +80,7 @@ SMALL_PART = 0.5
 CROSS_VIEW_PIXELS = 50
 #: An upright detection with more unexplained points of its cluster above its top than this share
 #: of the points it explains is part of something taller (``Recognizer._above``): true detections
-#: in ``benchmarks.bop``'s frames up to 0.015, a can on a real bleach bottle's body 0.09.
+#: in ``benchmarks.bop``'s frames up to 0.015, a can on a real bleach bottle's body 0.09-0.12.
 TOPPED_SHARE = 0.05
 #: A removed plane is a support objects stand on if its normal is within this of world up.
 SUPPORT_COS = float(np.cos(np.radians(20.0)))
@@ -324,7 +324,7 @@ class Recognizer:
                 del found[oid]
         return sorted(found.values(), key=lambda d: d.object_id)
 
-    def _stances(self, planes: np.ndarray, world_T_camera: np.ndarray | None) -> list["Stance"]:
+    def _stances(self, planes: np.ndarray, world_T_camera: np.ndarray | None) -> list[Stance]:
         """How objects may stand in this frame, each tried in turn (``Stance``).
 
         With the camera's pose: world up, for the upright test (when ``upright``). Without it there
@@ -344,12 +344,12 @@ class Recognizer:
         return [standing] if c.level_support else [Stance(None, None), standing]
 
     def _candidates(
-        self, scene: SceneCloud, clusters: list[np.ndarray], first_fragment: int, used: np.ndarray, stance: "Stance",
+        self, scene: SceneCloud, clusters: list[np.ndarray], first_fragment: int, used: np.ndarray, stance: Stance,
         cluster_of: dict[int, int | None],
-    ) -> list[tuple[int, Detection, "Stance"]]:
-        """Every hypothesis (part, detection, ``stance``) for the clusters (indices
-        into the scene's points; from ``first_fragment`` on, fragments: the pieces path only) that no
-        prior has ``used``, with objects standing as ``stance`` says. Parts are numbered on from
+    ) -> list[tuple[int, Detection, Stance]]:
+        """Every hypothesis (part, detection, ``stance``) for the clusters (indices into the scene's
+        points; from ``first_fragment`` on, fragments: the pieces path only) that no prior has
+        ``used``, with objects standing as ``stance`` says. Parts are numbered on from
         ``cluster_of`` (part -> its cluster, None for none of its own), which this extends."""
         c, up, support = self.config, stance.up, stance.support
         out: list[tuple[int, Detection, Stance]] = []
@@ -590,9 +590,9 @@ class Recognizer:
             points = points[~self._explained(other.object_id, other.camera_T_object, points)]
         object_T_camera = invert_pose(det.camera_T_object)
         local = points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]
-        lo, hi = model.points.min(axis=0) + tol, model.points.max(axis=0) - tol
-        over = np.all((local[:, :2] >= lo[:2]) & (local[:, :2] <= hi[:2]), axis=1)
-        return int(np.sum(over & (local[:, 2] > hi[2] + 2 * tol)))
+        lo, hi = model.points.min(axis=0), model.points.max(axis=0)
+        over = np.all((local[:, :2] >= lo[:2] + tol) & (local[:, :2] <= hi[:2] - tol), axis=1)
+        return int(np.sum(over & (local[:, 2] > hi[2] + tol)))
 
     def _heights(self, det: Detection, support: np.ndarray) -> np.ndarray:
         """Heights (M,) of the posed model's points above the support (a, b, c, d), m."""
