@@ -167,6 +167,12 @@ class RecognitionConfig(BaseModel):
         "on that level plane (its normal as world up, the upright test, the pieces path), and let verification choose; "
         "about twice the work of a frame",
     )
+    rest_on_sides: bool = Field(
+        default=True,
+        description="with stand_on_level, in frames with colour: also try each object lying on that plane on each of "
+        "its four sides (+-x, +-y of its frame), as a dataset's objects may lie; a lying hypothesis is kept only if its "
+        "colour could be judged",
+    )
     object_markers: list[ObjectMarkerConfig] = Field(default_factory=list)
     @model_validator(mode="after")
     def _box(self) -> "RecognitionConfig":

@@ -8,9 +8,9 @@ Objects standing so close that they share a cluster (and hide parts of each othe
 second way when world up is known: each is stood upright on the table at pieces of what no match
 explained (and of the fragments a split of merged objects shed), and only verification accepts
 it. Up is known from the camera's pose, or, without one, from the level plane the objects may
-stand on (``Stance``): objects are then tried both free and standing. Standing, nothing hovers
-(a detection must rest on the table or on an object found under it) and nothing is the lower part
-of something taller.
+stand on (``Stance``): objects are then tried free, standing and, in a frame with colour, lying on
+each of four sides. Standing or lying, nothing hovers (a detection must rest on the table or on an
+object found under it) and nothing is the lower part of something taller.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from recognition.descriptor import describe
 from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
-from recognition.verify import DepthView, Explained, Verdict, fit_intrinsics, verdict
+from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, fit_intrinsics, verdict
 from schemas.geometry import invert_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -82,6 +82,10 @@ CROSS_VIEW_PIXELS = 50
 #: of the points it explains is part of something taller (``Recognizer._above``): true detections
 #: in ``benchmarks.bop``'s frames up to 0.015, a can on a real bleach bottle's body 0.09-0.12.
 TOPPED_SHARE = 0.05
+#: The sides an object may lie on besides its base (``Stance.rest``): turns of its frame that
+#: bring each side's outward normal (+-x, +-y) to -z. Not its top: a box or a can upside down fits
+#: a standing one as well, and its frame would be reported upside down.
+RESTS = tuple(rotation_between(np.array(side, float), [0.0, 0.0, -1.0]) for side in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)))
 #: A removed plane is a support objects stand on if its normal is within this of world up.
 SUPPORT_COS = float(np.cos(np.radians(20.0)))
 
@@ -110,11 +114,18 @@ class Detection:
 @dataclass(frozen=True)
 class Stance:
     """How objects stand in a frame: world up in the camera frame (3,) for the upright test (None:
-    any way up), and the level plane they rest on (a, b, c, d; unit normal towards the camera; None:
-    no rest test and no pieces path)."""
+    any way up), the level plane they rest on (a, b, c, d; unit normal towards the camera; None: no
+    rest test and no pieces path), and the side they rest on: ``rest`` (3, 3) turns the object's
+    frame so that the side's outward normal is -z (identity: standing on its base)."""
 
     up: np.ndarray | None
     support: np.ndarray | None
+    rest: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    @property
+    def lying(self) -> bool:
+        """Whether the object rests on a side other than its base."""
+        return not np.array_equal(self.rest, np.eye(3))
 
 
 @dataclass
@@ -230,7 +241,8 @@ class Recognizer:
         if len(scene.points) == 0:
             return []
         c = self.config
-        stances = self._stances(scene.planes, world_T_camera)
+        coloured = view.chroma is not None if view is not None else rgb is not None
+        stances = self._stances(scene.planes, world_T_camera, coloured)
         merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
                                     scene.graph)
         clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
@@ -280,6 +292,10 @@ class Recognizer:
                     waiting.append((p, det, stance))
                     continue
                 v = self._verdict(view, det, scene.planes) if view is not None else None
+                if v is not None and stance.lying and v.colour_judged < MIN_COLOUR_PIXELS:
+                    log.debug("%s rejected: lying on a side, it needs its colour judged (%d pixels could be)",
+                              det.object_id, v.colour_judged)  # fmt: skip
+                    continue
                 seen = explained.support(v) if v is not None else 1.0
                 if v is not None and not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
                                           and v.clutter <= c.max_clutter and v.outline_seen >= c.min_outline_seen
@@ -317,20 +333,22 @@ class Recognizer:
             k, up = cluster_found[oid], stance_found[oid].up
             if k is None or up is None or not self.db.models[oid].stands_on_z:
                 continue
-            above = self._above(det, scene.points[clusters[k]], found.values())
+            above = self._above(det, scene.points[clusters[k]], found.values(), stance_found[oid].rest)
             if above > TOPPED_SHARE * det.points:
                 log.debug("%s rejected: %d points of its cluster stand on its top and nothing found explains them",
                           oid, above)
                 del found[oid]
         return sorted(found.values(), key=lambda d: d.object_id)
 
-    def _stances(self, planes: np.ndarray, world_T_camera: np.ndarray | None) -> list[Stance]:
+    def _stances(self, planes: np.ndarray, world_T_camera: np.ndarray | None, coloured: bool) -> list[Stance]:
         """How objects may stand in this frame, each tried in turn (``Stance``).
 
         With the camera's pose: world up, for the upright test (when ``upright``). Without it there
         is no world up; the removed plane whose normal is nearest the image's up (-y; a camera is
         mounted upright) is a table or a floor, not a wall: with ``level_support`` every object
-        stands on it, with ``stand_on_level`` objects are tried both free and standing on it.
+        stands on it, with ``stand_on_level`` objects are tried both free and standing on it, and
+        with ``rest_on_sides`` lying on it on each of four sides, when the frame has colour (three
+        times the poses tried: on depth alone they fitted boxes and cans to PCL's real rooms).
         """
         c = self.config
         if world_T_camera is not None:
@@ -340,8 +358,11 @@ class Recognizer:
             return [Stance(None, None)]
         unit = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
         level = unit[np.argmax(-unit[:, 1])]
-        standing = Stance(level, _support(planes, level) if c.verify else None)
-        return [standing] if c.level_support else [Stance(None, None), standing]
+        support = _support(planes, level) if c.verify else None
+        if c.level_support:
+            return [Stance(level, support)]
+        lying = [Stance(level, support, rest) for rest in RESTS] if c.rest_on_sides and coloured else []
+        return [Stance(None, None), Stance(level, support), *lying]
 
     def _candidates(
         self, scene: SceneCloud, clusters: list[np.ndarray], first_fragment: int, used: np.ndarray, stance: Stance,
@@ -359,7 +380,7 @@ class Recognizer:
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
             for _ in range(0 if used[k] or k >= first_fragment else MAX_OBJECTS_PER_CLUSTER):
-                matches = self._match_cluster(scene, rest, up)
+                matches = self._match_cluster(scene, rest, up, stance.rest)
                 if not matches:
                     break
                 out.extend((part, det, stance) for det, _ in matches)
@@ -378,8 +399,8 @@ class Recognizer:
             target = Target.of(scene, rest) if pieces else None
             for oid, centres in pieces.items():
                 model = self.db.models[oid]
-                starts = standing_starts(model.points, centres, support)
-                match = self._score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS)
+                starts = standing_starts(model.points @ stance.rest.T, centres, support) @ _rest_pose(stance.rest)
+                match = self._score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS, rest=stance.rest)
                 if match is not None:
                     out.append((part, match[0], stance))
                     # Fragments are no cluster: the rule for a match explaining part of one does not apply.
@@ -406,7 +427,7 @@ class Recognizer:
                        model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m)  # fmt: skip
 
     def _match_cluster(
-        self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None
+        self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None, rest: np.ndarray | None = None
     ) -> list[tuple[Detection, np.ndarray]]:
         """VFH nearest views -> roll candidates -> ICP: every object's accepted hypothesis, best first,
         each with the mask of the cluster points it explains."""
@@ -432,7 +453,7 @@ class Recognizer:
             camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
                                            np.array(rolls))
             match = self._score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], up,
-                                turns=True)
+                                turns=True, rest=rest)
             if match is not None:
                 matches.append(match)
         return sorted(matches, key=lambda m: _rank(m[0]), reverse=True)
@@ -446,6 +467,7 @@ class Recognizer:
         from_prior: bool = False,
         fitness_to_verify: float | None = None,
         turns: bool = False,
+        rest: np.ndarray | None = None,
     ) -> tuple[Detection, np.ndarray] | None:
         """Coarse ICP from each start onto the cluster, fine ICP from the best few; the best result if
         it passes the acceptance tests, with the mask of the cluster points it explains.
@@ -455,19 +477,24 @@ class Recognizer:
         that overlaps the target best turned about its upright axis (``_turned``). Accepted: fitness,
         coverage and RMSE within bounds; or, for a cluster several objects share, a fitness of at least
         min_fitness_shared (``fitness_to_verify``, when given) with enough explained points to be a
-        cluster itself.
+        cluster itself. rest (3, 3): the side the object rests on (``Stance``; None: its base), which
+        the upright test and the turns then take for its base.
         """
         c = self.config
         up = up if model.stands_on_z else None
+        # The upright machinery works on the object turned to rest on its base: poses @ to_rest.
+        to_rest = _rest_pose(rest) if rest is not None else np.eye(4)
+        from_rest = invert_pose(to_rest)
+        centre = to_rest[:3, :3] @ self._centre[model.object_id]  # in the rest frame
         # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
         sparse_points, sparse_normals = self._sparse[model.object_id]
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
         if up is not None:
-            poses = _stand_up(poses, up, self._centre[model.object_id])
+            poses = _stand_up(poses @ from_rest, up, centre) @ to_rest
         facings = facing_camera(sparse_points, sparse_normals, poses, target.image)
         if turns and up is not None:
             shares = self._overlap(sparse_points, facings, poses, target.index)
-            turned = _turned(poses[np.argmax(shares)], self._centre[model.object_id])
+            turned = _turned(poses[np.argmax(shares)] @ from_rest, centre) @ to_rest
             turned_facings = facing_camera(sparse_points, sparse_normals, turned, target.image)
             shares = np.r_[shares, self._overlap(sparse_points, turned_facings, turned, target.index)]
             poses, facings = np.concatenate([poses, turned]), np.concatenate([facings, turned_facings])
@@ -480,7 +507,7 @@ class Recognizer:
         for start, facing in zip(poses, facings):
             res = icp_pass(sparse_points[facing], target.cloud, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
                            max_shift_m=model.diameter_m)
-            if res.fitness > 0 and _upright(res.camera_T_object, up):  # else a symmetric shape's mirror image
+            if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up):  # else a symmetric shape's mirror image
                 screened.append(res)
         screened.sort(key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
         dense_points, dense_normals = self._dense[model.object_id]
@@ -496,7 +523,7 @@ class Recognizer:
             refined.append(coarse.camera_T_object)
             res = refine_icp(dense_points, dense_normals, target.cloud, coarse.camera_T_object, c.icp_distance_m,
                              c.icp_iterations, max_shift_m=model.diameter_m, index=target.index, image=target.image)
-            if not _upright(res.camera_T_object, up):
+            if not _upright(res.camera_T_object @ from_rest, up):
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
                 best = res
@@ -581,16 +608,18 @@ class Recognizer:
                     return True
         return False
 
-    def _above(self, det: Detection, points: np.ndarray, found: Iterable[Detection]) -> int:
-        """How many of the points (N, 3, camera frame) lie above the posed model's top (object +z up,
-        by more than icp_distance_m) and over its footprint (its x-y box, that much narrower: the side
-        of a taller object standing beside it is not on it), that no found detection explains."""
+    def _above(self, det: Detection, points: np.ndarray, found: Iterable[Detection], rest: np.ndarray) -> int:
+        """How many of the points (N, 3, camera frame) lie above the posed model's top (its +z up once
+        turned by ``rest``, by more than icp_distance_m) and over its footprint (its x-y box there,
+        that much narrower: the side of a taller object standing beside it is not on it), that no
+        found detection explains."""
         model, tol = self.db.models[det.object_id], self.config.icp_distance_m
         for other in found:
             points = points[~self._explained(other.object_id, other.camera_T_object, points)]
         object_T_camera = invert_pose(det.camera_T_object)
-        local = points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]
-        lo, hi = model.points.min(axis=0), model.points.max(axis=0)
+        local = (points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]) @ rest.T
+        model_points = model.points @ rest.T
+        lo, hi = model_points.min(axis=0), model_points.max(axis=0)
         over = np.all((local[:, :2] >= lo[:2] + tol) & (local[:, :2] <= hi[:2] - tol), axis=1)
         return int(np.sum(over & (local[:, 2] > hi[2] + tol)))
 
@@ -649,6 +678,13 @@ def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndar
     for i, back in enumerate((0.0, 0.5 * min(hi[0] - lo[0], hi[1] - lo[1]))):
         out[:, i, :, :3, 3] = (foot + back * away)[:, None] - R @ base
     return out.reshape(-1, 4, 4)
+
+
+def _rest_pose(rest: np.ndarray) -> np.ndarray:
+    """rest_T_object (4, 4) of a rest turn (3, 3): camera_T_rest @ it is camera_T_object."""
+    out = np.eye(4)
+    out[:3, :3] = rest
+    return out
 
 
 def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
