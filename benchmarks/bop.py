@@ -60,7 +60,6 @@ from recognition.config import RecognitionConfig  # noqa: E402
 from recognition.models import VIEW_DISTANCES_M  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from schemas.geometry import invert_pose  # noqa: E402
-from schemas.spec import PoseSpec  # noqa: E402
 
 SCORED, UNOCCLUDED = 0.40, 0.95
 NEAR_M = 1.2  # instances nearer the camera than this (m) are scored apart too (``bop_adds_recall_near``)
@@ -89,11 +88,9 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
     for o in s.objects:
         T = placed[o.id]
         yaw = float(np.arctan2(T[1, 0], T[0, 0]))
-        half_height = o.size[0] if o.shape == "cylinder" else 0.5 * o.size[1]  # what was its y (or radius) is now up
         # The base centre sits half the object's length back from the outline's centre.
         base = T[:2, 3] + 0.5 * o.size[2] * np.array([-np.sin(yaw), np.cos(yaw)])
-        pose = PoseSpec(position=(float(base[0]), float(base[1]), T[2, 3] + half_height), rpy_deg=(90.0, 0.0, float(np.degrees(yaw))))
-        objects.append(o.model_copy(update={"pose": pose, "motion": o.motion.model_copy(update={"kind": "static"})}))
+        objects.append(o.laid_on_side((base[0], base[1]), np.degrees(yaw), T[2, 3]))
     return s.model_copy(update={"objects": objects})
 
 
@@ -111,8 +108,7 @@ def write_default(root: Path, layouts: int, lying: int) -> Path:
     rng = np.random.default_rng(7)
     # Seen from close: each camera moved in along its line to 0.8 m from the table's centre, 0.5 m
     # above it, as datasets' frames are taken.
-    near = [c.model_copy(update={"pose": PoseSpec(position=(*(0.8 * np.array(c.pose.position[:2]) / np.hypot(*c.pose.position[:2])), 1.25),
-                                                  look_at=(0.0, 0.0, 0.8)), "motion": []}) for c in base.cameras]  # fmt: skip
+    near = [c.moved_in(0.8, 1.25, (0.0, 0.0, 0.8)) for c in base.cameras]
     for scene in range(1, 2 * layouts + lying + 1):
         close = layouts < scene <= 2 * layouts or (scene > 2 * layouts and scene % 2 == 0)
         s = base.model_copy(update={"cameras": near}) if close else base

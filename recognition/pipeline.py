@@ -34,7 +34,7 @@ from recognition.errors import ModelError
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
 from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, fit_intrinsics, verdict
-from schemas.geometry import invert_pose, rotation_angle, rotation_between
+from schemas.geometry import invert_pose, make_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
 UPRIGHT_COS = float(np.cos(np.radians(45.0)))
@@ -399,7 +399,7 @@ class Recognizer:
             target = Target.of(scene, rest) if pieces else None
             for oid, centres in pieces.items():
                 model = self.db.models[oid]
-                starts = standing_starts(model.points @ stance.rest.T, centres, support) @ _rest_pose(stance.rest)
+                starts = standing_starts(model.points @ stance.rest.T, centres, support) @ make_pose(stance.rest)
                 match = self._score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS, rest=stance.rest)
                 if match is not None:
                     out.append((part, match[0], stance))
@@ -482,8 +482,9 @@ class Recognizer:
         """
         c = self.config
         up = up if model.stands_on_z else None
-        # The upright machinery works on the object turned to rest on its base: poses @ to_rest.
-        to_rest = _rest_pose(rest) if rest is not None else np.eye(4)
+        # The upright machinery works on the object turned to rest on its base: camera_T_rest =
+        # camera_T_object @ from_rest, and back @ to_rest.
+        to_rest = make_pose(rest) if rest is not None else np.eye(4)  # rest_T_object
         from_rest = invert_pose(to_rest)
         centre = to_rest[:3, :3] @ self._centre[model.object_id]  # in the rest frame
         # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
@@ -678,13 +679,6 @@ def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndar
     for i, back in enumerate((0.0, 0.5 * min(hi[0] - lo[0], hi[1] - lo[1]))):
         out[:, i, :, :3, 3] = (foot + back * away)[:, None] - R @ base
     return out.reshape(-1, 4, 4)
-
-
-def _rest_pose(rest: np.ndarray) -> np.ndarray:
-    """rest_T_object (4, 4) of a rest turn (3, 3): camera_T_rest @ it is camera_T_object."""
-    out = np.eye(4)
-    out[:3, :3] = rest
-    return out
 
 
 def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:

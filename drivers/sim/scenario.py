@@ -69,6 +69,17 @@ class ObjectSpec(_Strict):
             raise ValueError(f"object {self.id}: size must be positive")
         return self
 
+    def still(self) -> "ObjectSpec":
+        """The object standing still where it starts."""
+        return self.model_copy(update={"motion": self.motion.model_copy(update={"kind": "static"})})
+
+    def laid_on_side(self, base_xy: tuple[float, float], yaw_deg: float, table_z: float) -> "ObjectSpec":
+        """The object still, lying on a table at height table_z (m): turned a quarter about its x
+        axis (its height along the table), its base centre above base_xy (m), turned by yaw_deg."""
+        up = self.size[0] if self.shape == "cylinder" else 0.5 * self.size[1]  # its y (a cylinder's radius) is now up
+        pose = PoseSpec(position=(float(base_xy[0]), float(base_xy[1]), table_z + up), rpy_deg=(90.0, 0.0, float(yaw_deg)))
+        return self.still().model_copy(update={"pose": pose})
+
     def world_T_object(self, t_s: float) -> np.ndarray:
         T = self.pose.matrix()
         if self.motion.kind == "slide":
@@ -151,6 +162,12 @@ class CameraSpec(_Strict):
         check_name(self.id, "camera id")
         return self
 
+    def moved_in(self, distance_m: float, height_m: float, look_at: Vec3) -> "CameraSpec":
+        """The camera still, moved along its horizontal line to the world z axis until distance_m
+        from it (m), height_m up, looking at look_at (m)."""
+        xy = distance_m * np.array(self.pose.position[:2]) / np.hypot(*self.pose.position[:2])
+        return self.model_copy(update={"pose": PoseSpec(position=(float(xy[0]), float(xy[1]), height_m), look_at=look_at), "motion": []})
+
     def camera_info(self) -> CameraInfo:
         if self.intrinsics is None:
             return CameraInfo.kinect_v1(self.width, self.height)
@@ -198,6 +215,10 @@ class Scenario(_Strict):
     markers: list[MarkerSpec] = Field(default_factory=list)
     cameras: list[CameraSpec] = Field(default_factory=list)
     noise: NoiseSpec = Field(default_factory=NoiseSpec)
+
+    def still(self) -> "Scenario":
+        """The scenario with every object standing still where it starts."""
+        return self.model_copy(update={"objects": [o.still() for o in self.objects]})
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":

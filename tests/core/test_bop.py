@@ -29,9 +29,7 @@ def demo_dataset(tmp_path_factory: pytest.TempPathFactory):
     from drivers.sim.render import SimCell, object_mesh
     from drivers.sim.scenario import load_scenario
 
-    scenario = load_scenario()
-    scenario = scenario.model_copy(update={"objects": [o.model_copy(update={"motion": o.motion.model_copy(update={"kind": "static"})})
-                                                       for o in scenario.objects]})  # fmt: skip
+    scenario = load_scenario().still()
     root = tmp_path_factory.mktemp("bop")
     w = BopWriter(root)
     ids = {o.id: i + 1 for i, o in enumerate(scenario.objects)}

@@ -681,9 +681,7 @@ def test_a_frame_without_a_pose_finds_what_stands_on_the_table(stance: str) -> N
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
 
-    scenario = load_scenario()
-    scenario = scenario.model_copy(update={"objects": [o.model_copy(update={"motion": o.motion.model_copy(update={"kind": "static"})})
-                                                       for o in scenario.objects]})  # fmt: skip
+    scenario = load_scenario().still()
     cfg = RecognitionConfig(level_support=stance == "level_support", stand_on_level=stance == "stand_on_level")
     frame = SimCell(scenario).render("cam2", 0.0, 0)
     found = {d.object_id: d for d in Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg).recognize(
@@ -704,9 +702,7 @@ def test_an_object_cut_in_half_by_the_frame_border_is_found(cam: str, object_id:
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
 
-    scenario = load_scenario()
-    scenario = scenario.model_copy(update={"objects": [o.model_copy(update={"motion": o.motion.model_copy(update={"kind": "static"})})
-                                                       for o in scenario.objects]})  # fmt: skip
+    scenario = load_scenario().still()
     cfg = RecognitionConfig()
     recognizer = Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
     frame = SimCell(scenario).render(cam, 0.0, 0)
@@ -733,19 +729,11 @@ def test_objects_lying_on_their_side_are_found_in_a_close_frame_without_a_pose(c
     from cellsight.model_build import database_from_scenario
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
-    from schemas.spec import PoseSpec
 
     scenario = load_scenario()
     places = {"crate": (-0.2, 0.05, 0.0), "can": (0.05, -0.1, 90.0), "tote": (0.25, 0.1, 20.0)}  # x, y (m), yaw (deg)
-    objects = []
-    for o in scenario.objects:
-        x, y, yaw = places[o.id]
-        up = o.size[0] if o.shape == "cylinder" else 0.5 * o.size[1]  # its y (a cylinder's radius) is now up
-        objects.append(o.model_copy(update={"pose": PoseSpec(position=(x, y, 0.75 + up), rpy_deg=(90.0, 0.0, yaw)),
-                                            "motion": o.motion.model_copy(update={"kind": "static"})}))  # fmt: skip
-    cam = next(c for c in scenario.cameras if c.id == cam_id)
-    close = cam.model_copy(update={"pose": PoseSpec(position=(*(0.8 * np.array(cam.pose.position[:2]) / np.hypot(*cam.pose.position[:2])), 1.25),
-                                                    look_at=(0.0, 0.0, 0.8)), "motion": []})  # fmt: skip
+    objects = [o.laid_on_side(places[o.id][:2], places[o.id][2], 0.75) for o in scenario.objects]
+    close = next(c for c in scenario.cameras if c.id == cam_id).moved_in(0.8, 1.25, (0.0, 0.0, 0.8))
     scenario = scenario.model_copy(update={"objects": objects, "cameras": [close]})
     cfg = RecognitionConfig()
     recognizer = Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
