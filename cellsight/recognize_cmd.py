@@ -14,7 +14,8 @@ from recognition.cloud import depth_to_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
 from recognition.errors import CloudError
 from recognition.models import ModelDatabase
-from recognition.pipeline import Detection, Recognizer
+from recognition.hypotheses import Detection
+from recognition.pipeline import Recognizer
 from schemas.codec import CameraInfo
 
 

@@ -20,7 +20,7 @@ import open3d as o3d
 from recognition.align import facing_camera, icp_pass
 from recognition.cloud import finite_points, voxel_downsample
 from recognition.models import ModelDatabase
-from recognition.pipeline import Detection
+from recognition.hypotheses import Detection
 from recognition.verify import DepthView, Verdict
 from schemas import geometry
 

@@ -15,7 +15,8 @@ from drivers.sim.scenario import load_scenario
 from recognition.align import rot_z
 from recognition.cloud import depth_to_cloud, voxel_downsample
 from recognition.models import ModelDatabase
-from recognition.pipeline import Detection, Recognizer
+from recognition.hypotheses import Detection
+from recognition.pipeline import Recognizer
 from recognition.verify import DepthView
 from recognition.fusion import REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, found_in_cloud, fuse, refined_in_cloud
 from recognition.worker import RecognitionWorker

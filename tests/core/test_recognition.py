@@ -19,7 +19,8 @@ from recognition.cloud import (
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.errors import CloudError, ModelError
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
-from recognition.pipeline import Recognizer, SceneCloud
+from recognition.hypotheses import SceneCloud
+from recognition.pipeline import Recognizer
 from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
 from schemas.codec import CameraInfo
@@ -457,7 +458,8 @@ def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
     from cellsight.model_build import database_from_scenario
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
-    from recognition.pipeline import Detection, _support
+    from recognition.hypotheses import Detection
+    from recognition.pipeline import support_plane
     from schemas.spec import PoseSpec
 
     scenario = load_scenario()
@@ -474,7 +476,7 @@ def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
     assert set(found) == set(truth)
     for oid, det in found.items():
         assert np.linalg.norm(det.camera_T_object[:3, 3] - truth[oid][:3, 3]) < 0.02, oid
-    support = _support(recognizer.prepare(cloud, frame.world_T_camera).planes, frame.world_T_camera[2, :3])
+    support = support_plane(recognizer.prepare(cloud, frame.world_T_camera).planes, frame.world_T_camera[2, :3])
     assert support is not None
 
     def posed(oid: str, world_T_object: np.ndarray) -> Detection:
@@ -482,11 +484,11 @@ def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
 
     world_T = {o.id: o.world_T_object(0.0) for o in objects}
     tote_up, crate = posed("tote", world_T["tote"]), posed("crate", world_T["crate"])
-    assert recognizer._rests(tote_up, [crate], support)
-    assert not recognizer._rests(tote_up, [], support)
-    assert not recognizer._rests(tote_up, [posed("can", world_T["can"])], support)  # not under it
+    assert recognizer.resolver.rests(tote_up, [crate], support)
+    assert not recognizer.resolver.rests(tote_up, [], support)
+    assert not recognizer.resolver.rests(tote_up, [posed("can", world_T["can"])], support)  # not under it
     down = world_T["tote"] @ make_pose(t=(0.0, 0.0, -0.14))
-    assert recognizer._rests(posed("tote", down), [], support)
+    assert recognizer.resolver.rests(posed("tote", down), [], support)
 
 
 @pytest.mark.slow
@@ -532,7 +534,7 @@ def test_standing_starts_put_the_base_on_the_support_below_the_piece() -> None:
     """Every start stands the object upright on the plane (its +z the plane's normal, the centre of
     its lowest points on the plane), under the piece's centroid or half its width further from the
     camera, at 12 different yaws."""
-    from recognition.pipeline import YAW_STEP_DEG, standing_starts
+    from recognition.hypotheses import YAW_STEP_DEG, standing_starts
 
     rng = np.random.default_rng(3)
     model = rng.uniform([-0.12, -0.09, 0.0], [0.12, 0.09, 0.14], (500, 3))  # a crate-sized box's points
@@ -662,13 +664,13 @@ def test_a_model_captured_as_a_cloud_is_found_by_a_localized_camera() -> None:
 def test_the_support_is_the_level_plane_nearest_the_camera() -> None:
     """A room seen from 2 m up: the floor (removed first), a wall, the table top 0.75 m above the
     floor. The objects stand on the table: the level plane nearest the camera, not the first."""
-    from recognition.pipeline import _support
+    from recognition.pipeline import support_plane
 
     up = np.array([0.0, -1.0, 0.0])  # camera y points down
     floor, wall, table = [0.0, -1.0, 0.0, 2.0], [0.0, 0.0, -1.0, 4.0], [0.0, -1.0, 0.0, 1.25]
-    np.testing.assert_allclose(_support(np.array([floor, wall, table]), up), table)
-    np.testing.assert_allclose(_support(np.array([wall, floor]), up), floor)
-    assert _support(np.array([wall]), up) is None and _support(np.array([floor]), None) is None
+    np.testing.assert_allclose(support_plane(np.array([floor, wall, table]), up), table)
+    np.testing.assert_allclose(support_plane(np.array([wall, floor]), up), floor)
+    assert support_plane(np.array([wall]), up) is None and support_plane(np.array([floor]), None) is None
 
 
 @pytest.mark.parametrize("stance", ["level_support", "stand_on_level"])

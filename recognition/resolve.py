@@ -1,0 +1,191 @@
+"""Which of a frame's candidates it holds: the joint resolution of hypotheses.
+
+Best candidates first (``rank``), each object is in the frame once and each part of the scene is
+one object: a candidate is taken if verification accepts it, judged against the whole frame from
+the camera's viewpoint (``recognition.verify``), and no pixel it explains is already another
+object's. Standing or lying, nothing hovers: a candidate must rest on the support or on an object
+taken under it, so one that does not yet waits for another pass. Then two rules on what was taken:
+a match explaining only part of its cluster stands only beside another object found in that
+cluster, and an upright object is no lower part of something taller.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from recognition.cloud import PointIndex
+from recognition.config import RecognitionConfig
+from recognition.hypotheses import Candidate, Detection, SceneCloud, Stance, explained_by, rank
+from recognition.models import ModelDatabase
+from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, verdict
+from schemas.geometry import invert_pose
+
+log = logging.getLogger(__name__)
+#: An upright detection with more unexplained points of its cluster above its top than this share
+#: of the points it explains is part of something taller (``Resolver._above``): true detections
+#: in ``benchmarks.bop``'s frames up to 0.015, a can on a real bleach bottle's body 0.09-0.12.
+TOPPED_SHARE = 0.05
+
+
+class Resolver:
+    """The joint resolution of candidates for a model database's objects."""
+
+    def __init__(self, database: ModelDatabase, config: RecognitionConfig, indexes: dict[str, PointIndex]) -> None:
+        self.db = database
+        self.config = config
+        self._indexes = indexes  # each model's point index (``Matcher.indexes``)
+
+    def resolve(self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud,
+                clusters: Sequence[np.ndarray]) -> list[Detection]:
+        """The detections the frame holds, by object id: of ``candidates`` fitted in ``scene`` (its
+        ``clusters`` as indices into its points), those verified against ``view`` (None: not verified)."""
+        found = self._take(candidates, view, scene.planes)
+        # A match explaining only part of its cluster was kept for touching objects: it stands only
+        # if another object was found in the same cluster. Alone, it is a shape that fits a piece of
+        # some larger unknown surface (a carton's faces on a person, on a cabinet).
+        for oid in list(found):
+            if self._alone(found[oid], found.values()):
+                del found[oid]
+        # An upright object is no part of something taller: cluster points above its top, inside its
+        # footprint, that nothing found explains say it was fitted to the lower part of a larger
+        # shape (a can on a bleach bottle's body, the bottle's shoulder and neck above it).
+        for oid in list(found):
+            if self._topped(found[oid], found.values(), scene.points, clusters):
+                del found[oid]
+        return sorted((cand.detection for cand in found.values()), key=lambda d: d.object_id)
+
+    def _take(self, candidates: Sequence[Candidate], view: DepthView | None, planes: np.ndarray) -> dict[str, Candidate]:
+        """The candidates taken, by object id: best first, so that a part two objects fit goes to the
+        one not found better elsewhere. A hypothesis the frame contradicts never takes a part, and a
+        pixel explains one object."""
+        c = self.config
+        found: dict[str, Candidate] = {}
+        taken: set[int] = set()
+        pixels = Explained()
+        # Objects rest on the support or on an object found under them (``rests``): one that does
+        # not yet waits for another pass, in case what it stands on is found after it.
+        pending = sorted(candidates, key=lambda cand: rank(cand.detection), reverse=True)
+        while pending:
+            waiting, before = [], len(found)
+            for cand in pending:
+                det, stance = cand.detection, cand.stance
+                if cand.part in taken or det.object_id in found:
+                    continue
+                below = [f.detection for f in found.values()]
+                if stance.support is not None and c.max_float_m > 0 and not self.rests(det, below, stance.support):
+                    waiting.append(cand)
+                    continue
+                # Judged only once it could be taken: most frames hold candidates for objects already found.
+                if view is not None and not self._verified(view, det, stance, planes, pixels):
+                    continue
+                taken.add(cand.part)
+                found[det.object_id] = cand
+            if len(found) == before:
+                for cand in waiting:
+                    log.debug("%s rejected: it floats above the support with nothing found under it",
+                              cand.detection.object_id)
+                break
+            pending = waiting
+        return found
+
+    def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> bool:
+        """Whether verification accepts a hypothesis, its pixels then counted as explained (``pixels``)."""
+        c = self.config
+        v = self._verdict(view, det, planes)
+        if stance.lying and v.colour_judged < MIN_COLOUR_PIXELS:
+            log.debug("%s rejected: lying on a side, it needs its colour judged (%d pixels could be)",
+                      det.object_id, v.colour_judged)  # fmt: skip
+            return False
+        seen = pixels.support(v)
+        if not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support and v.clutter <= c.max_clutter
+                and v.outline_seen >= c.min_outline_seen and v.penetration <= c.max_penetration
+                and v.colour_agreement >= c.min_colour_agreement and pixels.admit(v)):  # fmt: skip
+            log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
+                      "pixels, %d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a "
+                      "support %.3f, colour %.2f (of %d pixels)", det.object_id, v.fitness, seen, v.inliers,
+                      v.visible, v.violations, v.clutter, v.outline_seen, v.outline, v.penetration,
+                      v.colour_agreement, v.colour_judged)  # fmt: skip
+            return False
+        return True
+
+    def _alone(self, cand: Candidate, found: Iterable[Candidate]) -> bool:
+        """Whether a candidate explains under min_coverage of its cluster with no other object found there."""
+        det, k = cand.detection, cand.cluster
+        if k is None or det.coverage >= self.config.min_coverage:
+            return False
+        if any(other.cluster == k for other in found if other.detection.object_id != det.object_id):
+            return False
+        log.debug("%s rejected: it explains %.0f %% of its cluster and nothing else was found in the rest",
+                  det.object_id, 100 * det.coverage)  # fmt: skip
+        return True
+
+    def _topped(self, cand: Candidate, found: Iterable[Candidate], points: np.ndarray, clusters: Sequence[np.ndarray]) -> bool:
+        """Whether an upright candidate has more than TOPPED_SHARE of its points' worth of its
+        cluster's unexplained points (``points`` (N, 3), the scene's) standing on its top."""
+        det, k, stance = cand.detection, cand.cluster, cand.stance
+        if k is None or stance.up is None or not self.db.models[det.object_id].stands_on_z:
+            return False
+        above = self._above(det, points[clusters[k]], [f.detection for f in found], stance.rest)
+        if above <= TOPPED_SHARE * det.points:
+            return False
+        log.debug("%s rejected: %d points of its cluster stand on its top and nothing found explains them",
+                  det.object_id, above)
+        return True
+
+    def _verdict(self, view: DepthView, det: Detection, planes: np.ndarray) -> Verdict:
+        """A hypothesis judged against the frame's depth and the supports removed from it
+        (``recognition.verify``)."""
+        model, c = self.db.models[det.object_id], self.config
+        return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes,
+                       model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m)  # fmt: skip
+
+    def rests(self, det: Detection, found: Iterable[Detection], support: np.ndarray) -> bool:
+        """Whether a detection's lowest point is within max_float_m of the support plane (a, b, c, d;
+        unit normal up, camera frame), or of the top of a found detection whose footprint it overlaps.
+
+        Nothing in a cell hovers: a pose that fits a surface with its base in the air has fitted the
+        wrong surface (a tote fitted over a smaller crate's top).
+        """
+        limit = self.config.max_float_m
+        base = self._heights(det, support).min()
+        if base <= limit:
+            return True  # the common case: one product of the model's points
+        centre, radius = self._footprint(det, support)
+        for other in found:
+            if abs(self._heights(other, support).max() - base) <= limit:
+                other_centre, other_radius = self._footprint(other, support)
+                if np.linalg.norm(centre - other_centre) < radius + other_radius:
+                    return True
+        return False
+
+    def _above(self, det: Detection, points: np.ndarray, found: Iterable[Detection], rest: np.ndarray) -> int:
+        """How many of the points (N, 3, camera frame) lie above the posed model's top (its +z up once
+        turned by ``rest``, by more than icp_distance_m) and over its footprint (its x-y box there,
+        that much narrower: the side of a taller object standing beside it is not on it), that no
+        found detection explains."""
+        model, tol = self.db.models[det.object_id], self.config.icp_distance_m
+        for other in found:
+            points = points[~explained_by(self._indexes[other.object_id], other.camera_T_object, points, tol)]
+        object_T_camera = invert_pose(det.camera_T_object)
+        local = (points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]) @ rest.T
+        model_points = model.points @ rest.T
+        lo, hi = model_points.min(axis=0), model_points.max(axis=0)
+        over = np.all((local[:, :2] >= lo[:2] + tol) & (local[:, :2] <= hi[:2] - tol), axis=1)
+        return int(np.sum(over & (local[:, 2] > hi[2] + tol)))
+
+    def _heights(self, det: Detection, support: np.ndarray) -> np.ndarray:
+        """Heights (M,) of the posed model's points above the support (a, b, c, d), m."""
+        T, n = det.camera_T_object, support[:3]
+        return self.db.models[det.object_id].points @ (T[:3, :3].T @ n) + (T[:3, 3] @ n + support[3])
+
+    def _footprint(self, det: Detection, support: np.ndarray) -> tuple[np.ndarray, float]:
+        """The posed model's centre projected on the support (3,), camera frame, and its radius
+        along the support (m)."""
+        T, n = det.camera_T_object, support[:3]
+        points = self.db.models[det.object_id].points @ T[:3, :3].T + T[:3, 3]
+        along = points - np.outer(points @ n, n)
+        centre = along.mean(axis=0)
+        return centre, float(np.linalg.norm(along - centre, axis=1).max())
