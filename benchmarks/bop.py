@@ -29,7 +29,9 @@ holds a demo object: every detection there is false. The simulated frames are re
 without their pose (``..._camera_frame``), as ``cellsight recognize`` sees a saved frame: the room's
 floor and walls in view, which the planes removed after the first take away; and once more with
 ``level_support`` (``..._camera_frame_level_support``: the dominant plane taken as level, so the
-upright test and the support apply as with a pose). (PCL's milk carton is no BOP model: it is one
+upright test and the support apply as with a pose). ``..._upside_down_...`` counts the found
+objects standing on their base reported with their +z against the true one: ADD-S scores a
+symmetric shape's flipped pose as right, a robot reading the object's frame would not. (PCL's milk carton is no BOP model: it is one
 captured view, and a BOP model is the whole surface; ``benchmarks.recognition`` finds it.) So the
 reader, the model build from files in millimetres and the scoring run on every change, and a
 held-back dataset is one flag away.
@@ -167,12 +169,16 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     # saved frame: the whole view, the room's floor and walls included.
     alone: dict[bool, list[bool]] = {False: [], True: []}  # level_support -> per scored instance: found
     false_alone = {False: 0, True: 0}
+    upside_down = {False: 0, True: 0}  # found, of an object standing on its base, its +z against the true one
     for level, r in ((False, rec), (True, Recognizer(db, cfg.model_copy(update={"level_support": True})))):
         for frame in [f for f in chosen if f.world_T_camera is not None]:
             cloud, rgb = frame.load()
-            s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in r.recognize(cloud, rgb=rgb)], surface, diameter)
+            found = [(d.object_id, d.camera_T_object) for d in r.recognize(cloud, rgb=rgb)]
+            s = score(frame.truth, found, surface, diameter)
             false_alone[level] += len(s.false)
             alone[level] += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
+            upside_down[level] += sum(found[j][1][:3, 2] @ inst.camera_T_object[:3, 2] < 0 for inst, j in zip(frame.truth, s.matched)
+                                      if j is not None and db.models[inst.object_id].stands_on_z)  # fmt: skip
     # The baseline in a pass of its own, so that nothing it leaves behind is in our timings; not on
     # the lying frames (the whole room in view, ~30 s a frame).
     baseline = PpfBaseline.of(rec)
@@ -207,6 +213,7 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
         if alone[level]:
             out[f"bop_adds_recall_camera_frame{suffix}"] = float(np.mean(alone[level]))
             out[f"bop_false_detections_camera_frame{suffix}"] = float(false_alone[level])
+            out[f"bop_upside_down_camera_frame{suffix}"] = float(upside_down[level])
     out["bop_frame_ms_p50"] = 1000 * float(np.median(times))
     out["bop_frame_ms_p95"] = 1000 * float(np.percentile(times, 95))
     if ppf_times:

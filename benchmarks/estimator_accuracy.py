@@ -60,12 +60,9 @@ NOISE = NoiseSettings(depth=True, flip_rate=0.05)
 
 
 def static_demo() -> Scenario:
-    s = copy.deepcopy(load_scenario())
-    for c in s.cameras:
-        c.motion = []
-    for o in s.objects:
-        o.motion.kind = "static"
-    return s
+    """The demo cell with every camera and object standing still."""
+    s = load_scenario().still()
+    return s.model_copy(update={"cameras": [c.model_copy(update={"motion": []}) for c in s.cameras]})
 
 
 def simulate(s: Scenario, seconds: float, seed: int) -> list[list]:

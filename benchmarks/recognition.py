@@ -197,7 +197,7 @@ def random_layout(s: Scenario, rng: np.random.Generator, tight: bool) -> Scenari
                 break
             outlines.append(outline)
             pose = PoseSpec(position=(float(xy[0]), float(xy[1]), 0.75), rpy_deg=(0.0, 0.0, float(np.degrees(yaw))))
-            objects.append(obj.model_copy(update={"pose": pose, "motion": obj.motion.model_copy(update={"kind": "static"})}))
+            objects.append(obj.still().model_copy(update={"pose": pose}))
         if len(objects) == len(s.objects):
             return s.model_copy(update={"objects": objects})
     raise RuntimeError(f"no layout of {len(s.objects)} objects {gap} m apart within +-{half} m")

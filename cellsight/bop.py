@@ -240,10 +240,12 @@ def adds_m(points: np.ndarray, camera_T_estimate: np.ndarray, camera_T_truth: np
 @dataclass
 class FrameScore:
     """One frame's detections against its annotations: per annotated instance whether a detection
-    of its object lies within ADD-S 0.1 d (``found``, in ``frame.truth``'s order), and the
-    detections that matched no instance (``false``: a wrong pose, or an object not annotated)."""
+    of its object lies within ADD-S 0.1 d (``found``, in ``frame.truth``'s order; ``matched``: that
+    detection's index, None for none), and the detections that matched no instance (``false``: a
+    wrong pose, or an object not annotated)."""
 
     found: list[bool] = field(default_factory=list)
+    matched: list[int | None] = field(default_factory=list)
     false: list[str] = field(default_factory=list)
 
 
@@ -256,6 +258,7 @@ def score(truth: tuple[BopInstance, ...], detections: list[tuple[str, np.ndarray
         hit = next((j for j, (oid, T) in enumerate(detections) if j not in used and oid == inst.object_id
                     and adds_m(points[oid], T, inst.camera_T_object) < ADDS_SHARE * diameters[oid]), None)  # fmt: skip
         result.found.append(hit is not None)
+        result.matched.append(hit)
         if hit is not None:
             used.add(hit)
     result.false = [oid for j, (oid, _) in enumerate(detections) if j not in used]

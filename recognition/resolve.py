@@ -1,6 +1,7 @@
 """Which of a frame's candidates it holds: the joint resolution of hypotheses.
 
-Best candidates first (``rank``), each object is in the frame once and each part of the scene is
+Best candidates first (``rank``; a free candidate right after a twin resting on the support that
+fits about as well: both fitted the same surface, and the resting reading is the physical one), each object is in the frame once and each part of the scene is
 one object: a candidate is taken if verification accepts it, judged against the whole frame from
 the camera's viewpoint (``recognition.verify``), and no pixel it explains is already another
 object's. Standing or lying, nothing hovers: a candidate must rest on the support or on an object
@@ -29,6 +30,12 @@ log = logging.getLogger(__name__)
 #: in ``benchmarks.bop``'s frames up to 0.015, a can on a real bleach bottle's body 0.09-0.12.
 TOPPED_SHARE = 0.05
 
+#: A free candidate (no stance) goes right after a twin of it resting on the support (same object,
+#: centre within TWIN_M) that ranks at least this share of its rank: a symmetric shape fits upside
+#: down as well as upright, and a robot reads the object's frame.
+TWIN_SHARE = 0.97
+TWIN_M = 0.02
+
 
 class Resolver:
     """The joint resolution of candidates for a model database's objects."""
@@ -37,6 +44,7 @@ class Resolver:
         self.db = database
         self.config = config
         self._indexes = indexes  # each model's point index (``Matcher.indexes``)
+        self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
 
     def resolve(self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud,
                 clusters: Sequence[np.ndarray]) -> list[Detection]:
@@ -67,7 +75,7 @@ class Resolver:
         pixels = Explained()
         # Objects rest on the support or on an object found under them (``rests``): one that does
         # not yet waits for another pass, in case what it stands on is found after it.
-        pending = sorted(candidates, key=lambda cand: rank(cand.detection), reverse=True)
+        pending = self._ordered(candidates)
         while pending:
             waiting, before = [], len(found)
             for cand in pending:
@@ -90,6 +98,29 @@ class Resolver:
                 break
             pending = waiting
         return found
+
+    def _ordered(self, candidates: Sequence[Candidate]) -> list[Candidate]:
+        """Candidates best first (``rank``), a free one right after its resting twin (``TWIN_SHARE``)."""
+        resting = [cand for cand in candidates if cand.stance.support is not None]
+
+        def key(cand: Candidate) -> tuple[tuple[float, float], int]:
+            twin = self._twin(cand, resting) if cand.stance.up is None else None
+            return (rank(cand.detection), 1) if twin is None else (rank(twin.detection), 0)
+
+        return sorted(candidates, key=key, reverse=True)
+
+    def _twin(self, free: Candidate, resting: Sequence[Candidate]) -> Candidate | None:
+        """The best resting candidate of the same object, standing on its base, centred within
+        TWIN_M of the free one and ranking at least TWIN_SHARE of it, if any."""
+        det = free.detection
+        if not self.db.models[det.object_id].stands_on_z:
+            return None
+        centre = self._centre[det.object_id]
+        at = det.camera_T_object[:3, :3] @ centre + det.camera_T_object[:3, 3]
+        twins = [cand for cand in resting if cand.detection.object_id == det.object_id
+                 and rank(cand.detection)[0] >= TWIN_SHARE * rank(det)[0]
+                 and np.linalg.norm(cand.detection.camera_T_object[:3, :3] @ centre + cand.detection.camera_T_object[:3, 3] - at) <= TWIN_M]  # fmt: skip
+        return max(twins, key=lambda cand: rank(cand.detection), default=None)
 
     def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> bool:
         """Whether verification accepts a hypothesis, its pixels then counted as explained (``pixels``)."""
