@@ -481,7 +481,7 @@ def model_build(
     out: Annotated[Path, typer.Option("--out", help="database folder to write")],
     scenario: Annotated[Optional[Path], typer.Option("--scenario", help="every object of this scenario TOML")] = None,
     demo: Annotated[bool, typer.Option("--demo", help="every object of the built-in demo cell")] = False,
-    mesh: Annotated[Optional[list[str]], typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres")] = None,
+    mesh: Annotated[Optional[list[str]], typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres; coloured by its vertex colours or texture")] = None,
     cloud: Annotated[Optional[list[str]], typer.Option("--cloud", help="ID=FILE: a point cloud (PCD/PLY), metres, captured from its origin")] = None,
     points: Annotated[Optional[list[str]], typer.Option("--points", help="ID=FILE: points over the whole surface (PLY/PCD/XYZ), metres, object frame")] = None,
     recording: Annotated[Optional[list[str]], typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board")] = None,

@@ -33,6 +33,7 @@ from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, fin
 from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
+from recognition.texture import texture_colours
 from recognition.verify import chroma_ranges
 from recognition.vfh import ROLL_BINS, SIZE
 from schemas.codec import CameraInfo
@@ -407,7 +408,11 @@ def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
 
 def _mesh_arrays(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vertices (V, 3) float64, triangles (T, 3) int32 and vertex colours (V, 3) rgb 0-1 (or (0, 3))
-    of a mesh file (runs in read_mesh's child)."""
+    of a mesh file, from its texture when it has one instead (runs in read_mesh's child)."""
     mesh = o3d.io.read_triangle_mesh(path)
-    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy(), np.asarray(mesh.vertex_colors).copy()
+    colours = np.asarray(mesh.vertex_colors).copy()
+    if len(colours) == 0 and len(mesh.vertices):
+        colours = texture_colours(mesh, path)
+        colours = np.zeros((0, 3)) if colours is None else colours
+    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy(), colours
 
