@@ -3,10 +3,12 @@
 ``--dataset DIR`` measures any dataset in the format public pose datasets ship in (BOP: LM-O,
 YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (mm; meshes rendered
 from 42 viewpoints at each ``--distance``, point models by hidden-point removal, their colours where the
-files carry them) and every frame of ``--split`` (the challenge's target images where the dataset
-lists them; ``--frames N`` keeps N spread over them) goes through ``Recognizer.recognize`` as
-``cellsight recognize`` runs it: camera frame, no workspace box, colour judged where the frame has
-it. An annotated instance is found when a detection of its object lies within ADD-S 0.1 x diameter
+files carry them, vertex colours or texture) and every frame of ``--split`` (the challenge's target
+images where the dataset lists them; ``--frames N`` keeps N spread over them) goes through
+``Recognizer.recognize`` as ``cellsight recognize`` runs it: camera frame, no workspace box, colour
+judged where the frame has it. A world pose in ``scene_camera.json`` is used only where its z is up
+(a plane the frame shows is level in it; ``--world-z-up`` takes every one): a dataset's world may
+be a marker board's on a wall, and recognition stands objects on the pose's z. An annotated instance is found when a detection of its object lies within ADD-S 0.1 x diameter
 (``models_info.json``'s); a detection matching no instance is false (on datasets that annotate only
 some of the objects in view, as LM does, an unannotated one counts false too). Instances under 40 %
 visible (``visib_fract``) are not scored; classes as ``benchmarks.recognition``: unoccluded >= 95 %,
@@ -52,7 +54,7 @@ import numpy as np  # noqa: E402
 from rich.progress import track  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
-from cellsight.bop import BopDataset, BopWriter, depth_of_organised, score  # noqa: E402
+from cellsight.bop import BopDataset, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
@@ -131,10 +133,12 @@ def write_default(root: Path, layouts: int, lying: int) -> Path:
 
 
 def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, ...], cfg: RecognitionConfig,
-            lying_scenes: frozenset[int] = frozenset()) -> dict[str, float]:  # fmt: skip
+            lying_scenes: frozenset[int] = frozenset(), world_z_up: bool = False) -> dict[str, float]:  # fmt: skip
     """Ours and the point-pair baseline on ``frames`` of the dataset's frames (all if None), the
     database built from its models with views at ``distances_m`` (m): the figures of the module
-    docstring; ``bop_adds_recall_lying`` over the scenes in ``lying_scenes``."""
+    docstring; ``bop_adds_recall_lying`` over the scenes in ``lying_scenes``. A frame's world pose is
+    used when ``world_z_up`` says the dataset's world has z up, else only if a plane the frame shows
+    is level in it (``level_world_pose``; the others: ``bop_frames_world_pose_set_aside``)."""
     meshes = {m.object_id: m.path for m in dataset.models.values() if m.is_mesh}
     points = {m.object_id: m.path for m in dataset.models.values() if not m.is_mesh}
     t0 = time.perf_counter()
@@ -151,10 +155,13 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     lying: list[bool] = []  # found, per scored instance of lying_scenes
     theirs: list[tuple[str, bool]] = []
     false, times, ppf_times = 0, [], []
+    pose_of: dict[tuple[int, int], np.ndarray | None] = {}  # (scene, image) -> the world pose recognition is given
     for frame in track(chosen, description="recognising"):
         cloud, rgb = frame.load()
+        pose = frame.world_T_camera if world_z_up else level_world_pose(rec, cloud, frame.world_T_camera)
+        pose_of[frame.scene_id, frame.image_id] = pose
         t0 = time.perf_counter()
-        found = rec.recognize(cloud, world_T_camera=frame.world_T_camera, rgb=rgb)
+        found = rec.recognize(cloud, world_T_camera=pose, rgb=rgb)
         if frame.scene_id not in lying_scenes:
             times.append(time.perf_counter() - t0)
         s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
@@ -187,12 +194,14 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
             continue
         cloud, _ = frame.load()
         t0 = time.perf_counter()
-        poses = baseline(cloud, frame.world_T_camera, {i.object_id for i in frame.truth})
+        poses = baseline(cloud, pose_of[frame.scene_id, frame.image_id], {i.object_id for i in frame.truth})
         ppf_times.append(time.perf_counter() - t0)
         s = score(frame.truth, list(poses.items()), surface, diameter)
         theirs += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
     out = {"bop_frames": float(len(chosen)), "bop_instances_scored": float(len(ours)), "bop_models": float(len(db.models)),
-           "bop_model_build_s": build_s}  # fmt: skip
+           "bop_model_build_s": build_s,
+           "bop_frames_world_pose_set_aside": float(sum(f.world_T_camera is not None and pose_of[f.scene_id, f.image_id] is None
+                                                        for f in chosen))}  # fmt: skip
     for name, rows in (("bop_adds_recall", ours), ("bop_ppf_adds_recall", theirs)):
         out[name] = float(np.mean([hit for _, hit in rows])) if rows else float("nan")
         for cls in ("unoccluded", "partly_occluded"):
@@ -232,14 +241,15 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     if args.dataset is not None:
         cfg = load_config(args.cell_config).recognition if args.cell_config else RecognitionConfig()
         dataset = BopDataset.open(args.dataset, args.split)
-        return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg)
+        return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg, world_z_up=args.world_z_up)
     # The simulated frames carry the cameras' poses in the cell, so the cell's workspace crops them,
     # as in the running cell; PCL's real frames have none and are recognised in the camera frame.
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
     layouts, lying = (1, 1) if quick else (6, 6)
     with tempfile.TemporaryDirectory() as tmp:
         dataset = BopDataset.open(write_default(Path(tmp), layouts, lying))
-        return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)))
+        return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
+                       world_z_up=True)  # the cell's world, written here
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
@@ -248,6 +258,9 @@ def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, help="at most this many frames, spread over the split (--quick: 10 of a given dataset)")
     parser.add_argument("--cell-config", type=Path, help="cell config TOML whose [recognition] is used (default: the defaults; "
                         "its workspace crops frames whose scene_camera.json gives the camera's world pose)")
+    parser.add_argument("--world-z-up", action="store_true",
+                        help="the dataset's world frame has z up: every frame's world pose is used (default: only where a "
+                        "plane the frame shows is level in it)")
     parser.add_argument("--distance", type=float, nargs="+", default=list(VIEW_DISTANCES_M),
                         help="virtual camera distances for the models' views, m (default: as cellsight model build)")
 

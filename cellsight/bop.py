@@ -27,6 +27,7 @@ from cellsight.errors import DatasetError
 from cellsight.recognize_cmd import read_depth_image, read_registered_rgb
 from recognition.cloud import depth_to_cloud
 from recognition.errors import CloudError
+from recognition.pipeline import Recognizer, support_plane
 from schemas.geometry import invert_pose
 
 log = logging.getLogger(__name__)
@@ -263,6 +264,17 @@ def score(truth: tuple[BopInstance, ...], detections: list[tuple[str, np.ndarray
             used.add(hit)
     result.false = [oid for j, (oid, _) in enumerate(detections) if j not in used]
     return result
+
+
+def level_world_pose(recognizer: Recognizer, cloud: np.ndarray, world_T_camera: np.ndarray | None) -> np.ndarray | None:
+    """A frame's world pose (4, 4) if its world's z is up, as recognition takes it: a plane the
+    frame shows (a table, the floor; ``Recognizer.prepare`` without a pose) is level in it. Else
+    None: the frame is then recognised as without a pose. A dataset's world need not have z up (a
+    marker board on a wall), and given a pose, recognition stands objects on its z: a wrong up would
+    turn every object down."""
+    if world_T_camera is None:
+        return None
+    return world_T_camera if support_plane(recognizer.prepare(cloud).planes, world_T_camera[2, :3]) is not None else None
 
 
 def depth_of_organised(cloud: np.ndarray, focal_px: float) -> tuple[np.ndarray, np.ndarray]:
