@@ -60,6 +60,16 @@ PIECE_FITNESS = 0.2
 #: A part of a split cluster with fewer points than this share of the smallest model's is no whole
 #: object (a view shows about half a surface): it may be a fragment of one (``Matcher.fragments``).
 SMALL_PART = 0.5
+#: The sides an object may lie on besides its base (``Stance.rest``): turns of its frame that
+#: bring each side's outward normal (+-x, +-y) to -z. Not its top: a box or a can upside down fits
+#: a standing one as well, and its frame would be reported upside down.
+RESTS = tuple(rotation_between(np.array(side, float), [0.0, 0.0, -1.0]) for side in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)))
+#: Two sides are alike when the object lain on one, turned about the vertical by some multiple of
+#: YAW_STEP_DEG, is the object lain on the other: 99 % of its points within this many voxels of it
+#: (the same surface sampled twice: up to 0.5; a box's long side against its short one: 3; a block
+#: of a twentieth of its surface at another place: 2.5). Alike sides make the same candidates, so
+#: only the first is tried (a can on one side of four, a box on two).
+ALIKE_VOXELS = 1.0
 
 
 @dataclass(frozen=True)
@@ -152,6 +162,12 @@ class Matcher:
         #: Each whole model's point index, built once: which scene points a pose explains is asked
         #: of every accepted hypothesis, here and in the resolution.
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
+        self._rests = {oid: distinct_rests(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)
+                       for oid, mdl in database.models.items()}  # fmt: skip
+
+    def tries(self, object_id: str, stance: Stance) -> bool:
+        """Whether the object is tried in this stance: lying, only on the first of sides alike."""
+        return not stance.lying or any(np.array_equal(stance.rest, r) for r in self._rests[object_id])
 
     def explained(self, object_id: str, camera_T_object: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Mask (N,) of the scene points (N, 3), camera frame, within icp_distance_m of the posed model."""
@@ -171,7 +187,7 @@ class Matcher:
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
             for _ in range(0 if used[k] or k >= first_fragment else MAX_OBJECTS_PER_CLUSTER):
-                matches = self.match_cluster(scene, rest, up, stance.rest)
+                matches = self.match_cluster(scene, rest, stance)
                 if not matches:
                     break
                 part = next(parts)
@@ -188,6 +204,8 @@ class Matcher:
             pieces = self._piece_centres(scene.points, rest)
             target = Target.of(scene, rest) if pieces else None
             for oid, centres in pieces.items():
+                if not self.tries(oid, stance):
+                    continue
                 model = self.db.models[oid]
                 starts = standing_starts(model.points @ stance.rest.T, centres, support) @ make_pose(stance.rest)
                 match = self.score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS, rest=stance.rest)
@@ -196,11 +214,9 @@ class Matcher:
                     out.append(Candidate(next(parts), k if k < first_fragment else None, match[0], stance))
         return out
 
-    def match_cluster(
-        self, scene: SceneCloud, idx: np.ndarray, up: np.ndarray | None, rest: np.ndarray | None = None
-    ) -> list[tuple[Detection, np.ndarray]]:
-        """VFH nearest views -> roll candidates -> ICP: every object's accepted hypothesis, best first,
-        each with the mask of the cluster points it explains."""
+    def match_cluster(self, scene: SceneCloud, idx: np.ndarray, stance: Stance) -> list[tuple[Detection, np.ndarray]]:
+        """VFH nearest views -> roll candidates -> ICP: every object's accepted hypothesis standing as
+        ``stance`` says, best first, each with the mask of the cluster points it explains."""
         if len(self._owners) == 0:
             return []
         desc = describe(scene.points[idx], scene.normals[idx], self.config.descriptor)
@@ -220,10 +236,12 @@ class Matcher:
         matches = []
         target = Target.of(scene, idx)
         for oid, (rows, rolls) in chosen.items():
+            if not self.tries(oid, stance):
+                continue
             camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
                                            np.array(rolls))
-            match = self.score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], up,
-                                turns=True, rest=rest)
+            match = self.score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], stance.up,
+                                turns=True, rest=stance.rest)
             if match is not None:
                 matches.append(match)
         return sorted(matches, key=lambda m: rank(m[0]), reverse=True)
@@ -366,6 +384,21 @@ def explained_by(index: PointIndex, camera_T_object: np.ndarray, points: np.ndar
     camera_T_object (4, 4), given its points' index."""
     object_T_camera = invert_pose(camera_T_object)
     return index.within(points @ object_T_camera[:3, :3].T + object_T_camera[:3, 3], distance_m)
+
+
+def distinct_rests(points: np.ndarray, tolerance_m: float) -> list[np.ndarray]:
+    """Of RESTS, those an object (model points (M, 3), object frame) lain on them shows no earlier
+    one's shape: the first of each kind of alike sides (``ALIKE_VOXELS``)."""
+    yaws = rot_z(np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG)))
+    lain = [points @ R.T for R in RESTS]
+    lain = [(p - p.mean(axis=0)).astype(np.float32) for p in lain]
+    kept: list[int] = []
+    for j, p in enumerate(lain):
+        alike = any(np.sqrt(np.percentile(PointIndex(lain[k]).nearest(p @ Y.T.astype(np.float32))[1], 99)) <= tolerance_m
+                    for k in kept for Y in yaws)  # fmt: skip
+        if not alike:
+            kept.append(j)
+    return [RESTS[k] for k in kept]
 
 
 def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndarray) -> np.ndarray:

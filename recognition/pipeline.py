@@ -7,7 +7,7 @@ ICP; objects stood on the support at pieces of what no match explained) -> joint
 ``recognition.verify``). A marker on an object, when seen, names it and gives ICP its starting
 pose. Up is known from the camera's pose, or, without one, from the level plane the objects may
 stand on (``Stance``): objects are then tried free, standing and, in a frame with colour, lying on
-each of four sides.
+each of four sides (sides alike once, ``hypotheses.distinct_rests``).
 """
 
 from __future__ import annotations
@@ -24,12 +24,11 @@ from recognition.align import ImageBounds
 from recognition.cloud import estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.errors import ModelError
-from recognition.hypotheses import Candidate, Detection, Matcher, SceneCloud, Stance, Target
+from recognition.hypotheses import RESTS, Candidate, Detection, Matcher, SceneCloud, Stance, Target
 from recognition.models import ModelDatabase
 from recognition.resolve import Resolver
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
 from recognition.verify import DepthView, Verdict, fit_intrinsics, verdict
-from schemas.geometry import rotation_between
 
 log = logging.getLogger(__name__)
 #: A plane past the first is removed as structure (a wall, a floor, a table seen across a room) when
@@ -43,10 +42,6 @@ MIN_TOLERANCE_VOXELS = 1.5
 #: Pixels another camera must be able to judge (on or in front of its measured surface) for its
 #: frame to contradict a detection (``Recognizer.seen_through``): fewer say little either way.
 CROSS_VIEW_PIXELS = 50
-#: The sides an object may lie on besides its base (``Stance.rest``): turns of its frame that
-#: bring each side's outward normal (+-x, +-y) to -z. Not its top: a box or a can upside down fits
-#: a standing one as well, and its frame would be reported upside down.
-RESTS = tuple(rotation_between(np.array(side, float), [0.0, 0.0, -1.0]) for side in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)))
 #: A removed plane is a support objects stand on if its normal is within this of world up.
 SUPPORT_COS = float(np.cos(np.radians(20.0)))
 
@@ -175,8 +170,9 @@ class Recognizer:
         is no world up; the removed plane whose normal is nearest the image's up (-y; a camera is
         mounted upright) is a table or a floor, not a wall: with ``level_support`` every object
         stands on it, with ``stand_on_level`` objects are tried both free and standing on it, and
-        with ``rest_on_sides`` lying on it on each of four sides, when the frame has colour (three
-        times the poses tried: on depth alone they fitted boxes and cans to PCL's real rooms).
+        with ``rest_on_sides`` lying on it on each of four sides, when the frame has colour (up to
+        three times the poses tried: on depth alone they fitted boxes and cans to PCL's real rooms;
+        an object is tried on one of sides alike, ``Matcher.tries``).
         """
         c = self.config
         if world_T_camera is not None:

@@ -767,3 +767,23 @@ def test_objects_lying_on_their_side_are_found_in_a_close_frame_without_a_pose(c
         model = recognizer.db.models[o.id]
         assert o.id in found, sorted(found)
         assert adds_m(model.points, found[o.id].camera_T_object, truth) < ADDS_SHARE * model.diameter_m, o.id
+
+
+def test_sides_alike_are_tried_once() -> None:
+    """A can lain on any of its four sides shows one shape, a box two (on +-x, on +-y), and a box
+    with a block on one end of its +x face four: only the first side of each kind is tried.
+    Surfaces sampled at 5 mm, the model's 1 cm voxel judging them."""
+    from recognition.hypotheses import RESTS, distinct_rests
+
+    def surface(mesh: o3d.geometry.TriangleMesh) -> np.ndarray:
+        o3d.utility.random.seed(0)
+        return np.asarray(mesh.sample_points_uniformly(20000).voxel_down_sample(0.005).points)
+
+    can = o3d.geometry.TriangleMesh.create_cylinder(0.06, 0.2, resolution=60)
+    box = o3d.geometry.TriangleMesh.create_box(0.24, 0.18, 0.14).translate((-0.12, -0.09, 0.0))
+    block = o3d.geometry.TriangleMesh.create_box(0.04, 0.06, 0.05).translate((0.12, 0.0, 0.0))
+    tol = 0.5 * RecognitionConfig().descriptor.voxel_m
+    assert len(distinct_rests(surface(can), tol)) == 1
+    kinds = distinct_rests(surface(box), tol)
+    assert len(kinds) == 2 and np.array_equal(kinds[0], RESTS[0]) and np.array_equal(kinds[1], RESTS[2])
+    assert len(distinct_rests(surface(box + block), tol)) == 4
