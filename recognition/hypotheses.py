@@ -392,9 +392,10 @@ def distinct_rests(points: np.ndarray, tolerance_m: float) -> list[np.ndarray]:
     yaws = rot_z(np.radians(np.arange(0.0, 360.0, YAW_STEP_DEG)))
     lain = [points @ R.T for R in RESTS]
     lain = [(p - p.mean(axis=0)).astype(np.float32) for p in lain]
+    index = [PointIndex(p) for p in lain]
     kept: list[int] = []
     for j, p in enumerate(lain):
-        alike = any(np.sqrt(np.percentile(PointIndex(lain[k]).nearest(p @ Y.T.astype(np.float32))[1], 99)) <= tolerance_m
+        alike = any(np.sqrt(np.percentile(index[k].nearest(p @ Y.T.astype(np.float32))[1], 99)) <= tolerance_m
                     for k in kept for Y in yaws)  # fmt: skip
         if not alike:
             kept.append(j)

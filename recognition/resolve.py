@@ -1,10 +1,10 @@
 """Which of a frame's candidates it holds: the joint resolution of hypotheses.
 
 Best candidates first (``rank``; a free candidate right after a twin resting on the support that
-fits about as well: both fitted the same surface, and the resting reading is the physical one), each object is in the frame once and each part of the scene is
-one object: a candidate is taken if verification accepts it, judged against the whole frame from
-the camera's viewpoint (``recognition.verify``), and no pixel it explains is already another
-object's. Standing or lying, nothing hovers: a candidate must rest on the support or on an object
+fits about as well: both fitted the same surface, and the resting reading is the physical one),
+each object is in the frame once and each part of the scene is one object: a candidate is taken
+if verification accepts it, judged against the whole frame from the camera's viewpoint
+(``recognition.verify``), and no pixel it explains is already another object's. Standing or lying, nothing hovers: a candidate must rest on the support or on an object
 taken under it, so one that does not yet waits for another pass. Then two rules on what was taken:
 a match explaining only part of its cluster stands only beside another object found in that
 cluster, and an upright object is no lower part of something taller.
@@ -110,17 +110,21 @@ class Resolver:
         return sorted(candidates, key=key, reverse=True)
 
     def _twin(self, free: Candidate, resting: Sequence[Candidate]) -> Candidate | None:
-        """The best resting candidate of the same object, standing on its base, centred within
-        TWIN_M of the free one and ranking at least TWIN_SHARE of it, if any."""
+        """The best resting candidate of the same object (one whose frame has an up: not a captured
+        cloud's), centred within TWIN_M of the free one and ranking at least TWIN_SHARE of it, if any."""
         det = free.detection
         if not self.db.models[det.object_id].stands_on_z:
             return None
-        centre = self._centre[det.object_id]
-        at = det.camera_T_object[:3, :3] @ centre + det.camera_T_object[:3, 3]
+        at = self._centre_at(det)
         twins = [cand for cand in resting if cand.detection.object_id == det.object_id
                  and rank(cand.detection)[0] >= TWIN_SHARE * rank(det)[0]
-                 and np.linalg.norm(cand.detection.camera_T_object[:3, :3] @ centre + cand.detection.camera_T_object[:3, 3] - at) <= TWIN_M]  # fmt: skip
+                 and np.linalg.norm(self._centre_at(cand.detection) - at) <= TWIN_M]  # fmt: skip
         return max(twins, key=lambda cand: rank(cand.detection), default=None)
+
+    def _centre_at(self, det: Detection) -> np.ndarray:
+        """The posed model's centre (its points' mean), camera frame (3,)."""
+        T = det.camera_T_object
+        return T[:3, :3] @ self._centre[det.object_id] + T[:3, 3]
 
     def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> bool:
         """Whether verification accepts a hypothesis, its pixels then counted as explained (``pixels``)."""
