@@ -44,7 +44,7 @@ from estimator.config import EstimatorConfig
 from estimator.init import CameraKey, place
 from estimator.keyframes import LiveKeyframes, MovingFrame
 from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors, instant_gain
-from estimator.motion import RIGID_CHI2, RigidScreen, rigid_motion
+from estimator.motion import MOVE_CHI2, RigidScreen, any_frame_moved, frame_moved
 from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.pairs import YOUNG_PAIR, Pair, factors_current, fold_rows, pair_means
 from estimator.resect import resect
@@ -55,7 +55,6 @@ log = logging.getLogger(__name__)
 K = TypeVar("K")
 V = TypeVar("V")
 
-MOVE_CHI2 = 16.27  # chi-square 3 dof, 99.9 %: marker position shift beyond noise
 MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (see Estimator._due_pairs)
 #: Covariances recomputed per ``estimate`` beyond new variables' (the rest are the cached ones): in
 #: a 64-camera ring one costs 0.1-3 ms after an update (iSAM2 recomputes the Bayes tree's shortcuts
@@ -374,7 +373,8 @@ class Estimator:
         )  # fmt: skip
         expected = np.stack([p.mean() for p in pairs])[row_pair] if fast and pairs else None
         if expected is not None:
-            fast = not self._any_frame_moved(sa, expected, len(stamps), track)
+            moved, track.screen = any_frame_moved(sa, expected, len(stamps), track.screen, self.config.bump_position_m)
+            fast = not moved
         if not fast:
             out = []
             for f, stamp in enumerate(stamps):
@@ -409,51 +409,6 @@ class Estimator:
         """Object markers in frames that joined a segment (``segments``, per frame) near a link instant."""
         if self.live_links is not None:
             block_sightings(camera_id, stamps, a, segments, self.object_markers, self.live_links.gather)
-
-    def _any_frame_moved(self, s: ObservationRows, expected: np.ndarray, frames: int, track: CameraTrack) -> bool:
-        """``_camera_is_still``'s residual test for many frames at once (static rows ``s``, their
-        pairs' means ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise, or
-        the block's last frame (a move persists) show a rigid motion of the camera?"""
-        if len(s.ids) == 0:
-            return False
-        D = s.poses[:, :3, 3] - expected[:, :3, 3]
-        shifts = np.linalg.norm(D, axis=1)
-        # The last frame's rows by marker id: a detector lists the same markers in a different order
-        # from frame to frame, and the screen belongs to the view (which markers), not to the order.
-        last = np.flatnonzero(s.frame == s.frame.max())
-        last = last[np.argsort(s.ids[last], kind="stable")]
-        p, R, covs = expected[last, :3, 3], expected[last, :3, :3], s.covariances[last, :3, :3]
-        if track.screen is None or not np.array_equal(track.screen.ids, s.ids[last]):
-            track.screen = RigidScreen.of(s.ids[last], p, R @ covs @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3))
-        if track.screen is not None and track.screen.chi2(D[last]) > RIGID_CHI2 and self._rigid_move(p, p + D[last], R, covs):
-            return True
-        # A median above a threshold needs at least half of the frame's values above it: only
-        # frames that pass this count can have moved, and only they get an exact median. The
-        # shift alone rules most frames out before any covariance is solved.
-        n_rows = np.bincount(s.frame, minlength=frames)
-        far = shifts > self.config.bump_position_m
-        if not np.any((n_rows > 0) & (2 * np.bincount(s.frame, weights=far, minlength=frames) >= n_rows)):
-            return False
-        R = expected[:, :3, :3]
-        covs = R @ s.covariances[:, :3, :3] @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3)
-        d2 = mahalanobis_sq(D, covs)
-        high = (d2 > MOVE_CHI2) & far
-        n_high = np.bincount(s.frame, weights=high, minlength=frames)
-        for f in np.flatnonzero((n_rows > 0) & (2 * n_high >= n_rows)):
-            rows = s.frame == f
-            if np.median(d2[rows]) > MOVE_CHI2 and np.median(shifts[rows]) > self.config.bump_position_m:
-                return True
-        return False
-
-    def _rigid_move(self, p: np.ndarray, q: np.ndarray, R: np.ndarray, covs: np.ndarray) -> bool:
-        """Do one frame's marker positions ``q`` (N, 3) against their means ``p`` (N, 3), m, show one
-        rigid camera motion beyond noise and ``bump_position_m``? ``covs`` (N, 3, 3) are the
-        observations' position covariances in the frame whose rotations are ``R`` (N or 1, 3, 3)."""
-        motion = rigid_motion(p, q, R @ covs @ np.swapaxes(R, -1, -2) + 1e-8 * np.eye(3))
-        if motion is None or not motion.is_move(self.config.bump_position_m, float(np.median(np.linalg.norm(p, axis=1)))):
-            return False
-        log.debug("rigid motion %.1f mm %.2f deg (chi2 %.0f, %d markers)", 1e3 * motion.shift_m, math.degrees(motion.angle_rad), motion.chi2, motion.inliers)
-        return True
 
     def _camera_is_still(self, track: CameraTrack, static: list[Observation]) -> bool:
         """Residual test on marker positions in the camera frame (rotation flips cannot fool it).
@@ -505,31 +460,11 @@ class Estimator:
             obs_covs.append(obs.covariance[:3, :3])
             scales.append(young)
             margins.append(map_margin)
-        d2: np.ndarray = np.zeros(0)
-        shifts: np.ndarray = np.zeros(0)
-        if deltas:  # batched over the frame's markers
-            D = np.array(deltas)
-            # The marker-frame covariance into the camera frame, with the observation's rotation
-            # and with the expected one: either may be a flip (a young mean can start on one), which
-            # points the long (depth) axis astray; the frame that explains the shift better is kept.
-            R = np.array(rotations)  # (N, 2, 3, 3)
-            both = np.array(scales)[:, None, None, None] * (R @ np.array(obs_covs)[:, None] @ np.swapaxes(R, -1, -2))
-            both += (np.array(margins)[:, None, None, None] + 1e-8) * np.eye(3)
-            d2_both = mahalanobis_sq(D[:, None, :], both)
-            nearer = np.argmin(d2_both, axis=1)
-            d2 = d2_both[np.arange(len(D)), nearer]
-            covs = both[np.arange(len(D)), nearer]
-            shifts = np.linalg.norm(D, axis=1)
-        moved = len(d2) > 0 and np.median(d2) > MOVE_CHI2 and np.median(shifts) > self.config.bump_position_m
-        # The rigid fit explains at most the frame's whole chi-square (a least-squares projection):
-        # below the move threshold in total, no fit can pass it.
-        if not moved and float(d2.sum()) > RIGID_CHI2:
-            P = np.array(before)
-            moved = self._rigid_move(P, P + D, np.eye(3), covs)
+        moved, shift_m = frame_moved(deltas, before, rotations, obs_covs, scales, margins, self.config.bump_position_m)
         track.suspect = track.suspect + 1 if moved else 0
         if track.suspect >= self.config.bump_frames:
             track.moving, track.still = True, 0
-            log.info("%s moved (marker shift %.1f mm): leaving the graph until it is still", track.camera_id, 1000 * np.median(shifts))
+            log.info("%s moved (marker shift %.1f mm): leaving the graph until it is still", track.camera_id, 1000 * shift_m)
             return False
         return track.suspect == 0  # hold back suspicious frames
 

@@ -1,9 +1,12 @@
-"""Did a camera move? A rigid fit of one frame's marker positions against where they were.
+"""Did a camera move? One frame's marker positions against where they were expected.
 
-The per-marker test in ``Estimator._camera_is_still`` asks whether most markers shifted beyond
-noise. A camera that turns while it shifts can cancel the shift at its markers: 4 cm and 1 deg
-at 2.5 m leaves each marker 6-8 mm from its mean, under that test's threshold, while the camera's
-pose is 4 cm off. The markers still say so together: their shifts are the image of one rigid
+``frame_moved`` (``any_frame_moved`` for a block of frames) asks first whether most markers
+shifted beyond noise and ``bump_position_m``; ``Estimator._camera_is_still`` gathers the expected
+positions (a pair's mean, or the map's prediction) and keeps the count of suspect frames.
+
+A camera that turns while it shifts can cancel the shift at its markers: 4 cm and 1 deg at 2.5 m
+leaves each marker 6-8 mm from its mean, under that test's threshold, while the camera's pose is
+4 cm off. The markers still say so together: their shifts are the image of one rigid
 motion, and a least-squares fit of that motion (6 dof, every marker weighted by its covariance)
 measures it with the evidence of all of them. Positions only, so a marker's rotation flip cannot
 fool it.
@@ -15,11 +18,16 @@ origin moved by -R^T t (|t|) and turned by |rotvec(R)|.
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.geometry import skew
+from estimator.observation import ObservationRows
+from schemas.geometry import mahalanobis_sq, skew
+
+log = logging.getLogger(__name__)
 
 #: Chi-square with 6 dof at 1 - 1e-6: a still camera's frame passes it once in a million, and a
 #: move needs it on ``bump_frames`` consecutive frames.
@@ -28,6 +36,8 @@ RIGID_CHI2 = 41.0
 #: of the rigid motion (it was itself moved, or misdetected) and the fit is redone without it.
 INLIER_CHI2 = 16.27
 MIN_MARKERS = 4  # a rigid fit of fewer positions leaves too little to judge the residuals by
+#: Chi-square with 3 dof at 99.9 %: one marker's position shift beyond noise.
+MOVE_CHI2 = 16.27
 
 
 @dataclass(frozen=True)
@@ -123,3 +133,85 @@ def rigid_motion(p: np.ndarray, q: np.ndarray, covs: np.ndarray) -> RigidMotion 
     if n < len(p):
         x, chi2 = _fit(p[keep], r[keep], W[keep])
     return RigidMotion(chi2=chi2, shift_m=float(np.linalg.norm(x[3:])), angle_rad=float(np.linalg.norm(x[:3])), inliers=n)
+
+
+def rigid_move(p: np.ndarray, q: np.ndarray, R: np.ndarray, covs: np.ndarray, bump_position_m: float) -> bool:
+    """Do one frame's marker positions ``q`` (N, 3) against their means ``p`` (N, 3), m, show one
+    rigid camera motion beyond noise and ``bump_position_m`` (m)? ``covs`` (N, 3, 3) are the
+    observations' position covariances in the frame whose rotations are ``R`` (N or 1, 3, 3)."""
+    motion = rigid_motion(p, q, R @ covs @ np.swapaxes(R, -1, -2) + 1e-8 * np.eye(3))
+    if motion is None or not motion.is_move(bump_position_m, float(np.median(np.linalg.norm(p, axis=1)))):
+        return False
+    log.debug("rigid motion %.1f mm %.2f deg (chi2 %.0f, %d markers)", 1e3 * motion.shift_m, math.degrees(motion.angle_rad),
+              motion.chi2, motion.inliers)  # fmt: skip
+    return True
+
+
+def frame_moved(deltas: list[np.ndarray], before: list[np.ndarray], rotations: list[tuple[np.ndarray, np.ndarray]],
+                obs_covs: list[np.ndarray], scales: list[float], margins: list[float], bump_position_m: float) -> tuple[bool, float]:  # fmt: skip
+    """One frame's test (``Estimator._camera_is_still``): per marker its shift from where it was
+    expected (``deltas``, (3,) m, camera frame; ``before``: the expected positions), the observation's
+    and the expectation's rotations, the observation's position covariance (3, 3) in its marker
+    frame, a scale on it (a young mean's own uncertainty) and a margin (m^2; a map prediction's).
+    Moved: the median marker shift is beyond noise and ``bump_position_m``, or the shifts together
+    are one rigid motion that is (``rigid_move``). Returns (moved, the median shift in m; NaN for
+    no marker)."""
+    if not deltas:
+        return False, float("nan")
+    D = np.array(deltas)
+    # The marker-frame covariance into the camera frame, with the observation's rotation and with
+    # the expected one: either may be a flip (a young mean can start on one), which points the long
+    # (depth) axis astray; the frame that explains the shift better is kept.
+    R = np.array(rotations)  # (N, 2, 3, 3)
+    both = np.array(scales)[:, None, None, None] * (R @ np.array(obs_covs)[:, None] @ np.swapaxes(R, -1, -2))
+    both += (np.array(margins)[:, None, None, None] + 1e-8) * np.eye(3)
+    d2_both = mahalanobis_sq(D[:, None, :], both)
+    nearer = np.argmin(d2_both, axis=1)
+    d2 = d2_both[np.arange(len(D)), nearer]
+    covs = both[np.arange(len(D)), nearer]
+    shifts = np.linalg.norm(D, axis=1)
+    moved = bool(np.median(d2) > MOVE_CHI2 and np.median(shifts) > bump_position_m)
+    # The rigid fit explains at most the frame's whole chi-square (a least-squares projection):
+    # below the move threshold in total, no fit can pass it.
+    if not moved and float(d2.sum()) > RIGID_CHI2:
+        P = np.array(before)
+        moved = rigid_move(P, P + D, np.eye(3), covs, bump_position_m)
+    return moved, float(np.median(shifts))
+
+
+def any_frame_moved(s: ObservationRows, expected: np.ndarray, frames: int, screen: RigidScreen | None,
+                    bump_position_m: float) -> tuple[bool, RigidScreen | None]:  # fmt: skip
+    """``frame_moved`` for many frames of one camera at once (static rows ``s``, their pairs' means
+    ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise, or the block's last
+    frame (a move persists) show a rigid motion of the camera? ``screen``: the rigid screen of the
+    camera's current view, returned renewed when the view changed."""
+    if len(s.ids) == 0:
+        return False, screen
+    D = s.poses[:, :3, 3] - expected[:, :3, 3]
+    shifts = np.linalg.norm(D, axis=1)
+    # The last frame's rows by marker id: a detector lists the same markers in a different order
+    # from frame to frame, and the screen belongs to the view (which markers), not to the order.
+    last = np.flatnonzero(s.frame == s.frame.max())
+    last = last[np.argsort(s.ids[last], kind="stable")]
+    p, R, covs = expected[last, :3, 3], expected[last, :3, :3], s.covariances[last, :3, :3]
+    if screen is None or not np.array_equal(screen.ids, s.ids[last]):
+        screen = RigidScreen.of(s.ids[last], p, R @ covs @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3))
+    if screen is not None and screen.chi2(D[last]) > RIGID_CHI2 and rigid_move(p, p + D[last], R, covs, bump_position_m):
+        return True, screen
+    # A median above a threshold needs at least half of the frame's values above it: only frames
+    # that pass this count can have moved, and only they get an exact median. The shift alone rules
+    # most frames out before any covariance is solved.
+    n_rows = np.bincount(s.frame, minlength=frames)
+    far = shifts > bump_position_m
+    if not np.any((n_rows > 0) & (2 * np.bincount(s.frame, weights=far, minlength=frames) >= n_rows)):
+        return False, screen
+    R = expected[:, :3, :3]
+    covs = R @ s.covariances[:, :3, :3] @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3)
+    d2 = mahalanobis_sq(D, covs)
+    high = (d2 > MOVE_CHI2) & far
+    n_high = np.bincount(s.frame, weights=high, minlength=frames)
+    for f in np.flatnonzero((n_rows > 0) & (2 * n_high >= n_rows)):
+        rows = s.frame == f
+        if np.median(d2[rows]) > MOVE_CHI2 and np.median(shifts[rows]) > bump_position_m:
+            return True, screen
+    return False, screen
