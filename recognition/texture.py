@@ -2,11 +2,12 @@
 
 Model libraries often ship a texture instead of vertex colours: BOP's YCB-V PLYs give every vertex
 ``texture_u`` / ``texture_v`` and name the image in a ``comment TextureFile NAME`` header line; OBJ
-files give each triangle corner a UV and a material's image, which Open3D reads. Verification
-judges a pixel's colour against the model's colours there, so each vertex takes the texture's
-colour at its UV (v up from the image's bottom row, as OpenGL and the BOP toolkit read it; nearest
-texel, coordinates wrapped). A texture that cannot be read leaves the model colourless, with a
-warning: recognition then runs on depth alone for that object.
+files give each triangle corner a UV and a material's image, which Open3D reads; some PLYs give
+each face a ``texcoord`` list of its corners' UVs. Verification judges a pixel's colour against
+the model's colours there, so each vertex takes the texture's colour at its UV (v up from the
+image's bottom row, as OpenGL and the BOP toolkit read it; nearest texel, coordinates wrapped). A
+texture that cannot be read leaves the model colourless, with a warning: recognition then runs on
+depth alone for that object.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ def texture_colours(mesh: o3d.geometry.TriangleMesh, path: str | Path) -> np.nda
     if suffix == ".obj" and mesh.has_triangle_uvs() and any(np.asarray(t).size for t in mesh.textures):
         return _corner_colours(mesh)
     if suffix == ".ply":
-        return ply_vertex_texture_colours(Path(path), len(mesh.vertices))
+        return ply_texture_colours(Path(path), len(mesh.vertices))
     return None
 
 
@@ -51,9 +52,11 @@ def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return image[rows, cols, :3].astype(np.float64) / 255.0
 
 
-def ply_vertex_texture_colours(path: Path, n_vertices: int) -> np.ndarray | None:
+def ply_texture_colours(path: Path, n_vertices: int) -> np.ndarray | None:
     """Vertex colours (V, 3), rgb 0-1, of a PLY whose header names a TextureFile and whose vertices
-    (the file's first element, ``n_vertices`` of them) carry texture coordinates; None otherwise."""
+    (the file's first element, ``n_vertices`` of them) carry texture coordinates, or whose triangles
+    do (a ``texcoord`` list of 6 beside ``vertex_indices``: a vertex then takes the mean of its
+    corners'); None otherwise."""
     with path.open("rb") as f:
         head = f.read(65536)
     end = head.find(b"end_header")
@@ -63,38 +66,95 @@ def ply_vertex_texture_colours(path: Path, n_vertices: int) -> np.ndarray | None
     lines = head[:end].decode("ascii", "replace").splitlines()
     texture = next((m.group(1).strip() for line in lines if (m := re.match(r"comment\s+TextureFile\s+(.+)", line))), None)
     fmt = next((line.split()[1] for line in lines if line.startswith("format ")), "")
-    elements = [line.split() for line in lines if line.startswith(("element ", "property "))]
-    if texture is None or not elements or elements[0][:2] != ["element", "vertex"] or int(elements[0][2]) != n_vertices:
-        return None
-    props = []
-    for words in elements[1:]:
+    elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, its property lines' words)
+    for words in (line.split() for line in lines if line.startswith(("element ", "property "))):
         if words[0] == "element":
-            break
-        if words[1] == "list" or words[1] not in PLY_TYPES:
-            return None  # a vertex with a list property: not a layout this reads
-        props.append((words[2], PLY_TYPES[words[1]]))
-    names = [name for name, _ in props]
+            elements.append((words[1], int(words[2]), []))
+        elif elements:
+            elements[-1][2].append(words[1:])
+    if texture is None or fmt not in ("ascii", "binary_little_endian", "binary_big_endian") or not elements:
+        return None
+    name, count, vertex_props = elements[0]
+    if name != "vertex" or count != n_vertices or any(p[0] == "list" or p[0] not in PLY_TYPES for p in vertex_props):
+        return None  # a vertex with a list property: not a layout this reads
+    names = [p[1] for p in vertex_props]
+    order = "<" if fmt == "binary_little_endian" else ">"
+    vertex_dtype = np.dtype([(p[1], order + PLY_TYPES[p[0]]) for p in vertex_props])
     uv_names = next((pair for pair in UV_NAMES if set(pair) <= set(names)), None)
-    if uv_names is None:
+    if uv_names is not None:
+        if fmt == "ascii":
+            uv = np.loadtxt(path, skiprows=len(head[:body].splitlines()), max_rows=n_vertices, ndmin=2,
+                            usecols=[names.index(n) for n in uv_names]).astype(np.float64)  # fmt: skip
+        else:
+            vertices = np.fromfile(path, dtype=vertex_dtype, count=n_vertices, offset=body)
+            if len(vertices) < n_vertices:
+                return None
+            uv = np.stack([vertices[n].astype(np.float64) for n in uv_names], axis=1)
+        image = _texture(path, texture)
+        return None if image is None else sample_texture(image, uv)
+    faces = _face_uvs(path, fmt, elements, body, len(head[:body].splitlines()), vertex_dtype.itemsize * n_vertices)
+    if faces is None:
+        return None
+    triangles, corner_uv = faces
+    image = _texture(path, texture)
+    return None if image is None else _vertex_means(n_vertices, triangles, sample_texture(image, corner_uv))
+
+
+def _face_uvs(path: Path, fmt: str, elements: list[tuple[str, int, list[list[str]]]], body: int, header_lines: int,
+              vertex_bytes: int) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+    """A PLY's triangles (F, 3) and their corners' texture coordinates (3F, 2), when its second
+    element is the faces with exactly a ``vertex_indices`` list of 3 and a ``texcoord`` list of 6."""
+    if len(elements) < 2 or elements[1][0] != "face":
+        return None
+    _, n_faces, props = elements[1]
+    lists = {p[3]: (p[1], p[2]) for p in props if p[0] == "list" and len(p) == 4}
+    if len(lists) != len(props) or set(lists) != {"vertex_indices", "texcoord"} or n_faces == 0:
         return None
     if fmt == "ascii":
-        rows = np.loadtxt(path, skiprows=len(head[:body].splitlines()), max_rows=n_vertices, ndmin=2,
-                          usecols=[names.index(n) for n in uv_names])  # fmt: skip
-        uv = rows.astype(np.float64)
-    elif fmt in ("binary_little_endian", "binary_big_endian"):
-        order = "<" if fmt == "binary_little_endian" else ">"
-        dtype = np.dtype([(name, order + t) for name, t in props])
-        vertices = np.fromfile(path, dtype=dtype, count=n_vertices, offset=body)
-        if len(vertices) < n_vertices:
+        with path.open() as f:
+            rows = f.read().splitlines()[header_lines:]
+        n_vertices = elements[0][1]
+        faces = [row.split() for row in rows[n_vertices:n_vertices + n_faces]]
+        first = [p[3] for p in props].index("vertex_indices") == 0
+        try:
+            table = np.array([[float(x) for x in words] for words in faces])
+        except ValueError:
             return None
-        uv = np.stack([vertices[n].astype(np.float64) for n in uv_names], axis=1)
+        if table.shape != (n_faces, 11):
+            return None
+        tri_cols, uv_cols = (slice(1, 4), slice(5, 11)) if first else (slice(8, 11), slice(1, 7))
+        triangles, uv = table[:, tri_cols].astype(np.int64), table[:, uv_cols]
     else:
-        return None
-    image = _read_rgb(path.parent / texture)
+        order = "<" if fmt == "binary_little_endian" else ">"
+        fields = []
+        for p in props:
+            count_type, item_type = lists[p[3]]
+            if count_type not in PLY_TYPES or item_type not in PLY_TYPES:
+                return None
+            size = 3 if p[3] == "vertex_indices" else 6
+            fields += [(p[3] + "_n", order + PLY_TYPES[count_type]), (p[3], order + PLY_TYPES[item_type], size)]
+        table = np.fromfile(path, dtype=np.dtype(fields), count=n_faces, offset=body + vertex_bytes)
+        if len(table) < n_faces or np.any(table["vertex_indices_n"] != 3) or np.any(table["texcoord_n"] != 6):
+            return None  # not all triangles with a UV per corner: not a layout this reads
+        triangles, uv = table["vertex_indices"].astype(np.int64), table["texcoord"].astype(np.float64)
+    return triangles, uv.reshape(-1, 2)
+
+
+def _vertex_means(n_vertices: int, triangles: np.ndarray, corner: np.ndarray) -> np.ndarray:
+    """Each vertex's mean of its triangle corners' colours (3F, 3), in ``triangles`` (F, 3)' order
+    (grey where no triangle uses it)."""
+    sums = np.zeros((n_vertices, 3))
+    np.add.at(sums, triangles.reshape(-1), corner)
+    counts = np.bincount(triangles.reshape(-1), minlength=n_vertices)[:, None]
+    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.5)
+
+
+def _texture(ply: Path, name: str) -> np.ndarray | None:
+    """The texture image a PLY names, rgb; None (with a warning) when it cannot be read."""
+    image = _read_rgb(ply.parent / name)
     if image is None:
-        log.warning("%s: its texture %s cannot be read; the model has no colours", path, texture)
-        return None
-    return sample_texture(image, uv)
+        log.warning("%s: its texture %s cannot be read; the model has no colours", ply, name)
+    return image
 
 
 def _corner_colours(mesh: o3d.geometry.TriangleMesh) -> np.ndarray:
@@ -109,10 +169,7 @@ def _corner_colours(mesh: o3d.geometry.TriangleMesh) -> np.ndarray:
         on = np.repeat(ids == k, 3)
         if on.any() and image.ndim == 3 and image.size:
             corner[on] = sample_texture(image if image.dtype == np.uint8 else (255 * image).astype(np.uint8), uvs[on])
-    sums = np.zeros((len(mesh.vertices), 3))
-    np.add.at(sums, triangles.reshape(-1), corner)
-    counts = np.bincount(triangles.reshape(-1), minlength=len(mesh.vertices))[:, None]
-    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.5)
+    return _vertex_means(len(mesh.vertices), triangles, corner)
 
 
 def _read_rgb(path: Path) -> np.ndarray | None:

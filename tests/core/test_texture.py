@@ -36,30 +36,41 @@ def expected(uv: np.ndarray) -> np.ndarray:
     return np.array([QUADRANTS[(int(v < 0.5), int(u >= 0.5))] for u, v in uv]) / 255.0
 
 
-def write_ply(path: Path, fmt: str) -> None:
+def write_ply(path: Path, fmt: str, uv_on: str = "vertex") -> None:
+    """The grid as a PLY with its texture coordinates per vertex (``texture_u``, ``texture_v``) or
+    per face (a ``texcoord`` list of its three corners' u, v)."""
     vertices, uv, triangles = grid()
+    vertex_uv = "property float texture_u\nproperty float texture_v\n" if uv_on == "vertex" else ""
+    face_uv = "property list uchar float texcoord\n" if uv_on == "face" else ""
     header = (f"ply\nformat {fmt} 1.0\ncomment TextureFile tex.png\nelement vertex {len(vertices)}\n"
               "property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\n"
-              "property float texture_u\nproperty float texture_v\n"
-              f"element face {len(triangles)}\nproperty list uchar int vertex_indices\nend_header\n")  # fmt: skip
-    rows = np.c_[vertices, np.tile([0.0, 0.0, 1.0], (len(vertices), 1)), uv]
+              f"{vertex_uv}element face {len(triangles)}\nproperty list uchar int vertex_indices\n{face_uv}end_header\n")  # fmt: skip
+    rows = np.c_[vertices, np.tile([0.0, 0.0, 1.0], (len(vertices), 1))]
+    rows = np.c_[rows, uv] if uv_on == "vertex" else rows
+    corners = uv[triangles].reshape(len(triangles), 6)
     if fmt == "ascii":
         body = "".join(" ".join(f"{x:.6f}" for x in row) + "\n" for row in rows)
-        body += "".join(f"3 {a} {b} {c}\n" for a, b, c in triangles)
+        for tri, c in zip(triangles, corners):
+            body += f"3 {tri[0]} {tri[1]} {tri[2]}" + ("" if uv_on == "vertex" else " 6 " + " ".join(f"{x:.6f}" for x in c)) + "\n"
         path.write_text(header + body)
         return
     order = "<" if fmt == "binary_little_endian" else ">"
-    faces = np.zeros(len(triangles), np.dtype([("n", "u1"), ("v", order + "i4", 3)]))
+    fields = [("n", "u1"), ("v", order + "i4", 3)] + ([("m", "u1"), ("uv", order + "f4", 6)] if uv_on == "face" else [])
+    faces = np.zeros(len(triangles), np.dtype(fields))
     faces["n"], faces["v"] = 3, triangles
+    if uv_on == "face":
+        faces["m"], faces["uv"] = 6, corners
     path.write_bytes(header.encode() + rows.astype(order + "f4").tobytes() + faces.tobytes())
 
 
+@pytest.mark.parametrize("uv_on", ["vertex", "face"])
 @pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
-def test_a_ply_with_vertex_texture_coordinates_is_coloured_from_its_texture(tmp_path: Path, fmt: str) -> None:
+def test_a_ply_with_texture_coordinates_is_coloured_from_its_texture(tmp_path: Path, fmt: str, uv_on: str) -> None:
     """A PLY laid out as BOP's YCB-V models are (vertex x, y, z, normal, texture_u, texture_v and a
-    TextureFile comment): each vertex takes the colour of the texture quadrant its UV names."""
+    TextureFile comment), or with each face's corners' UVs instead: each vertex takes the colour of
+    the texture quadrant its UV names (per face: every corner at a vertex names the same)."""
     write_texture(tmp_path / "tex.png")
-    write_ply(tmp_path / "obj_000001.ply", fmt)
+    write_ply(tmp_path / "obj_000001.ply", fmt, uv_on)
     mesh = read_mesh(tmp_path / "obj_000001.ply")
     _, uv, _ = grid()
     np.testing.assert_allclose(np.asarray(mesh.vertex_colors), expected(uv), atol=1.5 / 255)
