@@ -8,7 +8,8 @@ images where the dataset lists them; ``--frames N`` keeps N spread over them) go
 ``Recognizer.recognize`` as ``cellsight recognize`` runs it: camera frame, no workspace box, colour
 judged where the frame has it. A world pose in ``scene_camera.json`` is used only where its z is up
 (a plane the frame shows is level in it; ``--world-z-up`` takes every one): a dataset's world may
-be a marker board's on a wall, and recognition stands objects on the pose's z. An annotated instance is found when a detection of its object lies within ADD-S 0.1 x diameter
+be a marker board's on a wall, and recognition stands objects on the pose's z. An annotated
+instance is found when a detection of its object lies within ADD-S 0.1 x diameter
 (``models_info.json``'s); a detection matching no instance is false (on datasets that annotate only
 some of the objects in view, as LM does, an unannotated one counts false too). Instances under 40 %
 visible (``visib_fract``) are not scored; classes as ``benchmarks.recognition``: unoccluded >= 95 %,
@@ -33,13 +34,13 @@ floor and walls in view, which the planes removed after the first take away; and
 ``level_support`` (``..._camera_frame_level_support``: the dominant plane taken as level, so the
 upright test and the support apply as with a pose). ``..._upside_down_...`` counts the found
 objects standing on their base reported with their +z against the true one: ADD-S scores a
-symmetric shape's flipped pose as right, a robot reading the object's frame would not. (PCL's milk carton is no BOP model: it is one
-captured view, and a BOP model is the whole surface; ``benchmarks.recognition`` finds it.) The
-frames (the lying ones aside) once more with six look-alike models in the database, never in a
-frame (``LOOKALIKES``: boxes and cans of other sizes, the crate and the can in other colours):
-``..._lookalikes``. So the
-reader, the model build from files in millimetres and the scoring run on every change, and a
-held-back dataset is one flag away.
+symmetric shape's flipped pose as right, a robot reading the object's frame would not. (PCL's milk
+carton is no BOP model: it is one captured view, and a BOP model is the whole surface;
+``benchmarks.recognition`` finds it.) The frames (the lying ones aside) once more with six
+look-alike models in the database, never in a frame (``LOOKALIKES``: boxes and cans of other sizes,
+the crate and the can in other colours; not with ``--quick``): ``..._lookalikes``. So the reader,
+the model build from files in millimetres and the scoring run on every change, and a held-back
+dataset is one flag away.
 
 One pinned core, as ``benchmarks.recognition``.
 """
@@ -57,7 +58,7 @@ import numpy as np  # noqa: E402
 from rich.progress import track  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
-from cellsight.bop import BopDataset, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
+from cellsight.bop import BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
@@ -188,21 +189,10 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
         ours += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
         near_far += [(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M, hit)
                      for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]  # fmt: skip
-    wide: list[bool] = []  # with the look-alikes' models: found, per scored instance
-    false_wide, wide_times = 0, []
+    wide, false_wide, wide_times = [], 0, []  # with the look-alikes' models: found per scored instance, false, s
     if lookalikes:
-        wider = ModelDatabase(db.descriptor, dict(db.models))
-        for o in lookalikes:
-            wider.add(model_from_mesh(o.id, object_mesh(o).paint_uniform_color(o.color), cfg.descriptor, distances_m=distances_m))
-        rec_wide = Recognizer(wider, cfg)
-        for frame in [f for f in chosen if f.scene_id not in lying_scenes]:
-            cloud, rgb = frame.load()
-            t0 = time.perf_counter()
-            found = rec_wide.recognize(cloud, world_T_camera=pose_of[frame.scene_id, frame.image_id], rgb=rgb)
-            wide_times.append(time.perf_counter() - t0)
-            s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
-            false_wide += len(s.false)
-            wide += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
+        standing = [f for f in chosen if f.scene_id not in lying_scenes]
+        wide, false_wide, wide_times = _with_lookalikes(db, cfg, distances_m, lookalikes, standing, pose_of, surface, diameter)
     # Frames with the camera's world pose once more without it, as `cellsight recognize` sees a
     # saved frame: the whole view, the room's floor and walls included.
     alone: dict[bool, list[bool]] = {False: [], True: []}  # level_support -> per scored instance: found
@@ -271,6 +261,29 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     return out
 
 
+def _with_lookalikes(db: ModelDatabase, cfg: RecognitionConfig, distances_m: tuple[float, ...], lookalikes: tuple[ObjectSpec, ...],
+                     frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None], surface: dict[str, np.ndarray],
+                     diameter: dict[str, float]) -> tuple[list[bool], int, list[float]]:  # fmt: skip
+    """The frames recognised with the look-alikes' models added to ``db`` (their views at
+    ``distances_m``), each with the world pose the main pass gave it (``pose_of``): per scored
+    instance whether it was found, the false detections, and the frame times (s)."""
+    wider = ModelDatabase(db.descriptor, dict(db.models))
+    for o in lookalikes:
+        wider.add(model_from_mesh(o.id, object_mesh(o).paint_uniform_color(o.color), cfg.descriptor, distances_m=distances_m))
+    rec = Recognizer(wider, cfg)
+    found_rows: list[bool] = []
+    false, times = 0, []
+    for frame in frames:
+        cloud, rgb = frame.load()
+        t0 = time.perf_counter()
+        found = rec.recognize(cloud, world_T_camera=pose_of[frame.scene_id, frame.image_id], rgb=rgb)
+        times.append(time.perf_counter() - t0)
+        s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
+        false += len(s.false)
+        found_rows += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
+    return found_rows, false, times
+
+
 def _class(visible: float | None) -> str | None:
     """The scoring class of an instance by its visible share (None: too hidden to score)."""
     if visible is None:
@@ -290,7 +303,7 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         dataset = BopDataset.open(write_default(Path(tmp), layouts, lying))
         return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
-                       world_z_up=True, lookalikes=LOOKALIKES)  # the cell's world, written here
+                       world_z_up=True, lookalikes=() if quick else LOOKALIKES)  # the cell's world, written here
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
