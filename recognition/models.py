@@ -412,7 +412,11 @@ def _mesh_arrays(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     mesh = o3d.io.read_triangle_mesh(path)
     colours = np.asarray(mesh.vertex_colors).copy()
     if len(colours) == 0 and len(mesh.vertices):
-        colours = texture_colours(mesh, path)
+        try:
+            colours = texture_colours(mesh, path)
+        except (OSError, ValueError, IndexError) as exc:  # a damaged texture part: the shape still reads
+            log.warning("%s: its texture coordinates cannot be read (%s); the model has no colours", path, exc)
+            colours = None
         colours = np.zeros((0, 3)) if colours is None else colours
     return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy(), colours
 

@@ -137,6 +137,8 @@ def _face_uvs(path: Path, fmt: str, elements: list[tuple[str, int, list[list[str
         if len(table) < n_faces or np.any(table["vertex_indices_n"] != 3) or np.any(table["texcoord_n"] != 6):
             return None  # not all triangles with a UV per corner: not a layout this reads
         triangles, uv = table["vertex_indices"].astype(np.int64), table["texcoord"].astype(np.float64)
+    if triangles.min() < 0 or triangles.max() >= elements[0][1] or not np.all(np.isfinite(uv)):
+        return None  # damaged: read_mesh names what is wrong with the faces
     return triangles, uv.reshape(-1, 2)
 
 
