@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -52,68 +53,95 @@ def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return image[rows, cols, :3].astype(np.float64) / 255.0
 
 
+@dataclass(frozen=True)
+class _PlyHeader:
+    """What a PLY header says: its format, the TextureFile it names (None: none), its elements as
+    (name, count, each property line's words after ``property``), and where the data starts (byte
+    offset, and line for ASCII)."""
+
+    fmt: str
+    texture: str | None
+    elements: list[tuple[str, int, list[list[str]]]]
+    body_byte: int
+    body_line: int
+
+    @property
+    def order(self) -> str:
+        """numpy's byte order of a binary body."""
+        return "<" if self.fmt == "binary_little_endian" else ">"
+
+    @classmethod
+    def read(cls, path: Path) -> "_PlyHeader | None":
+        """The header of a PLY in one of the three formats; None for anything else."""
+        with path.open("rb") as f:
+            head = f.read(65536)
+        end = head.find(b"end_header")
+        if not head.startswith(b"ply") or end < 0:
+            return None
+        body = head.index(b"\n", end) + 1
+        lines = head[:end].decode("ascii", "replace").splitlines()
+        texture = next((m.group(1).strip() for line in lines if (m := re.match(r"comment\s+TextureFile\s+(.+)", line))), None)
+        fmt = next((line.split()[1] for line in lines if line.startswith("format ")), "")
+        elements: list[tuple[str, int, list[list[str]]]] = []
+        for words in (line.split() for line in lines if line.startswith(("element ", "property "))):
+            if words[0] == "element":
+                elements.append((words[1], int(words[2]), []))
+            elif elements:
+                elements[-1][2].append(words[1:])
+        if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+            return None
+        return cls(fmt, texture, elements, body, len(head[:body].splitlines()))
+
+
 def ply_texture_colours(path: Path, n_vertices: int) -> np.ndarray | None:
     """Vertex colours (V, 3), rgb 0-1, of a PLY whose header names a TextureFile and whose vertices
     (the file's first element, ``n_vertices`` of them) carry texture coordinates, or whose triangles
     do (a ``texcoord`` list of 6 beside ``vertex_indices``: a vertex then takes the mean of its
     corners'); None otherwise."""
-    with path.open("rb") as f:
-        head = f.read(65536)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+    head = _PlyHeader.read(path)
+    if head is None or head.texture is None or not head.elements:
         return None
-    body = head.index(b"\n", end) + 1
-    lines = head[:end].decode("ascii", "replace").splitlines()
-    texture = next((m.group(1).strip() for line in lines if (m := re.match(r"comment\s+TextureFile\s+(.+)", line))), None)
-    fmt = next((line.split()[1] for line in lines if line.startswith("format ")), "")
-    elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, its property lines' words)
-    for words in (line.split() for line in lines if line.startswith(("element ", "property "))):
-        if words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif elements:
-            elements[-1][2].append(words[1:])
-    if texture is None or fmt not in ("ascii", "binary_little_endian", "binary_big_endian") or not elements:
-        return None
-    name, count, vertex_props = elements[0]
+    name, count, vertex_props = head.elements[0]
     if name != "vertex" or count != n_vertices or any(p[0] == "list" or p[0] not in PLY_TYPES for p in vertex_props):
         return None  # a vertex with a list property: not a layout this reads
     names = [p[1] for p in vertex_props]
-    order = "<" if fmt == "binary_little_endian" else ">"
-    vertex_dtype = np.dtype([(p[1], order + PLY_TYPES[p[0]]) for p in vertex_props])
+    vertex_dtype = np.dtype([(p[1], head.order + PLY_TYPES[p[0]]) for p in vertex_props])
     uv_names = next((pair for pair in UV_NAMES if set(pair) <= set(names)), None)
-    if uv_names is not None:
-        if fmt == "ascii":
-            uv = np.loadtxt(path, skiprows=len(head[:body].splitlines()), max_rows=n_vertices, ndmin=2,
-                            usecols=[names.index(n) for n in uv_names]).astype(np.float64)  # fmt: skip
-        else:
-            vertices = np.fromfile(path, dtype=vertex_dtype, count=n_vertices, offset=body)
-            if len(vertices) < n_vertices:
-                return None
-            uv = np.stack([vertices[n].astype(np.float64) for n in uv_names], axis=1)
-        image = _texture(path, texture)
-        return None if image is None else sample_texture(image, uv)
-    faces = _face_uvs(path, fmt, elements, body, len(head[:body].splitlines()), vertex_dtype.itemsize * n_vertices)
-    if faces is None:
+    triangles = None  # with UVs per vertex; else the faces whose corners carry them
+    if uv_names is not None and head.fmt == "ascii":
+        uv = np.loadtxt(path, skiprows=head.body_line, max_rows=n_vertices, ndmin=2,
+                        usecols=[names.index(n) for n in uv_names]).astype(np.float64)  # fmt: skip
+    elif uv_names is not None:
+        vertices = np.fromfile(path, dtype=vertex_dtype, count=n_vertices, offset=head.body_byte)
+        if len(vertices) < n_vertices:
+            return None
+        uv = np.stack([vertices[n].astype(np.float64) for n in uv_names], axis=1)
+    else:
+        faces = _face_uvs(path, head, vertex_dtype.itemsize * n_vertices)
+        if faces is None:
+            return None
+        triangles, uv = faces
+    image = _texture(path, head.texture)
+    if image is None:
         return None
-    triangles, corner_uv = faces
-    image = _texture(path, texture)
-    return None if image is None else _vertex_means(n_vertices, triangles, sample_texture(image, corner_uv))
+    colours = sample_texture(image, uv)
+    return colours if triangles is None else _vertex_means(n_vertices, triangles, colours)
 
 
-def _face_uvs(path: Path, fmt: str, elements: list[tuple[str, int, list[list[str]]]], body: int, header_lines: int,
-              vertex_bytes: int) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+def _face_uvs(path: Path, head: _PlyHeader, vertex_bytes: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A PLY's triangles (F, 3) and their corners' texture coordinates (3F, 2), when its second
-    element is the faces with exactly a ``vertex_indices`` list of 3 and a ``texcoord`` list of 6."""
+    element is the faces with exactly a ``vertex_indices`` list of 3 and a ``texcoord`` list of 6
+    (``vertex_bytes``: the binary vertex block's size)."""
+    elements = head.elements
     if len(elements) < 2 or elements[1][0] != "face":
         return None
-    _, n_faces, props = elements[1]
+    n_vertices, (_, n_faces, props) = elements[0][1], elements[1]
     lists = {p[3]: (p[1], p[2]) for p in props if p[0] == "list" and len(p) == 4}
     if len(lists) != len(props) or set(lists) != {"vertex_indices", "texcoord"} or n_faces == 0:
         return None
-    if fmt == "ascii":
+    if head.fmt == "ascii":
         with path.open() as f:
-            rows = f.read().splitlines()[header_lines:]
-        n_vertices = elements[0][1]
+            rows = f.read().splitlines()[head.body_line:]
         faces = [row.split() for row in rows[n_vertices:n_vertices + n_faces]]
         first = [p[3] for p in props].index("vertex_indices") == 0
         try:
@@ -125,19 +153,18 @@ def _face_uvs(path: Path, fmt: str, elements: list[tuple[str, int, list[list[str
         tri_cols, uv_cols = (slice(1, 4), slice(5, 11)) if first else (slice(8, 11), slice(1, 7))
         triangles, uv = table[:, tri_cols].astype(np.int64), table[:, uv_cols]
     else:
-        order = "<" if fmt == "binary_little_endian" else ">"
         fields = []
         for p in props:
             count_type, item_type = lists[p[3]]
             if count_type not in PLY_TYPES or item_type not in PLY_TYPES:
                 return None
             size = 3 if p[3] == "vertex_indices" else 6
-            fields += [(p[3] + "_n", order + PLY_TYPES[count_type]), (p[3], order + PLY_TYPES[item_type], size)]
-        table = np.fromfile(path, dtype=np.dtype(fields), count=n_faces, offset=body + vertex_bytes)
+            fields += [(p[3] + "_n", head.order + PLY_TYPES[count_type]), (p[3], head.order + PLY_TYPES[item_type], size)]
+        table = np.fromfile(path, dtype=np.dtype(fields), count=n_faces, offset=head.body_byte + vertex_bytes)
         if len(table) < n_faces or np.any(table["vertex_indices_n"] != 3) or np.any(table["texcoord_n"] != 6):
             return None  # not all triangles with a UV per corner: not a layout this reads
         triangles, uv = table["vertex_indices"].astype(np.int64), table["texcoord"].astype(np.float64)
-    if triangles.min() < 0 or triangles.max() >= elements[0][1] or not np.all(np.isfinite(uv)):
+    if triangles.min() < 0 or triangles.max() >= n_vertices or not np.all(np.isfinite(uv)):
         return None  # damaged: read_mesh names what is wrong with the faces
     return triangles, uv.reshape(-1, 2)
 
