@@ -23,7 +23,7 @@ from recognition.align import (
 )
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
-from recognition.descriptor import describe
+from recognition.descriptor import ClusterDescription, describe
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph
 from schemas.geometry import invert_pose, make_pose, rotation_angle, rotation_between
@@ -112,6 +112,9 @@ class SceneCloud:
     graph: PointGraph
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
     image: ImageBounds | None = None  # the image an organised cloud was measured in
+    #: Each part's descriptor, chosen views and target, by its point indices' bytes: every stance a
+    #: frame is tried in matches the same parts (``Matcher._looks``).
+    looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -219,6 +222,25 @@ class Matcher:
         ``stance`` says, best first, each with the mask of the cluster points it explains."""
         if len(self._owners) == 0:
             return []
+        desc, chosen, target = self._looks(scene, idx)
+        matches = []
+        for oid, (rows, rolls) in chosen.items():
+            if not self.tries(oid, stance):
+                continue
+            camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
+                                           np.array(rolls))
+            match = self.score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], stance.up,
+                                turns=True, rest=stance.rest)
+            if match is not None:
+                matches.append(match)
+        return sorted(matches, key=lambda m: rank(m[0]), reverse=True)
+
+    def _looks(self, scene: SceneCloud, idx: np.ndarray) -> tuple[ClusterDescription, dict[str, tuple[list[int], list[float]]], Target]:
+        """A part's (``idx`` into the scene's points) descriptor, every object's nearest views with
+        their roll candidates (view rows, rolls in rad), and its target; computed once a frame."""
+        key = idx.tobytes()
+        if key in scene.looks:
+            return scene.looks[key]
         desc = describe(scene.points[idx], scene.normals[idx], self.config.descriptor)
         dist = np.abs(self._views.vfh - desc.vfh).sum(axis=1)  # L1 between histograms
         rolls_of = roll_peaks(roll_correlations(desc.roll, self._views.roll), self.config.roll_peaks)
@@ -233,18 +255,8 @@ class Matcher:
             for roll in rolls_of[row]:
                 rows.append(int(row))
                 rolls.append(roll)
-        matches = []
-        target = Target.of(scene, idx)
-        for oid, (rows, rolls) in chosen.items():
-            if not self.tries(oid, stance):
-                continue
-            camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
-                                           np.array(rolls))
-            match = self.score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], stance.up,
-                                turns=True, rest=stance.rest)
-            if match is not None:
-                matches.append(match)
-        return sorted(matches, key=lambda m: rank(m[0]), reverse=True)
+        scene.looks[key] = desc, chosen, Target.of(scene, idx)
+        return scene.looks[key]
 
     def score(
         self,
