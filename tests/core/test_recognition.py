@@ -773,7 +773,7 @@ def test_sides_alike_are_tried_once() -> None:
     """A can lain on any of its four sides shows one shape, a box two (on +-x, on +-y), and a box
     with a block on one end of its +x face four: only the first side of each kind is tried.
     Surfaces sampled at 5 mm, the model's 1 cm voxel judging them."""
-    from recognition.hypotheses import RESTS, distinct_rests
+    from recognition.hypotheses import ALIKE_VOXELS, RESTS, distinct_rests
 
     def surface(mesh: o3d.geometry.TriangleMesh) -> np.ndarray:
         o3d.utility.random.seed(0)
@@ -782,7 +782,7 @@ def test_sides_alike_are_tried_once() -> None:
     can = o3d.geometry.TriangleMesh.create_cylinder(0.06, 0.2, resolution=60)
     box = o3d.geometry.TriangleMesh.create_box(0.24, 0.18, 0.14).translate((-0.12, -0.09, 0.0))
     block = o3d.geometry.TriangleMesh.create_box(0.04, 0.06, 0.05).translate((0.12, 0.0, 0.0))
-    tol = 0.5 * RecognitionConfig().descriptor.voxel_m
+    tol = ALIKE_VOXELS * RecognitionConfig().descriptor.voxel_m  # as the matcher judges them
     assert len(distinct_rests(surface(can), tol)) == 1
     kinds = distinct_rests(surface(box), tol)
     assert len(kinds) == 2 and np.array_equal(kinds[0], RESTS[0]) and np.array_equal(kinds[1], RESTS[2])
