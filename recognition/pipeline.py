@@ -136,10 +136,6 @@ class Recognizer:
         first_fragment = len(clusters)  # clusters from here on are fragments: the pieces path only
         if any(s.support is not None for s in stances):
             clusters += self.matcher.fragments(merged, clusters, shed, len(scene.points))
-        # Candidates (part, detection, how it stands): a part is a cluster, or what is left of one
-        # once a touching object is explained away, or a prior's own hint.
-        candidates: list[tuple[int, Detection, Stance]] = []
-        used = np.zeros(len(clusters), dtype=bool)
         # Candidates: a part is a cluster, or what is left of one once a touching object is
         # explained away, or a prior's own hint.
         parts = itertools.count()
