@@ -23,6 +23,12 @@ r + g + b: brightness and shading divide out) lies within a tolerance of the col
 around the point there (``chroma_ranges``: a pose a few millimetres off puts the other side of a
 printed edge on the pixel); pixels too dark for a chromaticity are not judged.
 
+Shape: every inlier lies within the tolerance, which has to allow for a pose a little off; a
+surface of another shape can stay inside it (a can laid along a box's edge, its arc against the
+two faces). Once the shift and tilt a small pose error makes are taken out, the residual of a right
+hypothesis is the sensor's noise; ``shape_error`` is how far its spread goes beyond that, in the
+noise's sigmas at the object's depth.
+
 The outline: the ring of pixels just outside the model's silhouette (``OUTLINE_PX``). An object
 ends there: beyond it the sensor sees background, a support it stands on, or something in front.
 A ring pixel where the measured surface continues the model's own (it lies on the tangent plane of
@@ -65,6 +71,11 @@ NORMAL_STEP_PX = 2
 MIN_BRIGHTNESS = 0.25
 #: Fewer judged pixels than this say nothing about colour (``Verdict.colour_agreement`` is then 1).
 MIN_COLOUR_PIXELS = 20
+#: The residual's spread a model's own error leaves at any range (m): a mesh or a scan is not
+#: the object to the millimetre. Beyond it the spread is judged in the sensor's depth noise.
+SPREAD_FLOOR_M = 0.001
+#: Fewer inlier pixels than this say nothing about shape (``Verdict.shape_error`` is then 0).
+MIN_SHAPE_PIXELS = 20
 #: A model point's colour is every colour of the model within this of it (m): poses are a few mm
 #: off, and on a printed surface that moves a pixel across an edge of the print.
 COLOUR_RADIUS_M = 0.01
@@ -139,6 +150,7 @@ class Verdict:
     hidden: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat indices of the occluded pixels
     colour_judged: int = 0  # inlier pixels where both scene and model have a chromaticity
     colour_agreeing: int = 0  # ... within the colour tolerance of each other
+    shape_error: float = 0.0  # the residual's spread beyond SPREAD_FLOOR_M, in depth-noise sigmas (``residual_spread``)
 
     @property
     def fitness(self) -> float:
@@ -183,7 +195,9 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     chroma_range (M, 4): each model point's colours (``chroma_ranges``), judged against the view's
     colour where both have one: agreeing when its chromaticity is within ``colour_tolerance`` of
     the range in r and in g. spacing_m: the model points' spacing (m; their voxel), which sets how
-    far apart they land in the image and so how much of the silhouette is gaps between them."""
+    far apart they land in the image and so how much of the silhouette is gaps between them.
+    noise_per_m2 is three depth-noise sigmas at 1 m (they grow with z^2): the inliers' residual
+    spread (``residual_spread``) is judged in them."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
     p = points @ R.T + t
     n = normals @ R.T
@@ -222,8 +236,31 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         judged = int(both.sum())
         with np.errstate(invalid="ignore"):
             agreeing = int((np.all((scene >= lo - colour_tolerance) & (scene <= hi + colour_tolerance), axis=1) & both).sum())
+    shape_error = 0.0
+    if inlier.sum() >= MIN_SHAPE_PIXELS:
+        sigma = noise_per_m2 / 3 * float(np.median(z[inlier])) ** 2  # noise_per_m2 is three sigmas' worth
+        spread = residual_spread(view, flat[inlier], z[inlier], tol[inlier])
+        shape_error = max(spread - SPREAD_FLOOR_M, 0.0) / max(sigma, 1e-6)
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), _filled(flat[inlier], W, gap_px),
-                   *outline, inside, flat[occluded], judged, agreeing)  # fmt: skip
+                   *outline, inside, flat[occluded], judged, agreeing, shape_error)  # fmt: skip
+
+
+def residual_spread(view: DepthView, pixels: np.ndarray, z: np.ndarray, tol: np.ndarray) -> float:
+    """How far a posed model's surface departs in shape from the measured one (m): the median
+    absolute deviation of the depth residual (model z minus measured, at flat pixel indices
+    ``pixels``) once the best affine function of the pixel's column and row is taken out. A small
+    pose error shifts and tilts the residual; a wrong shape bends it (a can laid along a box's
+    edge: its arc against the box's two faces). Pixels whose residual exceeds their tolerance
+    ``tol`` (m) or has no depth (the pixel just past an object's edge, inlier by its neighbourhood)
+    are left out; 0 with fewer than 3 left."""
+    r = z - view.z.reshape(-1)[pixels]
+    ok = np.abs(r) <= tol  # False where the pixel has no depth (NaN)
+    if ok.sum() < 3:
+        return 0.0
+    rows, cols = np.divmod(pixels[ok], view.z.shape[1])
+    A = np.stack([np.ones(len(rows)), cols, rows], axis=1).astype(np.float64)
+    r = r[ok] - A @ np.linalg.lstsq(A, r[ok], rcond=None)[0]
+    return float(np.median(np.abs(r - np.median(r))))
 
 
 def chroma_ranges(points: np.ndarray, colours: np.ndarray, radius_m: float = COLOUR_RADIUS_M) -> np.ndarray:
