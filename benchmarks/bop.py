@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visible_share  # pins this process to one core first
@@ -147,6 +148,47 @@ def write_default(root: Path, layouts: int, lying: int) -> Path:
     return w.close()
 
 
+@dataclass
+class Tally:
+    """One pass's scores: per scored instance its class (``_class``), whether it is nearer the
+    camera than NEAR_M, and whether it was found; the false detections, the found objects standing
+    on their base reported upside down (their +z against the true one), and frame times (s)."""
+
+    rows: list[tuple[str, bool, bool]] = field(default_factory=list)
+    false: int = 0
+    upside_down: int = 0
+    times: list[float] = field(default_factory=list)
+
+    def add(self, frame: BopFrame, found: list[tuple[str, np.ndarray]], db: ModelDatabase, diameter: dict[str, float]) -> None:
+        """Score a frame's detections (object id, camera_T_object) against its annotations."""
+        s = score(frame.truth, found, {oid: m.points for oid, m in db.models.items()}, diameter)
+        self.false += len(s.false)
+        for inst, hit, j in zip(frame.truth, s.found, s.matched):
+            if (cls := _class(inst.visible_share)) is not None:
+                self.rows.append((cls, bool(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M), hit))
+            if j is not None and db.models[inst.object_id].stands_on_z and found[j][1][:3, 2] @ inst.camera_T_object[:3, 2] < 0:
+                self.upside_down += 1
+
+    def recall(self, cls: str | None = None, near: bool | None = None) -> float | None:
+        """Share found of the scored instances of a class and band (None: all); None if there are none."""
+        hits = [hit for c, n, hit in self.rows if cls in (None, c) and near in (None, n)]
+        return float(np.mean(hits)) if hits else None
+
+
+def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
+                db: ModelDatabase, diameter: dict[str, float], progress: str) -> Tally:  # fmt: skip
+    """The frames through ``rec`` with colour, each with its world pose in ``pose_of`` (absent:
+    none), scored; ``progress`` names the pass on its progress bar."""
+    tally = Tally()
+    for frame in track(frames, description=progress):
+        cloud, rgb = frame.load()
+        t0 = time.perf_counter()
+        found = rec.recognize(cloud, world_T_camera=pose_of.get((frame.scene_id, frame.image_id)), rgb=rgb)
+        tally.times.append(time.perf_counter() - t0)
+        tally.add(frame, [(d.object_id, d.camera_T_object) for d in found], db, diameter)
+    return tally
+
+
 def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, ...], cfg: RecognitionConfig,
             lying_scenes: frozenset[int] = frozenset(), world_z_up: bool = False,
             lookalikes: tuple[ObjectSpec, ...] = ()) -> dict[str, float]:  # fmt: skip
@@ -162,126 +204,83 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     db = build_database(cfg.descriptor, meshes=meshes, points=points, scale=0.001, distances_m=distances_m)
     build_s = time.perf_counter() - t0
     rec = Recognizer(db, cfg)
-    surface = {oid: m.points for oid, m in db.models.items()}
     diameter = {oid: dataset.models[oid].diameter_m or m.diameter_m for oid, m in db.models.items()}
     chosen = dataset.frames
     if frames is not None and frames < len(chosen):
         chosen = [chosen[i] for i in np.linspace(0, len(chosen) - 1, frames).round().astype(int)]
-    ours: list[tuple[str, bool]] = []  # (class, found) per scored instance
-    near_far: list[tuple[bool, bool]] = []  # (nearer than NEAR_M, found) per scored instance
-    lying: list[bool] = []  # found, per scored instance of lying_scenes
-    theirs: list[tuple[str, bool]] = []
-    false, times, ppf_times = 0, [], []
-    pose_of: dict[tuple[int, int], np.ndarray | None] = {}  # (scene, image) -> the world pose recognition is given
-    for frame in track(chosen, description="recognising"):
-        cloud, rgb = frame.load()
-        pose = frame.world_T_camera if world_z_up else level_world_pose(rec, cloud, frame.world_T_camera)
-        pose_of[frame.scene_id, frame.image_id] = pose
-        t0 = time.perf_counter()
-        found = rec.recognize(cloud, world_T_camera=pose, rgb=rgb)
-        if frame.scene_id not in lying_scenes:
-            times.append(time.perf_counter() - t0)
-        s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
-        false += len(s.false)
-        if frame.scene_id in lying_scenes:
-            lying += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
-            continue
-        ours += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
-        near_far += [(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M, hit)
-                     for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]  # fmt: skip
-    wide, false_wide, wide_times = [], 0, []  # with the look-alikes' models: found per scored instance, false, s
-    if lookalikes:
-        standing = [f for f in chosen if f.scene_id not in lying_scenes]
-        wide, false_wide, wide_times = _with_lookalikes(db, cfg, distances_m, lookalikes, standing, pose_of, surface, diameter)
-    # Frames with the camera's world pose once more without it, as `cellsight recognize` sees a
+    standing = [f for f in chosen if f.scene_id not in lying_scenes]
+    posed = [f for f in standing if f.world_T_camera is not None]
+    pose_of = {(f.scene_id, f.image_id): f.world_T_camera if world_z_up else level_world_pose(rec, f.load()[0], f.world_T_camera)
+               for f in posed}  # fmt: skip
+    ours = _recognised(rec, standing, pose_of, db, diameter, "recognising")
+    lying = _recognised(rec, [f for f in chosen if f.scene_id in lying_scenes], {}, db, diameter, "lying")
+    wide = _with_lookalikes(db, cfg, distances_m, lookalikes, standing, pose_of, diameter) if lookalikes else None
+    # The frames with the camera's world pose once more without it, as `cellsight recognize` sees a
     # saved frame: the whole view, the room's floor and walls included.
-    alone: dict[bool, list[bool]] = {False: [], True: []}  # level_support -> per scored instance: found
-    false_alone = {False: 0, True: 0}
-    upside_down = {False: 0, True: 0}  # found, of an object standing on its base, its +z against the true one
-    alone_times: list[float] = []  # s, the default's frames
-    for level, r in ((False, rec), (True, Recognizer(db, cfg.model_copy(update={"level_support": True})))):
-        for frame in [f for f in chosen if f.world_T_camera is not None]:
-            cloud, rgb = frame.load()
-            t0 = time.perf_counter()
-            found = [(d.object_id, d.camera_T_object) for d in r.recognize(cloud, rgb=rgb)]
-            if not level:
-                alone_times.append(time.perf_counter() - t0)
-            s = score(frame.truth, found, surface, diameter)
-            false_alone[level] += len(s.false)
-            alone[level] += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
-            upside_down[level] += sum(found[j][1][:3, 2] @ inst.camera_T_object[:3, 2] < 0 for inst, j in zip(frame.truth, s.matched)
-                                      if j is not None and db.models[inst.object_id].stands_on_z)  # fmt: skip
-    # The baseline in a pass of its own, so that nothing it leaves behind is in our timings; not on
-    # the lying frames (the whole room in view, ~30 s a frame).
-    baseline = PpfBaseline.of(rec)
-    for frame in track(chosen, description="point-pair voting"):
-        if not frame.truth or frame.scene_id in lying_scenes:
-            continue
-        cloud, _ = frame.load()
-        t0 = time.perf_counter()
-        poses = baseline(cloud, pose_of[frame.scene_id, frame.image_id], {i.object_id for i in frame.truth})
-        ppf_times.append(time.perf_counter() - t0)
-        s = score(frame.truth, list(poses.items()), surface, diameter)
-        theirs += [(cls, hit) for inst, hit in zip(frame.truth, s.found) if (cls := _class(inst.visible_share))]
-    out = {"bop_frames": float(len(chosen)), "bop_instances_scored": float(len(ours)), "bop_models": float(len(db.models)),
-           "bop_model_build_s": build_s,
-           "bop_frames_world_pose_set_aside": float(sum(f.world_T_camera is not None and pose_of[f.scene_id, f.image_id] is None
-                                                        for f in chosen))}  # fmt: skip
-    for name, rows in (("bop_adds_recall", ours), ("bop_ppf_adds_recall", theirs)):
-        out[name] = float(np.mean([hit for _, hit in rows])) if rows else float("nan")
+    alone = _recognised(rec, posed, {}, db, diameter, "camera frame")
+    level = Recognizer(db, cfg.model_copy(update={"level_support": True}))
+    alone_level = _recognised(level, posed, {}, db, diameter, "camera frame, level support")
+    theirs, ppf_times = _baseline(rec, standing, pose_of, db, diameter)
+    out = {"bop_frames": float(len(chosen)), "bop_instances_scored": float(len(ours.rows)), "bop_models": float(len(db.models)),
+           "bop_model_build_s": build_s, "bop_frames_world_pose_set_aside": float(sum(p is None for p in pose_of.values()))}  # fmt: skip
+    for name, tally in (("bop_adds_recall", ours), ("bop_ppf_adds_recall", theirs)):
+        out[name] = tally.recall() if tally.rows else float("nan")
         for cls in ("unoccluded", "partly_occluded"):
-            sel = [hit for c, hit in rows if c == cls]
-            if sel:
-                out[f"{name}_{cls}"] = float(np.mean(sel))
+            if (r := tally.recall(cls)) is not None:
+                out[f"{name}_{cls}"] = r
     for near, band in ((True, "near"), (False, "far")):
-        sel = [hit for n, hit in near_far if n == near]
-        if sel:
-            out[f"bop_adds_recall_{band}"] = float(np.mean(sel))
-            out[f"bop_instances_{band}"] = float(len(sel))
-    if lying:
-        out["bop_adds_recall_lying"] = float(np.mean(lying))
-        out["bop_instances_lying"] = float(len(lying))
-    out["bop_false_detections"] = float(false)
-    if wide:
-        out["bop_adds_recall_lookalikes"] = float(np.mean(wide))
-        out["bop_false_detections_lookalikes"] = float(false_wide)
-        out["bop_frame_ms_p50_lookalikes"] = 1000 * float(np.median(wide_times))
-    out["bop_false_detections_per_frame"] = false / len(chosen)
-    for level, suffix in ((False, ""), (True, "_level_support")):
-        if alone[level]:
-            out[f"bop_adds_recall_camera_frame{suffix}"] = float(np.mean(alone[level]))
-            out[f"bop_false_detections_camera_frame{suffix}"] = float(false_alone[level])
-            out[f"bop_upside_down_camera_frame{suffix}"] = float(upside_down[level])
-    out["bop_frame_ms_p50"] = 1000 * float(np.median(times))
-    if alone_times:
-        out["bop_frame_ms_p50_camera_frame"] = 1000 * float(np.median(alone_times))
-    out["bop_frame_ms_p95"] = 1000 * float(np.percentile(times, 95))
+        if (r := ours.recall(near=near)) is not None:
+            out[f"bop_adds_recall_{band}"] = r
+            out[f"bop_instances_{band}"] = float(sum(n == near for _, n, _ in ours.rows))
+    if lying.rows:
+        out["bop_adds_recall_lying"] = lying.recall()
+        out["bop_instances_lying"] = float(len(lying.rows))
+    out["bop_false_detections"] = float(ours.false + lying.false)
+    if wide is not None and wide.rows:
+        out["bop_adds_recall_lookalikes"] = wide.recall()
+        out["bop_false_detections_lookalikes"] = float(wide.false)
+        out["bop_frame_ms_p50_lookalikes"] = 1000 * float(np.median(wide.times))
+    out["bop_false_detections_per_frame"] = (ours.false + lying.false) / len(chosen)
+    for tally, suffix in ((alone, ""), (alone_level, "_level_support")):
+        if tally.rows:
+            out[f"bop_adds_recall_camera_frame{suffix}"] = tally.recall()
+            out[f"bop_false_detections_camera_frame{suffix}"] = float(tally.false)
+            out[f"bop_upside_down_camera_frame{suffix}"] = float(tally.upside_down)
+    out["bop_frame_ms_p50"] = 1000 * float(np.median(ours.times))
+    if alone.times:
+        out["bop_frame_ms_p50_camera_frame"] = 1000 * float(np.median(alone.times))
+    out["bop_frame_ms_p95"] = 1000 * float(np.percentile(ours.times, 95))
     if ppf_times:
         out["bop_ppf_frame_ms_p50"] = 1000 * float(np.median(ppf_times))
     return out
 
 
 def _with_lookalikes(db: ModelDatabase, cfg: RecognitionConfig, distances_m: tuple[float, ...], lookalikes: tuple[ObjectSpec, ...],
-                     frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None], surface: dict[str, np.ndarray],
-                     diameter: dict[str, float]) -> tuple[list[bool], int, list[float]]:  # fmt: skip
+                     frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
+                     diameter: dict[str, float]) -> Tally:  # fmt: skip
     """The frames recognised with the look-alikes' models added to ``db`` (their views at
-    ``distances_m``), each with the world pose the main pass gave it (``pose_of``): per scored
-    instance whether it was found, the false detections, and the frame times (s)."""
+    ``distances_m``), each with the world pose the main pass gave it (``pose_of``)."""
     wider = ModelDatabase(db.descriptor, dict(db.models))
     for o in lookalikes:
         wider.add(model_from_mesh(o.id, object_mesh(o).paint_uniform_color(o.color), cfg.descriptor, distances_m=distances_m))
-    rec = Recognizer(wider, cfg)
-    found_rows: list[bool] = []
-    false, times = 0, []
-    for frame in frames:
-        cloud, rgb = frame.load()
+    return _recognised(Recognizer(wider, cfg), frames, pose_of, db, diameter, "with look-alikes")
+
+
+def _baseline(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
+              db: ModelDatabase, diameter: dict[str, float]) -> tuple[Tally, list[float]]:  # fmt: skip
+    """Point-pair voting on the frames that hold objects, given which: scored, and its frame times
+    (s). In a pass of its own, so that nothing it leaves behind is in our timings; not on lying
+    frames (the whole room in view, ~30 s a frame)."""
+    baseline, tally, times = PpfBaseline.of(rec), Tally(), []
+    for frame in track(frames, description="point-pair voting"):
+        if not frame.truth:
+            continue
+        cloud, _ = frame.load()
         t0 = time.perf_counter()
-        found = rec.recognize(cloud, world_T_camera=pose_of[frame.scene_id, frame.image_id], rgb=rgb)
+        poses = baseline(cloud, pose_of.get((frame.scene_id, frame.image_id)), {i.object_id for i in frame.truth})
         times.append(time.perf_counter() - t0)
-        s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], surface, diameter)
-        false += len(s.false)
-        found_rows += [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share)]
-    return found_rows, false, times
+        tally.add(frame, list(poses.items()), db, diameter)
+    return tally, times
 
 
 def _class(visible: float | None) -> str | None:
