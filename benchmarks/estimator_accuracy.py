@@ -47,7 +47,8 @@ from benchmarks.chain import chain_solve
 from benchmarks.common import main
 from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, perturb
 from drivers.sim.scenario import BoxSpec, CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario, load_scenario
-from estimator.graph import CameraState, Estimator, camera_symbol, marker_symbol
+from estimator.estimate import CameraState
+from estimator.graph import Estimator, camera_symbol, marker_symbol
 from estimator.observation import Observation
 from schemas.geometry import cov_ros_to_gtsam, invert_pose, pose_error, quat_from_matrix
 from schemas.spec import PoseSpec

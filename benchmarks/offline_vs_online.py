@@ -40,7 +40,8 @@ from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import load_scenario
 from estimator.config import EstimatorConfig
-from estimator.graph import CameraEstimate, CameraState, Estimator
+from estimator.estimate import CameraEstimate, CameraState
+from estimator.graph import Estimator
 from estimator.observation import observation_rows, observations_of
 from schemas import codec, keys
 from schemas.log import LogWriter

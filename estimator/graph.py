@@ -34,13 +34,13 @@ import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from enum import Enum
-from typing import Generic, TypeVar
 
 import gtsam
 import numpy as np
 
 from estimator.config import EstimatorConfig
+from estimator.estimate import BestView, CameraEstimate, CameraState, Estimate, PoseEstimate, through_camera
+from estimator.history import History, HistoryFactor, carried
 from estimator.init import CameraKey, place
 from estimator.keyframes import LiveKeyframes, MovingFrame
 from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors, instant_gain
@@ -49,11 +49,9 @@ from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.pairs import YOUNG_PAIR, Pair, factors_current, fold_rows, pair_means
 from estimator.resect import resect
 from estimator.symbols import camera_symbol, marker_symbol
-from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq, pose_difference, pose_retract
+from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, kabsch, mahalanobis_sq
 
 log = logging.getLogger(__name__)
-K = TypeVar("K")
-V = TypeVar("V")
 
 MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (see Estimator._due_pairs)
 #: Covariances recomputed per ``estimate`` beyond new variables' (the rest are the cached ones): in
@@ -65,52 +63,6 @@ HOLD_MAX_NS = 2_000_000_000  # a segment whose pairs do not settle (markers seen
 #: How often the anchors are checked against their observations (ns): ~15 ms at 64 cameras.
 ANCHOR_CHECK_NS = 1_000_000_000
 RELINEARIZE_SKIP = 10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
-
-
-class CameraState(Enum):
-    LOCALIZED = 1
-    UNANCHORED = 2
-    MOVING = 3
-    STALE = 4
-
-
-class BestView(Generic[K, V]):
-    """Of the sightings of one thing (an object marker at one instant) through several cameras,
-    the one with the smallest position covariance (trace of its 3x3 block, m^2): cameras see an
-    object at different distances and angles, and the best view is the one a robot should get."""
-
-    def __init__(self) -> None:
-        self._best: dict[K, tuple[float, V]] = {}
-
-    def offer(self, key: K, covariance: np.ndarray, value: V) -> None:
-        """Keep ``value`` for ``key`` if its covariance (6x6, ROS order) is the tightest so far."""
-        score = float(np.trace(covariance[:3, :3]))
-        if key not in self._best or score < self._best[key][0]:
-            self._best[key] = (score, value)
-
-    def keys(self) -> list[K]:
-        return list(self._best)
-
-    def pop(self, key: K) -> V:
-        return self._best.pop(key)[1]
-
-
-def through_camera(world_T_camera: np.ndarray, camera_cov: np.ndarray, camera_T_marker: np.ndarray, marker_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """world_T_marker (..., 4, 4) and its covariance (..., 6, 6; ROS order, marker frame) from a
-    camera pose with its covariance (camera frame) and an observation with its own (marker frame).
-
-    The camera's uncertainty reaches the marker through the adjoint of marker_T_camera: a twist
-    (v, w) of the camera is (R v + [p]x R w, R w) at the marker, R, p = marker_T_camera.
-    Works on one pose or on stacks of them (leading dimensions broadcast).
-    """
-    R = np.swapaxes(camera_T_marker[..., :3, :3], -1, -2)
-    p = -R @ camera_T_marker[..., :3, 3:4]
-    px = np.zeros(R.shape)
-    px[..., 0, 1], px[..., 0, 2], px[..., 1, 2] = -p[..., 2, 0], p[..., 1, 0], -p[..., 0, 0]
-    px[..., 1, 0], px[..., 2, 0], px[..., 2, 1] = p[..., 2, 0], -p[..., 1, 0], p[..., 0, 0]
-    A = np.zeros(R.shape[:-2] + (6, 6))
-    A[..., :3, :3], A[..., :3, 3:], A[..., 3:, 3:] = R, px @ R, R
-    return world_T_camera @ camera_T_marker, A @ camera_cov @ np.swapaxes(A, -1, -2) + marker_cov
 
 
 @dataclass
@@ -130,32 +82,6 @@ class CameraTrack:
     screen: RigidScreen | None = None  # the batched path's rigid-motion screen for the current view
 
 
-@dataclass(frozen=True)
-class PoseEstimate:
-    """world_T_child (4x4) and its 6x6 covariance (ROS order, body frame; None if not computed)."""
-
-    T: np.ndarray
-    covariance: np.ndarray | None
-
-
-@dataclass(frozen=True)
-class CameraEstimate:
-    camera_id: str
-    state: CameraState
-    segment: int
-    last_stamp_ns: int
-    markers_seen: int
-    pose: PoseEstimate | None  # None for unanchored cameras: they have no world pose
-
-
-@dataclass(frozen=True)
-class Estimate:
-    cameras: dict[str, CameraEstimate]
-    markers: dict[int, PoseEstimate]  # static markers and anchors
-    object_markers: dict[int, PoseEstimate]  # markers on objects, newest frame
-    flagged_anchors: list[int]
-
-
 @dataclass
 class Counters:
     observations: int = 0
@@ -170,41 +96,6 @@ class Counters:
     links_refused: int = 0  # those left out: they would add too little (``LinkConfig.min_gain``)
     keyframes: int = 0  # moving frames that entered the graph (``LiveKeyframes``)
     reorders: int = 0  # updates in which iSAM2 re-ordered every variable (``reorder_fill``)
-
-
-@dataclass
-class HistoryFactor:
-    """One fixed factor of a camera's history: camera_T_marker (4x4) and its covariance (6x6, ROS
-    order, marker frame)."""
-
-    mean: np.ndarray
-    covariance: np.ndarray
-    slot: int | None = None  # iSAM2 factor index once in the graph
-
-
-@dataclass
-class History:
-    """The folded past of one camera: fixed factors from the pose of its last ended segment
-    (gtsam ``key``) to every marker its ended segments saw, by marker id."""
-
-    key: int
-    factors: dict[int, HistoryFactor]
-    segments: int = 0  # segments folded into it
-
-
-def fuse_measurements(a: list[HistoryFactor], b: list[HistoryFactor]) -> list[HistoryFactor]:
-    """Information-weighted means of pairs of camera_T_marker measurements, a[i] and b[i] of one
-    marker: one Gauss-Newton step from each ``a`` in its own frame (``pose_difference``: the
-    tangent its covariance is in, to first order; the two measurements differ by millimetres).
-    Covariances in the marker frame, where a pose's left composition leaves them unchanged. All
-    pairs in one batch: a fold fuses every marker its camera saw before and after a move."""
-    if not a:
-        return []
-    T_a, T_b = np.array([f.mean for f in a]), np.array([f.mean for f in b])
-    info_a, info_b = np.linalg.inv(np.array([f.covariance for f in a])), np.linalg.inv(np.array([f.covariance for f in b]))
-    cov = np.linalg.inv(info_a + info_b)
-    step = np.einsum("sij,sjk,sk->si", cov, info_b, pose_difference(T_a, T_b))
-    return [HistoryFactor(T, C) for T, C in zip(pose_retract(T_a, step), cov)]
 
 
 def moving_frame(camera_id: str, stamp_ns: int, static: list[Observation], move: int) -> MovingFrame:
@@ -549,13 +440,8 @@ class Estimator:
                 remove.append(pair.slot)  # replaced, or restarted since built with nothing new: stale
         old = self.history.get(cam[0])
         if old is not None and old.key in self.in_graph:
-            here_T_old = invert_pose(self._pose(ck)) @ self._pose(old.key)
-            moved = {mk: HistoryFactor(here_T_old @ f.mean, f.covariance) for mk, f in old.factors.items()}
-            remove.extend(f.slot for f in old.factors.values() if f.slot is not None)
-            both = [mk for mk in moved if mk in factors]
-            remove.extend(factors[mk].slot for mk in both if factors[mk].slot is not None)
-            moved.update(zip(both, fuse_measurements([factors[mk] for mk in both], [moved[mk] for mk in both])))
-            factors.update(moved)  # the moved or fused factor replaces the segment's own
+            factors, stale = carried(old, factors, invert_pose(self._pose(ck)) @ self._pose(old.key))
+            remove.extend(stale)
             self.in_graph.discard(old.key)  # iSAM2 drops a variable whose factors are all removed
         if not factors:
             self.in_graph.discard(ck)

@@ -17,7 +17,8 @@ import zenoh
 
 from estimator.config import EstimatorConfig
 from estimator.errors import StateFileError
-from estimator.graph import CameraState, Estimate, Estimator
+from estimator.estimate import CameraState, Estimate
+from estimator.graph import Estimator
 from estimator.observation import validated_rows
 from estimator.state import SavedMarker, load_state, save_state, set_aside
 from schemas import codec, keys

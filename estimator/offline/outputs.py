@@ -10,7 +10,7 @@ from typing import Callable, Iterator, TextIO
 
 import numpy as np
 
-from estimator.graph import BestView
+from estimator.estimate import BestView
 from estimator.offline.solve import ObjectRows, ResolveResult, SegmentResult, place_objects
 from schemas import codec, keys
 from schemas.codec import StampedPose

@@ -23,7 +23,8 @@ import gtsam
 import numpy as np
 
 from estimator.config import EstimatorConfig
-from estimator.graph import Estimator, camera_symbol, marker_symbol, through_camera
+from estimator.estimate import through_camera
+from estimator.graph import Estimator, camera_symbol, marker_symbol
 from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes
 from estimator.links import ObjectLinks, add_links, block_sightings
 from estimator.observation import ObservationRows

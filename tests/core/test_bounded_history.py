@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from estimator.config import AnchorConfig, EstimatorConfig
-from estimator.graph import CameraState, Estimator, marker_symbol
+from estimator.estimate import CameraState
+from estimator.graph import Estimator, marker_symbol
 from estimator.observation import Observation
 from schemas.geometry import invert_pose, look_at_matrix, make_pose, quat_from_matrix, rpy_matrix
 from schemas.spec import PoseSpec
@@ -169,7 +170,7 @@ def test_fused_measurement_is_the_information_weighted_mean() -> None:
     """Two measurements of one camera_T_marker a step d apart: with equal covariances the fused one
     lies half way (d / 2 from the first) with half the covariance; with the second a million
     times less certain, it stays on the first."""
-    from estimator.graph import HistoryFactor, fuse_measurements
+    from estimator.history import HistoryFactor, fuse_measurements
     from schemas.geometry import pose_difference, pose_retract
 
     rng = np.random.default_rng(4)

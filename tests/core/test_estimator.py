@@ -14,7 +14,8 @@ import pytest
 from cellsight.synthetic import NoiseSettings, estimator_config, flip, frame_observations
 from drivers.markers import covariance_model
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
-from estimator.graph import CameraState, Estimator, through_camera
+from estimator.estimate import CameraState, through_camera
+from estimator.graph import Estimator
 from estimator.observation import Observation, ObservationRows
 from estimator.pairs import Pair, fold_rows
 from schemas.codec import CameraInfo
