@@ -38,7 +38,9 @@ symmetric shape's flipped pose as right, a robot reading the object's frame woul
 carton is no BOP model: it is one captured view, and a BOP model is the whole surface;
 ``benchmarks.recognition`` finds it.) The frames (the lying ones aside) once more with six
 look-alike models in the database, never in a frame (``LOOKALIKES``: boxes and cans of other sizes,
-the crate and the can in other colours; not with ``--quick``): ``..._lookalikes``. So the reader,
+the crate and the can in other colours; not with ``--quick``): ``..._lookalikes``. And a dataset of
+objects that are no box or cylinder (``shapes``: a mug, a duck, a drill, a cone; 3 layouts from
+the cell and from close, not with ``--quick``): ``bop_shapes_...``. So the reader,
 the model build from files in millimetres and the scoring run on every change, and a held-back
 dataset is one flag away.
 
@@ -56,6 +58,7 @@ from pathlib import Path
 from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visible_share  # pins this process to one core first
 
 import numpy as np  # noqa: E402
+import open3d as o3d  # noqa: E402
 from rich.progress import track  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
@@ -76,6 +79,11 @@ NEAR_M = 1.2  # instances nearer the camera than this (m) are scored apart too (
 REAL_FRAMES = ("milk_cartoon_all_small_clorox.pcd", "office1.pcd", "five_people.pcd",
                *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))
 KINECT_F = 525.0  # the PCL frames' focal length, px (data README)
+#: The pass on objects that are no box or cylinder (``shapes``; not with --quick): its layouts, and
+#: the figures it reports, named bop_shapes_...
+SHAPE_LAYOUTS = 3
+SHAPE_FIGURES = ("bop_instances_scored", "bop_adds_recall", "bop_adds_recall_near", "bop_adds_recall_far", "bop_false_detections",
+                 "bop_ppf_adds_recall", "bop_adds_recall_camera_frame", "bop_false_detections_camera_frame")
 #: Models added to the database in a pass of their own (``bop_adds_recall_lookalikes``), never in a
 #: frame: boxes and cans a fifth smaller or larger than the demo's, the crate's and the can's shapes
 #: in other colours. A dataset's database holds such families (YCB-V: four boxes, four cans).
@@ -114,12 +122,43 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
     return s.model_copy(update={"objects": objects})
 
 
-def write_default(root: Path, layouts: int, lying: int) -> Path:
+def shapes(folder: Path) -> list[ObjectSpec]:
+    """Objects that are no box or cylinder, their meshes written to ``folder`` (m, base centre at
+    the origin, z up): a mug (a 4 cm can and its ring handle), a duck (two spheres and a beak), a
+    drill (a handle under a 20 cm body that overhangs it) and a cone, 9-20 cm, as public datasets'
+    objects are."""
+    def turned(mesh: o3d.geometry.TriangleMesh, axis: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
+        return mesh.rotate(o3d.geometry.get_rotation_matrix_from_axis_angle(np.radians(90.0) * np.asarray(axis)), center=(0, 0, 0))
+
+    make = o3d.geometry.TriangleMesh
+    meshes = {
+        "mug": (make.create_cylinder(0.04, 0.10, 32).translate([0, 0, 0.05])
+                + turned(make.create_torus(0.03, 0.008, 24, 12), (1, 0, 0)).translate([0.045, 0, 0.05]), (0.9, 0.25, 0.2)),
+        "duck": (make.create_sphere(0.045, 20).translate([0, 0, 0.045]) + make.create_sphere(0.028, 16).translate([0.035, 0, 0.105])
+                 + turned(make.create_cone(0.012, 0.03, 16), (0, 1, 0)).translate([0.06, 0, 0.105]), (0.95, 0.85, 0.1)),
+        "drill": (make.create_cylinder(0.018, 0.12, 24).translate([0, 0, 0.06])
+                  + make.create_box(0.20, 0.06, 0.07).translate([-0.05, -0.03, 0.12]), (0.2, 0.6, 0.3)),
+        "cone": (make.create_cone(0.045, 0.13, 32), (0.2, 0.35, 0.85)),
+    }  # fmt: skip
+    out = []
+    for name, (mesh, colour) in meshes.items():
+        path = folder / f"{name}.ply"
+        o3d.io.write_triangle_mesh(str(path), mesh.compute_vertex_normals())
+        lo, hi = mesh.get_min_bound(), mesh.get_max_bound()
+        size = (2 * max(-lo[0], hi[0]), 2 * max(-lo[1], hi[1]), hi[2])
+        out.append(ObjectSpec(id=name, shape="mesh", mesh=path, size=tuple(float(v) for v in size), color=colour))
+    return out
+
+
+def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec] | None = None) -> Path:
     """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts from
     the cell's cameras, layouts+1..2 layouts from close, ``lying`` more after them with the objects
     on their side (every other one from close, without the cameras' poses), the real frames scene
-    100."""
+    100. ``objects``: others than the demo cell's (without the real frames, and without the markers
+    the cell's objects carry)."""
     base = load_scenario()
+    if objects is not None:
+        base = base.model_copy(update={"objects": objects, "markers": [m for m in base.markers if m.object is None]})
     ids = {o.id: i + 1 for i, o in enumerate(base.objects)}
     w = BopWriter(root)
     for obj in base.objects:
@@ -142,7 +181,7 @@ def write_default(root: Path, layouts: int, lying: int) -> Path:
             # the camera's pose, as a dataset's.
             w.add_frame(scene, image_id, frame.depth_mm * 0.001, frame.info.K, truth, frame.rgb, depth_scale_mm=1.0,
                         world_T_camera=frame.world_T_camera if scene <= 2 * layouts else None)
-    for image_id, name in enumerate(REAL_FRAMES):
+    for image_id, name in enumerate(REAL_FRAMES if objects is None else ()):
         depth, K, rgb = kinect_frame(name)
         w.add_frame(100, image_id, depth, K, [], rgb)
     return w.close()
@@ -300,9 +339,15 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
     layouts, lying = (1, 1) if quick else (6, 6)
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = BopDataset.open(write_default(Path(tmp), layouts, lying))
-        return measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
-                       world_z_up=True, lookalikes=() if quick else LOOKALIKES)  # the cell's world, written here
+        dataset = BopDataset.open(write_default(Path(tmp) / "demo", layouts, lying))
+        out = measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
+                      world_z_up=True, lookalikes=() if quick else LOOKALIKES)  # the cell's world, written here
+        if not quick:
+            (Path(tmp) / "meshes").mkdir()
+            other = BopDataset.open(write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes")))
+            out |= {name.replace("bop_", "bop_shapes_", 1): value for name, value in measure(other, None, tuple(args.distance), cfg, world_z_up=True).items()
+                    if name in SHAPE_FIGURES}  # fmt: skip
+        return out
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
