@@ -4,10 +4,11 @@ Best candidates first (``rank``; a free candidate right after a twin resting on 
 fits about as well: both fitted the same surface, and the resting reading is the physical one),
 each object is in the frame once and each part of the scene is one object: a candidate is taken
 if verification accepts it, judged against the whole frame from the camera's viewpoint
-(``recognition.verify``), and no pixel it explains is already another object's. Standing or lying, nothing hovers: a candidate must rest on the support or on an object
-taken under it, so one that does not yet waits for another pass. Then two rules on what was taken:
-a match explaining only part of its cluster stands only beside another object found in that
-cluster, and an upright object is no lower part of something taller.
+(``recognition.verify``), and no pixel it explains is already another object's. Standing or
+lying, nothing hovers: a candidate must rest on the support or on an object taken under it, so one
+that does not yet waits for another pass. Then two rules on what was taken: a match explaining
+only part of its cluster stands only beside another object found in that cluster, and an upright
+object is no lower part of something taller.
 """
 
 from __future__ import annotations
