@@ -136,15 +136,17 @@ class Resolver:
                       det.object_id, v.colour_judged)  # fmt: skip
             return False
         seen = pixels.support(v)
-        if not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support and v.clutter <= c.max_clutter
+        if not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
+                and v.facing_share >= c.min_facing_share and v.clutter <= c.max_clutter
                 and v.outline_seen >= c.min_outline_seen and v.penetration <= c.max_penetration
                 and v.colour_agreement >= c.min_colour_agreement and v.shape_error <= c.max_shape_error
                 and pixels.admit(v)):  # fmt: skip
             log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
-                      "pixels, %d seen through), clutter %.2f, outline seen %.2f (of %d pixels), inside a "
-                      "support %.3f, colour %.2f (of %d pixels), shape error %.1f sigma", det.object_id, v.fitness,
-                      seen, v.inliers, v.visible, v.violations, v.clutter, v.outline_seen, v.outline, v.penetration,
-                      v.colour_agreement, v.colour_judged, v.shape_error)  # fmt: skip
+                      "pixels, %d seen through), facing %.2f (%d pixels seen from behind), clutter %.2f, outline seen "
+                      "%.2f (of %d pixels), inside a support %.3f, colour %.2f (of %d pixels), shape error %.1f sigma",
+                      det.object_id, v.fitness, seen, v.inliers, v.visible, v.violations, v.facing_share, v.backfacing,
+                      v.clutter, v.outline_seen, v.outline, v.penetration, v.colour_agreement, v.colour_judged,
+                      v.shape_error)  # fmt: skip
             return False
         return True
 

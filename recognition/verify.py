@@ -16,6 +16,13 @@ pixel with a measured depth d and is
 ``support`` = inliers / visible is how much of the visible model is actually seen; judged among
 accepted hypotheses (``Explained.support``), pixels an accepted object hides leave ``visible``.
 
+The model's own side: a model that is one captured view is an open surface. Posed so that the
+camera looks at the side the capture did not see, the model's nearest surface on most pixels faces
+away, and its few facing points (a rim) would be judged on a handful of pixels. ``facing_share``
+is the share of the pixels where the model's nearest surface faces the camera: a closed surface's
+always does, bar its silhouette's edge; the same rule keeps a captured view's viewpoints
+(``recognition.models``: a partial scan seen from behind is not a view).
+
 Colour, where both the frame and the model have it: within depth noise a box or a cylinder of
 about the model's size fits its surface (a can's 12 cm silhouette at a box's diagonal), but not its
 colour. ``colour_agreement`` is the share of the inlier pixels whose rg-chromaticity (r, g over
@@ -151,6 +158,7 @@ class Verdict:
     colour_judged: int = 0  # inlier pixels where both scene and model have a chromaticity
     colour_agreeing: int = 0  # ... within the colour tolerance of each other
     shape_error: float = 0.0  # the residual's spread beyond SPREAD_FLOOR_M, in depth-noise sigmas (``residual_spread``)
+    backfacing: int = 0  # pixels where the model's nearest surface faces away from the camera
 
     @property
     def fitness(self) -> float:
@@ -159,6 +167,11 @@ class Verdict:
     @property
     def support(self) -> float:
         return self.inliers / max(self.visible, 1)
+
+    @property
+    def facing_share(self) -> float:
+        """Share of the model's pixels where its nearest surface faces the camera (1 with none)."""
+        return self.visible / max(self.visible + self.backfacing, 1) if self.visible + self.backfacing else 1.0
 
     @property
     def clutter(self) -> float:
@@ -204,11 +217,12 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     front = np.einsum("ij,ij->i", n, p) < 0  # facing the camera at the origin
     H, W = view.near.shape
     u, v, ok = _project(p, view.K, (H, W))
+    backfacing = _backfacing(p[ok], u[ok], v[ok], front[ok], W)
     keep = front & ok
     p, u, v = p[keep], u[keep], v[keep]
     index = np.flatnonzero(keep)  # each kept point's row in the model
     # The model hides itself: only points near its nearest one on a coarse cell are seen.
-    cell = (v // SELF_CELL_PX) * (W // SELF_CELL_PX + 1) + u // SELF_CELL_PX
+    cell = _cells(u, v, W)
     nearest = np.full(cell.max() + 1 if len(cell) else 0, np.inf)
     np.minimum.at(nearest, cell, p[:, 2])
     seen = p[:, 2] <= nearest[cell] + SELF_OCCLUSION_M
@@ -242,7 +256,25 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         spread = residual_spread(view, flat[inlier], z[inlier], tol[inlier])
         shape_error = max(spread - SPREAD_FLOOR_M, 0.0) / max(sigma, 1e-6)
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), _filled(flat[inlier], W, gap_px),
-                   *outline, inside, flat[occluded], judged, agreeing, shape_error)  # fmt: skip
+                   *outline, inside, flat[occluded], judged, agreeing, shape_error, backfacing)  # fmt: skip
+
+
+def _cells(u: np.ndarray, v: np.ndarray, W: int) -> np.ndarray:
+    """The coarse cell (SELF_CELL_PX wide) of each pixel column u and row v (N,) of an image W wide."""
+    return (v // SELF_CELL_PX) * (W // SELF_CELL_PX + 1) + u // SELF_CELL_PX
+
+
+def _backfacing(p: np.ndarray, u: np.ndarray, v: np.ndarray, front: np.ndarray, W: int) -> int:
+    """How many pixels (columns u, rows v (N,), image W wide) of posed model points p (N, 3) hold a
+    point that faces away (``front`` False) within SELF_OCCLUSION_M of the nearest model point on its
+    coarse cell, facing or not: where the camera would see the model's surface from behind."""
+    if front.all():
+        return 0
+    cell = _cells(u, v, W)
+    nearest = np.full(cell.max() + 1, np.inf)
+    np.minimum.at(nearest, cell, p[:, 2])
+    back = ~front & (p[:, 2] <= nearest[cell] + SELF_OCCLUSION_M)
+    return len(np.unique((v * W + u)[back]))
 
 
 def residual_spread(view: DepthView, pixels: np.ndarray, z: np.ndarray, tol: np.ndarray) -> float:

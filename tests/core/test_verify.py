@@ -20,7 +20,7 @@ from drivers.sim.scenario import ObjectSpec
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
 from recognition.verify import DepthView, Explained, chroma_ranges, verdict
-from schemas.geometry import make_pose
+from schemas.geometry import make_pose, rpy_matrix
 from tests.conftest import SHARED_DATA
 
 PCL = SHARED_DATA / "pcl"
@@ -196,6 +196,43 @@ def test_a_surface_of_another_shape_inside_the_tolerance_is_a_shape_error() -> N
     R = np.array([[np.cos(turn), 0.0, np.sin(turn)], [0.0, 1.0, 0.0], [-np.sin(turn), 0.0, np.cos(turn)]])
     v = verdict(view, ridge, normals, make_pose(R, [0.003, 0.0, 0.903]), TOL, NOISE)
     assert v.fitness == 1.0 and v.shape_error < 0.5 * limit
+
+
+def half_can(step_m: float, radius_m: float = 0.05, height_m: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """The half of a can's side a camera on -z captures: points and outward normals (N, 3), an open surface."""
+    angle, y = np.meshgrid(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step_m / radius_m), np.arange(-height_m / 2, height_m / 2 + 1e-9, step_m))
+    normals = np.stack([np.sin(angle), np.zeros_like(angle), -np.cos(angle)], -1).reshape(-1, 3)
+    return normals * radius_m + np.c_[np.zeros(angle.size), y.reshape(-1), np.zeros(angle.size)], normals
+
+
+def rendered(points: np.ndarray, camera_T_object: np.ndarray, background_m: float = 1.5) -> np.ndarray:
+    """An organised 640x480 cloud of dense points (N, 3, object frame) posed in front of a wall: each
+    point splatted on its pixel and the eight around it, the nearest kept."""
+    p = points @ camera_T_object[:3, :3].T + camera_T_object[:3, 3]
+    z = np.full((480, 640), background_m)
+    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(int)
+    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(int)
+    for du in (-1, 0, 1):
+        for dv in (-1, 0, 1):
+            np.minimum.at(z, (np.clip(v + dv, 0, 479), np.clip(u + du, 0, 639)), p[:, 2])
+    return depth_to_cloud(np.round(z * 1000).astype(np.uint16), K)
+
+
+@pytest.mark.parametrize("turn_deg", [150.0, 180.0])
+def test_a_captured_view_seen_from_behind_is_not_judged_on_its_rim(turn_deg: float) -> None:
+    """A captured view is an open surface (half a can's side, as one camera sees it). Turned about
+    its axis so that the camera looks into it, the frame showing exactly that surface: the few model
+    points that still face the camera lie on it (fitness and support 1), while on most of the
+    model's pixels the camera sees the surface from behind. Facing the camera, every pixel faces it."""
+    points, normals = half_can(0.004)
+    dense, _ = half_can(0.001)
+    limit = RecognitionConfig().min_facing_share
+    facing = make_pose(t=[0.1, 0.0, 1.0])
+    v = verdict(DepthView.of(rendered(dense, facing)), points, normals, facing, TOL, NOISE)
+    assert v.visible > 500 and v.backfacing == 0 and v.facing_share == 1.0
+    turned = facing @ make_pose(rpy_matrix(0.0, np.radians(turn_deg), 0.0))
+    v = verdict(DepthView.of(rendered(dense, turned)), points, normals, turned, TOL, NOISE)
+    assert v.visible > 20 and v.fitness == 1.0 and v.support == 1.0 and v.facing_share < 0.5 * limit
 
 
 def test_a_can_laid_along_a_real_boxs_edge_is_turned_down_by_its_shape(demo_models: dict) -> None:
