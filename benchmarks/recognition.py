@@ -85,7 +85,7 @@ from cellsight.model_build import database_from_scenario  # noqa: E402
 from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, apart, footprint, load_scenario  # noqa: E402
 from recognition import ppf  # noqa: E402
-from recognition.align import model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
+from recognition.align import Surface, model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
 from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_cloud, read_coloured_cloud, voxel_downsample  # noqa: E402
 from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
 from recognition.models import model_from_cloud  # noqa: E402
@@ -120,8 +120,7 @@ class PpfBaseline:
         scene = self.rec.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
             return {}
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64)))
-        target.normals = o3d.utility.Vector3dVector(scene.normals.astype(np.float64))
+        target = Surface.of(scene.points, scene.normals)
         c, out = self.rec.config, {}
         for oid, trained in self.trained.items():
             if objects is not None and oid not in objects:

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
-from recognition.align import facing_camera, icp_pass
+from recognition.align import Surface, facing_camera, icp_pass
 from recognition.cloud import finite_points, voxel_downsample
 from recognition.models import ModelDatabase
 from recognition.hypotheses import Detection
@@ -183,7 +183,8 @@ def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], mo
             facing |= facing_camera(model.points, model.normals, geometry.invert_pose(c.world_T_camera) @ o.world_T_object)[0]
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near.astype(np.float64)))
         target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=NORMAL_NEIGHBOURS))
-        fit = icp_pass(model.points[facing], target, o.world_T_object, distance_m, max_shift_m=REFINE_MAX_SHIFT_M)
+        fit = icp_pass(model.points[facing], Surface.of(near, np.asarray(target.normals)), o.world_T_object, distance_m,
+                       max_shift_m=REFINE_MAX_SHIFT_M)
         # world up in the object's frame, before and after
         tilt = np.degrees(geometry.angle_between(o.world_T_object[2, :3], fit.camera_T_object[2, :3]))
         if fit.fitness < min_fitness or tilt > REFINE_MAX_TILT_DEG:

@@ -15,10 +15,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 
 from recognition.align import (
-    ImageBounds, IcpResult, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z,
+    ImageBounds, IcpResult, Surface, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z,
     views_to_scene,
 )
 from recognition.cloud import PointIndex
@@ -120,20 +119,20 @@ class SceneCloud:
 @dataclass(frozen=True)
 class Target:
     """Scene points hypotheses are fitted to (a cluster, or what is left of one), camera frame:
-    ``points`` (N, 3), the same with normals for Open3D's ICP, and their index. Built once per part
-    for every object tried on it."""
+    ``points`` (N, 3), the same with their normals and index for ICP. Built once per part for every
+    object tried on it."""
 
     points: np.ndarray
-    cloud: o3d.geometry.PointCloud
-    index: PointIndex
+    surface: Surface
     image: ImageBounds | None = None  # model points landing outside it are not looked for
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
-        points = scene.points[idx]
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
-        cloud.normals = o3d.utility.Vector3dVector(scene.normals[idx].astype(np.float64))
-        return cls(points, cloud, PointIndex(points), scene.image)
+        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image)
+
+    @property
+    def index(self) -> PointIndex:
+        return self.surface.index
 
 
 @dataclass(frozen=True)
@@ -291,7 +290,7 @@ class Matcher:
         sparse_points, sparse_normals = self._sparse[model.object_id]
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
         if up is not None:
-            poses = _stand_up(poses @ from_rest, up, centre) @ to_rest
+            poses = stand_up(poses @ from_rest, up, centre) @ to_rest
         facings = facing_camera(sparse_points, sparse_normals, poses, target.image)
         if turns and up is not None:
             shares = self._overlap(sparse_points, facings, poses, target.index)
@@ -306,7 +305,7 @@ class Matcher:
             poses, facings = poses[keep], facings[keep]
         screened: list[IcpResult] = []
         for start, facing in zip(poses, facings):
-            res = icp_pass(sparse_points[facing], target.cloud, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
+            res = icp_pass(sparse_points[facing], target.surface, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
                            max_shift_m=model.diameter_m)
             if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up):  # else a symmetric shape's mirror image
                 screened.append(res)
@@ -322,8 +321,8 @@ class Matcher:
             if any(_same_pose(coarse.camera_T_object, done) for done in refined):
                 continue  # two starts that screened into one pose refine into one pose
             refined.append(coarse.camera_T_object)
-            res = refine_icp(dense_points, dense_normals, target.cloud, coarse.camera_T_object, c.icp_distance_m,
-                             c.icp_iterations, max_shift_m=model.diameter_m, index=target.index, image=target.image)
+            res = refine_icp(dense_points, dense_normals, target.surface, coarse.camera_T_object, c.icp_distance_m,
+                             c.icp_iterations, max_shift_m=model.diameter_m, image=target.image)
             if not _upright(res.camera_T_object @ from_rest, up):
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
@@ -468,7 +467,7 @@ def _turned(camera_T_object: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return out
 
 
-def _stand_up(camera_T_objects: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
+def stand_up(camera_T_objects: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """The poses (S, 4, 4) that are not upright turned, about the object's centre (object frame, m),
     so that their +z is world up (the smallest turn; a half turn about the object's x axis when
     exactly upside down).

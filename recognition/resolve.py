@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 
 import numpy as np
 
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
-from recognition.hypotheses import Candidate, Detection, SceneCloud, Stance, explained_by, rank
+from recognition.hypotheses import UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, stand_up
 from recognition.models import ModelDatabase
 from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, verdict
 from schemas.geometry import invert_pose
@@ -77,6 +78,7 @@ class Resolver:
         # Objects rest on the support or on an object found under them (``rests``): one that does
         # not yet waits for another pass, in case what it stands on is found after it.
         pending = self._ordered(candidates)
+        up = next((cand.stance.up for cand in candidates if cand.stance.up is not None), None)
         while pending:
             waiting, before = [], len(found)
             for cand in pending:
@@ -88,7 +90,13 @@ class Resolver:
                     waiting.append(cand)
                     continue
                 # Judged only once it could be taken: most frames hold candidates for objects already found.
-                if view is not None and not self._verified(view, det, stance, planes, pixels):
+                if view is not None and (upright := self._upright_twin(cand, up)) is not None:
+                    if self._verified(view, upright.detection, stance, planes, pixels):
+                        log.debug("%s found upside down: reported upright, which the frame holds as well", det.object_id)
+                        cand, det = upright, upright.detection
+                    elif not self._verified(view, det, stance, planes, pixels):
+                        continue
+                elif view is not None and not self._verified(view, det, stance, planes, pixels):
                     continue
                 taken.add(cand.part)
                 found[det.object_id] = cand
@@ -109,6 +117,19 @@ class Resolver:
             return (rank(cand.detection), 1) if twin is None else (rank(twin.detection), 0)
 
         return sorted(candidates, key=key, reverse=True)
+
+    def _upright_twin(self, free: Candidate, up: np.ndarray | None) -> Candidate | None:
+        """A free candidate of an object standing on its base, found upside down (world up, camera
+        frame, known from the frame's other stances), turned upright about its centre: a symmetric
+        shape fits both ways, and the frame tells them apart only if the object is not symmetric, so
+        this reading is verified first (the upside-down one only if it fails). None when not upside down."""
+        det = free.detection
+        if up is None or free.stance.up is not None or not self.db.models[det.object_id].stands_on_z:
+            return None
+        if det.camera_T_object[:3, 2] @ up >= -UPRIGHT_COS:
+            return None
+        turned = stand_up(det.camera_T_object[None], up, self._centre[det.object_id])[0]
+        return replace(free, detection=replace(det, camera_T_object=turned))
 
     def _twin(self, free: Candidate, resting: Sequence[Candidate]) -> Candidate | None:
         """The best resting candidate of the same object (one whose frame has an up: not a captured
