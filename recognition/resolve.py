@@ -4,7 +4,8 @@ Best candidates first (``rank``; a free candidate right after a twin resting on 
 fits about as well: both fitted the same surface, and the resting reading is the physical one),
 each object is in the frame once and each part of the scene is one object: a candidate is taken
 if verification accepts it, judged against the whole frame from the camera's viewpoint
-(``recognition.verify``), and no pixel it explains is already another object's. Standing or
+(``recognition.verify``), and no pixel it explains is already another object's; a free candidate
+found upside down is judged turned upright first, the same reading of a symmetric shape. Standing or
 lying, nothing hovers: a candidate must rest on the support or on an object taken under it, so one
 that does not yet waits for another pass. Then two rules on what was taken: a match explaining
 only part of its cluster stands only beside another object found in that cluster, and an upright
@@ -122,7 +123,7 @@ class Resolver:
         """A free candidate of an object standing on its base, found upside down (world up, camera
         frame, known from the frame's other stances), turned upright about its centre: a symmetric
         shape fits both ways, and the frame tells them apart only if the object is not symmetric, so
-        this reading is verified first (the upside-down one only if it fails). None when not upside down."""
+        this reading is verified first (the upside-down one only if it fails). None otherwise."""
         det = free.detection
         if up is None or free.stance.up is not None or not self.db.models[det.object_id].stands_on_z:
             return None

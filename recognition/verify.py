@@ -171,7 +171,8 @@ class Verdict:
     @property
     def facing_share(self) -> float:
         """Share of the model's pixels where its nearest surface faces the camera (1 with none)."""
-        return self.visible / max(self.visible + self.backfacing, 1) if self.visible + self.backfacing else 1.0
+        total = self.visible + self.backfacing
+        return self.visible / total if total else 1.0
 
     @property
     def clutter(self) -> float:

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from recognition.align import RAN_OFF, Surface, _fit, facing_camera, icp_pass, refine_icp
+from recognition.align import RAN_OFF, Surface, facing_camera, fit_at, icp_pass, refine_icp
 from recognition.cloud import estimate_normals
 from schemas.geometry import make_pose
 
 #: A Kinect's depth noise, one sigma at 1 m (m; it grows with z^2).
 SIGMA_1M = 0.0015
-#: Held: the fit ends within this of the true position (m), a third of a sigma of depth at 0.9 m.
+#: Held: the fit ends within this of the true position (m), an eighth of the cylinder's radius.
 HELD_M = 0.005
 
 
@@ -49,7 +49,7 @@ def test_the_fine_fit_holds_a_small_curved_surface_where_open3ds_runs_off() -> N
         surface = measured(truth, rng)
         facing = facing_camera(model_points, model_normals, truth)[0]
         open3d = icp_pass(model_points[facing], surface, truth, 0.015, 15)
-        if open3d.fitness >= _fit(model_points[facing], surface, truth, 0.015)[0] - RAN_OFF:
+        if open3d.fitness >= fit_at(model_points[facing], surface, truth, 0.015)[0] - RAN_OFF:
             continue
         ran_off += 1
         fit = refine_icp(model_points, model_normals, surface, truth, 0.015, 15)
