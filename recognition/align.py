@@ -9,6 +9,7 @@ the projected length), and circularly cross-correlate the scene's histogram with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -147,12 +148,12 @@ def facing_camera(model_points: np.ndarray, model_normals: np.ndarray, camera_T_
 
 @dataclass(frozen=True)
 class Surface:
-    """What ICP aligns a model onto: scene points (N, 3, camera frame, m) with unit normals (N, 3),
-    their index and the same as an Open3D cloud, built once for every fit onto them."""
+    """What ICP aligns a model onto: scene points (N, 3, camera frame, m) with unit normals (N, 3)
+    and the same as an Open3D cloud, built once for every fit onto them; their index is built when
+    first asked for (Open3D's ICP alone, as the fused refit runs it, never does)."""
 
     points: np.ndarray
     normals: np.ndarray
-    index: PointIndex
     cloud: o3d.geometry.PointCloud
 
     @classmethod
@@ -161,7 +162,11 @@ class Surface:
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         cloud = _cloud(points)
         cloud.normals = o3d.utility.Vector3dVector(normals)
-        return cls(points, normals, PointIndex(points), cloud)
+        return cls(points, normals, cloud)
+
+    @cached_property
+    def index(self) -> PointIndex:
+        return PointIndex(self.points)
 
 
 def icp_pass(
