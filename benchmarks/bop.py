@@ -39,7 +39,7 @@ carton is no BOP model: it is one captured view, and a BOP model is the whole su
 ``benchmarks.recognition`` finds it.) The frames (the lying ones aside) once more with six
 look-alike models in the database, never in a frame (``LOOKALIKES``: boxes and cans of other sizes,
 the crate and the can in other colours; not with ``--quick``): ``..._lookalikes``. And a dataset of
-objects that are no box or cylinder (``shapes``: a mug, a duck, a drill, a cone; 3 layouts from
+objects that are no box or cylinder (``drivers.sim.shapes``: a mug, a duck, a drill, a cone; 3 layouts from
 the cell and from close, not with ``--quick``): ``bop_shapes_...``. So the reader,
 the model build from files in millimetres and the scoring run on every change, and a held-back
 dataset is one flag away.
@@ -58,7 +58,6 @@ from pathlib import Path
 from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visible_share  # pins this process to one core first
 
 import numpy as np  # noqa: E402
-import open3d as o3d  # noqa: E402
 from rich.progress import track  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
@@ -67,6 +66,7 @@ from cellsight.config import load_config  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
+from drivers.sim.shapes import shapes  # noqa: E402
 from recognition.cloud import read_coloured_cloud  # noqa: E402
 from recognition.config import RecognitionConfig  # noqa: E402
 from recognition.models import VIEW_DISTANCES_M, ModelDatabase, model_from_mesh  # noqa: E402
@@ -79,7 +79,7 @@ NEAR_M = 1.2  # instances nearer the camera than this (m) are scored apart too (
 REAL_FRAMES = ("milk_cartoon_all_small_clorox.pcd", "office1.pcd", "five_people.pcd",
                *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))
 KINECT_F = 525.0  # the PCL frames' focal length, px (data README)
-#: The pass on objects that are no box or cylinder (``shapes``; not with --quick): its layouts, and
+#: The pass on objects that are no box or cylinder (``drivers.sim.shapes``; not with --quick): its layouts, and
 #: the figures it reports, named bop_shapes_...
 SHAPE_LAYOUTS = 3
 SHAPE_FIGURES = ("bop_instances_scored", "bop_adds_recall", "bop_adds_recall_near", "bop_adds_recall_far", "bop_false_detections",
@@ -120,34 +120,6 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
         base = T[:2, 3] + 0.5 * o.size[2] * np.array([-np.sin(yaw), np.cos(yaw)])
         objects.append(o.laid_on_side((base[0], base[1]), np.degrees(yaw), T[2, 3]))
     return s.model_copy(update={"objects": objects})
-
-
-def shapes(folder: Path) -> list[ObjectSpec]:
-    """Objects that are no box or cylinder, their meshes written to ``folder`` (m, base centre at
-    the origin, z up): a mug (a 4 cm can and its ring handle), a duck (two spheres and a beak), a
-    drill (a handle under a 20 cm body that overhangs it) and a cone, 9-20 cm, as public datasets'
-    objects are."""
-    def turned(mesh: o3d.geometry.TriangleMesh, axis: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
-        return mesh.rotate(o3d.geometry.get_rotation_matrix_from_axis_angle(np.radians(90.0) * np.asarray(axis)), center=(0, 0, 0))
-
-    make = o3d.geometry.TriangleMesh
-    meshes = {
-        "mug": (make.create_cylinder(0.04, 0.10, 32).translate([0, 0, 0.05])
-                + turned(make.create_torus(0.03, 0.008, 24, 12), (1, 0, 0)).translate([0.045, 0, 0.05]), (0.9, 0.25, 0.2)),
-        "duck": (make.create_sphere(0.045, 20).translate([0, 0, 0.045]) + make.create_sphere(0.028, 16).translate([0.035, 0, 0.105])
-                 + turned(make.create_cone(0.012, 0.03, 16), (0, 1, 0)).translate([0.06, 0, 0.105]), (0.95, 0.85, 0.1)),
-        "drill": (make.create_cylinder(0.018, 0.12, 24).translate([0, 0, 0.06])
-                  + make.create_box(0.20, 0.06, 0.07).translate([-0.05, -0.03, 0.12]), (0.2, 0.6, 0.3)),
-        "cone": (make.create_cone(0.045, 0.13, 32), (0.2, 0.35, 0.85)),
-    }  # fmt: skip
-    out = []
-    for name, (mesh, colour) in meshes.items():
-        path = folder / f"{name}.ply"
-        o3d.io.write_triangle_mesh(str(path), mesh.compute_vertex_normals())
-        lo, hi = mesh.get_min_bound(), mesh.get_max_bound()
-        size = (2 * max(-lo[0], hi[0]), 2 * max(-lo[1], hi[1]), hi[2])
-        out.append(ObjectSpec(id=name, shape="mesh", mesh=path, size=tuple(float(v) for v in size), color=colour))
-    return out
 
 
 def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec] | None = None) -> Path:
