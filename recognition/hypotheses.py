@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recognition.align import (
-    ImageBounds, IcpResult, Surface, align_to_z, facing_camera, icp_pass, refine_icp, roll_correlations, roll_peaks, rot_z,
-    views_to_scene,
+    RAN_OFF, ImageBounds, IcpResult, Surface, align_to_z, damped_icp, facing_camera, icp_pass, refine_icp,
+    roll_correlations, roll_peaks, rot_z, views_to_scene,
 )
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
@@ -82,6 +82,7 @@ class Detection:
     rmse_m: float
     points: int  # scene points the model explains
     from_prior: bool = False
+    needs_colour: bool = False  # only damped steps reached it (``Matcher.score``): taken only with its colour judged
 
 
 @dataclass(frozen=True)
@@ -111,6 +112,7 @@ class SceneCloud:
     graph: PointGraph
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
     image: ImageBounds | None = None  # the image an organised cloud was measured in
+    coloured: bool = False  # the frame has colour: a screen with damped steps is tried (``Matcher.score``)
     #: Each part's descriptor, chosen views and target, by its point indices' bytes: every stance a
     #: frame is tried in matches the same parts (``Matcher._looks``).
     looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
@@ -125,10 +127,11 @@ class Target:
     points: np.ndarray
     surface: Surface
     image: ImageBounds | None = None  # model points landing outside it are not looked for
+    coloured: bool = False  # the frame has colour (``SceneCloud.coloured``)
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
-        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image)
+        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image, scene.coloured)
 
     @property
     def index(self) -> PointIndex:
@@ -269,7 +272,9 @@ class Matcher:
         rest: np.ndarray | None = None,
     ) -> tuple[Detection, np.ndarray] | None:
         """Coarse ICP from each start onto the cluster, fine ICP from the best few; the best result if
-        it passes the acceptance tests, with the mask of the cluster points it explains.
+        it passes the acceptance tests, with the mask of the cluster points it explains. If none
+        does, in a frame with colour and for a model with colours, the start Open3D's steps ran off
+        from with the most overlap is screened again with damped ones (``Detection.needs_colour``).
 
         up: world up in the camera frame (None: no upright test; nor for a model from a captured cloud,
         whose frame is its camera's, not the object's). turns: with ``up``, also try the start
@@ -299,17 +304,44 @@ class Matcher:
             shares = np.r_[shares, self._overlap(sparse_points, turned_facings, turned, target.index)]
             poses, facings = np.concatenate([poses, turned]), np.concatenate([facings, turned_facings])
             keep = np.argsort(-shares, kind="stable")[:ICP_STARTS]
-            poses, facings = poses[keep], facings[keep]
+            poses, facings, shares = poses[keep], facings[keep], shares[keep]
         elif len(poses) > ICP_STARTS:
-            keep = np.argsort(-self._overlap(sparse_points, facings, poses, target.index), kind="stable")[:ICP_STARTS]
-            poses, facings = poses[keep], facings[keep]
-        screened: list[IcpResult] = []
-        for start, facing in zip(poses, facings):
-            res = icp_pass(sparse_points[facing], target.surface, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
-                           max_shift_m=model.diameter_m)
-            if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up):  # else a symmetric shape's mirror image
-                screened.append(res)
-        screened.sort(key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
+            shares = self._overlap(sparse_points, facings, poses, target.index)
+            keep = np.argsort(-shares, kind="stable")[:ICP_STARTS]
+            poses, facings, shares = poses[keep], facings[keep], shares[keep]
+        else:
+            shares = None
+        passes = [icp_pass(sparse_points[facing], target.surface, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
+                           max_shift_m=model.diameter_m) for start, facing in zip(poses, facings)]
+        # Not upright after the pass: a symmetric shape's mirror image.
+        screened = [res for res in passes if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up)]
+        found = self._fine_fit(model, target, screened, up, from_rest, fitness_to_verify, from_prior)
+        if found is not None or not (target.coloured and model.colours is not None):
+            return found
+        # Nothing passed. Open3D's undamped steps run off a small curved patch: the start with the
+        # most overlap they ran off from (fitness RAN_OFF under its share) is screened again with
+        # damped ones (``damped_icp``). What that finds needs its colour judged: on depth alone such
+        # fits took a milk carton for a white roll at 3.2 m.
+        shares = self._overlap(sparse_points, facings, poses, target.index) if shares is None else shares
+        floor = min(c.min_fitness, c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify)
+        ran_off = [k for k, res in enumerate(passes) if res.fitness < shares[k] - RAN_OFF and shares[k] >= floor]
+        if not ran_off:
+            return None
+        k = max(ran_off, key=lambda k: shares[k])
+        damped = damped_icp(sparse_points[facings[k]], target.surface, poses[k], 2.0 * c.icp_distance_m,
+                            SCREEN_ITERATIONS, max_shift_m=model.diameter_m)
+        if damped.fitness <= 0 or not _upright(damped.camera_T_object @ from_rest, up):
+            return None
+        return self._fine_fit(model, target, [damped], up, from_rest, fitness_to_verify, from_prior, needs_colour=True)
+
+    def _fine_fit(
+        self, model: ObjectModel, target: Target, screened: list[IcpResult], up: np.ndarray | None,
+        from_rest: np.ndarray, fitness_to_verify: float | None, from_prior: bool, needs_colour: bool = False,
+    ) -> tuple[Detection, np.ndarray] | None:
+        """The best few screened poses refined with the whole model (``refine_icp``): the best result,
+        with the mask of the target points it explains, if it passes ``score``'s acceptance tests."""
+        c = self.config
+        screened = sorted(screened, key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
         dense_points, dense_normals = self._dense[model.object_id]
         best: IcpResult | None = None
         # A start that explains under min_fitness of the model even at twice the final distance is
@@ -339,7 +371,7 @@ class Matcher:
         if not ok:
             return None
         det = Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m,
-                        int(explained.sum()), from_prior)
+                        int(explained.sum()), from_prior, needs_colour)
         return det, explained
 
     def fragments(self, merged: list[np.ndarray], parts: list[np.ndarray], shed: list[np.ndarray], n_points: int) -> list[np.ndarray]:

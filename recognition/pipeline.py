@@ -128,6 +128,7 @@ class Recognizer:
             return []
         c = self.config
         coloured = view.chroma is not None if view is not None else rgb is not None
+        scene.coloured = coloured
         stances = self._stances(scene.planes, world_T_camera, coloured)
         merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
                                     scene.graph)

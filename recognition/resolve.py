@@ -4,7 +4,8 @@ Best candidates first (``rank``; a free candidate right after a twin resting on 
 fits about as well: both fitted the same surface, and the resting reading is the physical one),
 each object is in the frame once and each part of the scene is one object: a candidate is taken
 if verification accepts it, judged against the whole frame from the camera's viewpoint
-(``recognition.verify``), and no pixel it explains is already another object's; a free candidate
+(``recognition.verify``; one lying on a side, or only damped steps reached, with its colour
+judged), and no pixel it explains is already another object's; a free candidate
 found upside down is judged turned upright first, the same reading of a symmetric shape. Standing or
 lying, nothing hovers: a candidate must rest on the support or on an object taken under it, so one
 that does not yet waits for another pass. Then two rules on what was taken: a match explaining
@@ -153,6 +154,10 @@ class Resolver:
         """Whether verification accepts a hypothesis, its pixels then counted as explained (``pixels``)."""
         c = self.config
         v = self._verdict(view, det, planes)
+        if det.needs_colour and v.colour_judged < MIN_COLOUR_PIXELS:
+            log.debug("%s rejected: only damped steps reached it, and its colour was not judged (%d pixels could be)",
+                      det.object_id, v.colour_judged)  # fmt: skip
+            return False
         if stance.lying and v.colour_judged < MIN_COLOUR_PIXELS:
             log.debug("%s rejected: lying on a side, it needs its colour judged (%d pixels could be)",
                       det.object_id, v.colour_judged)  # fmt: skip
