@@ -198,6 +198,8 @@ class Matcher:
                 part = next(parts)
                 out.extend(Candidate(part, k, det, stance) for det, _ in matches)
                 det, explained = matches[0]
+                if det.needs_colour:
+                    break  # weaker evidence explains nothing away: the rest is stood at pieces whole
                 rest = rest[~explained]
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
@@ -221,7 +223,8 @@ class Matcher:
 
     def match_cluster(self, scene: SceneCloud, idx: np.ndarray, stance: Stance) -> list[tuple[Detection, np.ndarray]]:
         """VFH nearest views -> roll candidates -> ICP: every object's accepted hypothesis standing as
-        ``stance`` says, best first, each with the mask of the cluster points it explains."""
+        ``stance`` says, best first (those only damped steps reached after the rest), each with the
+        mask of the cluster points it explains."""
         if len(self._owners) == 0:
             return []
         desc, chosen, target = self._looks(scene, idx)
@@ -235,7 +238,9 @@ class Matcher:
                                 turns=True, rest=stance.rest)
             if match is not None:
                 matches.append(match)
-        return sorted(matches, key=lambda m: rank(m[0]), reverse=True)
+        # Those only damped steps reached last: the first match is what the cluster's rest is matched
+        # without, and a fit on weaker evidence is not to decide that over one Open3D's steps found.
+        return sorted(matches, key=lambda m: (not m[0].needs_colour, rank(m[0])), reverse=True)
 
     def _looks(self, scene: SceneCloud, idx: np.ndarray) -> tuple[ClusterDescription, dict[str, tuple[list[int], list[float]]], Target]:
         """A part's (``idx`` into the scene's points) descriptor, every object's nearest views with
