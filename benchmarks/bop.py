@@ -38,7 +38,9 @@ symmetric shape's flipped pose as right, a robot reading the object's frame woul
 carton is no BOP model: it is one captured view, and a BOP model is the whole surface;
 ``benchmarks.recognition`` finds it.) The frames (the lying ones aside) once more with six
 look-alike models in the database, never in a frame (``LOOKALIKES``: boxes and cans of other sizes,
-the crate and the can in other colours; not with ``--quick``): ``..._lookalikes``. And a dataset of
+the crate and the can in other colours; not with ``--quick``): ``..._lookalikes``. Once more on
+depth alone, as a sensor or models without colour leave it (``..._depth_only``; a ``--dataset``'s
+too, not the default's with ``--quick``). And a dataset of
 objects that are no box or cylinder (``drivers.sim.shapes``: a mug, a duck, a drill, a cone; 3 layouts from
 the cell and from close, not with ``--quick``): ``bop_shapes_...``. So the reader,
 the model build from files in millimetres and the scoring run on every change, and a held-back
@@ -83,7 +85,8 @@ KINECT_F = 525.0  # the PCL frames' focal length, px (data README)
 #: the figures it reports, named bop_shapes_...
 SHAPE_LAYOUTS = 3
 SHAPE_FIGURES = ("bop_instances_scored", "bop_adds_recall", "bop_adds_recall_near", "bop_adds_recall_far", "bop_false_detections",
-                 "bop_ppf_adds_recall", "bop_adds_recall_camera_frame", "bop_false_detections_camera_frame")
+                 "bop_ppf_adds_recall", "bop_adds_recall_camera_frame", "bop_false_detections_camera_frame",
+                 "bop_adds_recall_depth_only", "bop_false_detections_depth_only")
 #: Models added to the database in a pass of their own (``bop_adds_recall_lookalikes``), never in a
 #: frame: boxes and cans a fifth smaller or larger than the demo's, the crate's and the can's shapes
 #: in other colours. A dataset's database holds such families (YCB-V: four boxes, four cans).
@@ -187,14 +190,14 @@ class Tally:
 
 
 def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
-                db: ModelDatabase, diameter: dict[str, float], progress: str) -> Tally:  # fmt: skip
-    """The frames through ``rec`` with colour, each with its world pose in ``pose_of`` (absent:
-    none), scored; ``progress`` names the pass on its progress bar."""
+                db: ModelDatabase, diameter: dict[str, float], progress: str, colour: bool = True) -> Tally:  # fmt: skip
+    """The frames through ``rec`` with colour (unless not ``colour``: depth alone), each with its
+    world pose in ``pose_of`` (absent: none), scored; ``progress`` names the pass on its progress bar."""
     tally = Tally()
     for frame in track(frames, description=progress):
         cloud, rgb = frame.load()
         t0 = time.perf_counter()
-        found = rec.recognize(cloud, world_T_camera=pose_of.get((frame.scene_id, frame.image_id)), rgb=rgb)
+        found = rec.recognize(cloud, world_T_camera=pose_of.get((frame.scene_id, frame.image_id)), rgb=rgb if colour else None)
         tally.times.append(time.perf_counter() - t0)
         tally.add(frame, [(d.object_id, d.camera_T_object) for d in found], db, diameter)
     return tally
@@ -202,13 +205,14 @@ def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int
 
 def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, ...], cfg: RecognitionConfig,
             lying_scenes: frozenset[int] = frozenset(), world_z_up: bool = False,
-            lookalikes: tuple[ObjectSpec, ...] = ()) -> dict[str, float]:  # fmt: skip
+            lookalikes: tuple[ObjectSpec, ...] = (), depth_only: bool = True) -> dict[str, float]:  # fmt: skip
     """Ours and the point-pair baseline on ``frames`` of the dataset's frames (all if None), the
     database built from its models with views at ``distances_m`` (m): the figures of the module
     docstring; ``bop_adds_recall_lying`` over the scenes in ``lying_scenes``. A frame's world pose is
     used when ``world_z_up`` says the dataset's world has z up, else only if a plane the frame shows
     is level in it (``level_world_pose``; the others: ``bop_frames_world_pose_set_aside``). With
-    ``lookalikes``, the frames but the lying ones once more, those objects' models added."""
+    ``lookalikes``, the frames but the lying ones once more, those objects' models added; with
+    ``depth_only``, once more without their colour (``..._depth_only``)."""
     meshes = {m.object_id: m.path for m in dataset.models.values() if m.is_mesh}
     points = {m.object_id: m.path for m in dataset.models.values() if not m.is_mesh}
     t0 = time.perf_counter()
@@ -226,6 +230,8 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     ours = _recognised(rec, standing, pose_of, db, diameter, "recognising")
     lying = _recognised(rec, [f for f in chosen if f.scene_id in lying_scenes], {}, db, diameter, "lying")
     wide = _with_lookalikes(db, cfg, distances_m, lookalikes, standing, pose_of, diameter) if lookalikes else None
+    # As a sensor without colour, or models without it, leave recognition: shape alone.
+    depth = _recognised(rec, standing, pose_of, db, diameter, "depth alone", colour=False) if depth_only else None
     # The frames with the camera's world pose once more without it, as `cellsight recognize` sees a
     # saved frame: the whole view, the room's floor and walls included.
     alone = _recognised(rec, posed, {}, db, diameter, "camera frame")
@@ -252,6 +258,9 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
         out["bop_false_detections_lookalikes"] = float(wide.false)
         out["bop_frame_ms_p50_lookalikes"] = 1000 * float(np.median(wide.times))
     out["bop_false_detections_per_frame"] = (ours.false + lying.false) / len(chosen)
+    if depth is not None and depth.rows:
+        out["bop_adds_recall_depth_only"] = depth.recall()
+        out["bop_false_detections_depth_only"] = float(depth.false)
     for tally, suffix in ((alone, ""), (alone_level, "_level_support")):
         if tally.rows:
             out[f"bop_adds_recall_camera_frame{suffix}"] = tally.recall()
@@ -313,7 +322,7 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         dataset = BopDataset.open(write_default(Path(tmp) / "demo", layouts, lying))
         out = measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
-                      world_z_up=True, lookalikes=() if quick else LOOKALIKES)  # the cell's world, written here
+                      world_z_up=True, lookalikes=() if quick else LOOKALIKES, depth_only=not quick)  # the cell's world, written here
         if not quick:
             (Path(tmp) / "meshes").mkdir()
             other = BopDataset.open(write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes")))
