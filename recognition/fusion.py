@@ -172,7 +172,7 @@ def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], mo
         model = models.models[o.object_id]
         # Only the points around it (the fit builds its own search tree of the whole target): within
         # its half diameter of its centre (an object frame's origin may be at its base).
-        centre = o.world_T_object[:3, :3] @ model.points.mean(axis=0) + o.world_T_object[:3, 3]
+        centre = o.world_T_object[:3, :3] @ model.centre + o.world_T_object[:3, 3]
         near = pts[np.linalg.norm(pts - centre, axis=1) <= model.diameter_m / 2 + 2 * distance_m]
         if len(near) < 3:
             log.debug("%s: kept its fused pose, no camera's points around it", o.object_id)

@@ -163,7 +163,6 @@ class Matcher:
         self._smallest_piece = int(PIECE_SHARE * self._smallest_model)
         self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
         self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
-        self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
         #: Each whole model's point index, built once: which scene points a pose explains is asked
         #: of every accepted hypothesis, here and in the resolution.
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
@@ -295,7 +294,7 @@ class Matcher:
         # camera_T_object @ from_rest, and back @ to_rest.
         to_rest = make_pose(rest) if rest is not None else np.eye(4)  # rest_T_object
         from_rest = invert_pose(to_rest)
-        centre = to_rest[:3, :3] @ self._centre[model.object_id]  # in the rest frame
+        centre = to_rest[:3, :3] @ model.centre  # in the rest frame
         # Every start gets a cheap coarse ICP with a thinned model; the best few are refined whole.
         sparse_points, sparse_normals = self._sparse[model.object_id]
         poses = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)

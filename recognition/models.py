@@ -92,6 +92,11 @@ class ObjectModel:
         return self.source != "cloud"
 
     @cached_property
+    def centre(self) -> np.ndarray:
+        """The points' mean (3,), object frame, m."""
+        return self.points.mean(axis=0)
+
+    @cached_property
     def diameter_m(self) -> float:
         """Largest distance between two model points (bounded from the axis-aligned box)."""
         lo, hi = self.points.min(axis=0), self.points.max(axis=0)

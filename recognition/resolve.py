@@ -48,7 +48,6 @@ class Resolver:
         self.db = database
         self.config = config
         self._indexes = indexes  # each model's point index (``Matcher.indexes``)
-        self._centre = {oid: mdl.points.mean(axis=0) for oid, mdl in database.models.items()}
 
     def resolve(self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud,
                 clusters: Sequence[np.ndarray]) -> list[Detection]:
@@ -130,7 +129,7 @@ class Resolver:
             return None
         if det.camera_T_object[:3, 2] @ up >= -UPRIGHT_COS:
             return None
-        turned = stand_up(det.camera_T_object[None], up, self._centre[det.object_id])[0]
+        turned = stand_up(det.camera_T_object[None], up, self.db.models[det.object_id].centre)[0]
         return replace(free, detection=replace(det, camera_T_object=turned))
 
     def _twin(self, free: Candidate, resting: Sequence[Candidate]) -> Candidate | None:
@@ -148,7 +147,7 @@ class Resolver:
     def _centre_at(self, det: Detection) -> np.ndarray:
         """The posed model's centre (its points' mean), camera frame (3,)."""
         T = det.camera_T_object
-        return T[:3, :3] @ self._centre[det.object_id] + T[:3, 3]
+        return T[:3, :3] @ self.db.models[det.object_id].centre + T[:3, 3]
 
     def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> bool:
         """Whether verification accepts a hypothesis, its pixels then counted as explained (``pixels``)."""
