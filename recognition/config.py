@@ -167,6 +167,12 @@ class RecognitionConfig(BaseModel):
         description="objects stand on their base (object +z within 45 deg of world up): rejects the flipped poses a "
         "symmetric shape allows; applies once the camera's world pose is known",
     )
+    free_with_pose: bool = Field(
+        default=False,
+        description="with the camera's world pose too, try each object both any way up and standing on the support "
+        "(and lying on its sides, in frames with colour), as stand_on_level does without one: for a dataset's frames, "
+        "whose objects need not stand on their model's +z; a cell's objects stand, so off by default",
+    )
     level_support: bool = Field(
         default=False,
         description="without the camera's world pose (cellsight recognize, a dataset's frames): take the removed plane "

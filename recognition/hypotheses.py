@@ -202,7 +202,7 @@ class Matcher:
                 rest = rest[~explained]
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
-            if support is None or used[k]:
+            if support is None or up is None or used[k]:
                 continue
             # What no match explained may hold objects that stand so close that they merged into one
             # cluster, hiding parts of each other: its descriptor is no object's. Each object is

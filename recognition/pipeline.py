@@ -163,7 +163,8 @@ class Recognizer:
     def _stances(self, planes: np.ndarray, world_T_camera: np.ndarray | None, coloured: bool) -> list[Stance]:
         """How objects may stand in this frame, each tried in turn (``Stance``).
 
-        With the camera's pose: world up, for the upright test (when ``upright``). Without it there
+        With the camera's pose: world up, for the upright test (when ``upright``), every object
+        standing (with ``free_with_pose``: tried as below, with the pose's up). Without it there
         is no world up; the removed plane whose normal is nearest the image's up (-y; a camera is
         mounted upright) is a table or a floor, not a wall: with ``level_support`` every object
         stands on it, with ``stand_on_level`` objects are tried both free and standing on it, and
@@ -173,17 +174,21 @@ class Recognizer:
         """
         c = self.config
         if world_T_camera is not None:
-            up = world_T_camera[2, :3].copy() if c.upright else None
-            return [Stance(up, support_plane(planes, up) if c.verify else None)]
-        if not (c.upright and len(planes) and (c.level_support or c.stand_on_level)):
+            level = world_T_camera[2, :3].copy() if c.upright else None
+            support = support_plane(planes, level) if c.verify else None
+            if not (c.free_with_pose and level is not None):
+                return [Stance(level, support)]
+        elif c.upright and len(planes) and (c.level_support or c.stand_on_level):
+            unit = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+            level = unit[np.argmax(-unit[:, 1])]
+            support = support_plane(planes, level) if c.verify else None
+            if c.level_support:
+                return [Stance(level, support)]
+        else:
             return [Stance(None, None)]
-        unit = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-        level = unit[np.argmax(-unit[:, 1])]
-        support = support_plane(planes, level) if c.verify else None
-        if c.level_support:
-            return [Stance(level, support)]
         lying = [Stance(level, support, rest) for rest in RESTS] if c.rest_on_sides and coloured else []
-        return [Stance(None, None), Stance(level, support), *lying]
+        # With a pose the support is known: a free object rests on it too (nothing hovers).
+        return [Stance(None, support if world_T_camera is not None else None), Stance(level, support), *lying]
 
     def seen_through(self, view: DepthView, object_id: str, camera_T_object: np.ndarray) -> Verdict | None:
         """Another camera's judgement of a detection: the verdict of the object posed in that camera's
