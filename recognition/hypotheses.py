@@ -89,7 +89,7 @@ class Detection:
 class Stance:
     """How objects stand in a frame: world up in the camera frame (3,) for the upright test (None:
     any way up), the level plane they rest on (a, b, c, d; unit normal towards the camera; None: no
-    rest test and no pieces path), and the side they rest on: ``rest`` (3, 3) turns the object's
+    rest test; the pieces path needs it and ``up``), and the side they rest on: ``rest`` (3, 3) turns the object's
     frame so that the side's outward normal is -z (identity: standing on its base)."""
 
     up: np.ndarray | None
@@ -324,8 +324,8 @@ class Matcher:
             return found
         # Nothing passed. Open3D's undamped steps run off a small curved patch: the start with the
         # most overlap they ran off from (fitness RAN_OFF under its share) is screened again with
-        # damped ones (``damped_icp``). What that finds needs its colour judged: on depth alone such
-        # fits took a milk carton for a white roll at 3.2 m.
+        # damped ones (``damped_icp``). What that finds needs its colour judged: without it such fits
+        # took the milk carton (a model without colour) for a white roll at 3.2 m.
         shares = self._overlap(sparse_points, facings, poses, target.index) if shares is None else shares
         floor = min(c.min_fitness, c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify)
         ran_off = [k for k, res in enumerate(passes) if res.fitness < shares[k] - RAN_OFF and shares[k] >= floor]
