@@ -319,7 +319,8 @@ class Matcher:
                            max_shift_m=model.diameter_m) for start, facing in zip(poses, facings)]
         # Not upright after the pass: a symmetric shape's mirror image.
         screened = [res for res in passes if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up)]
-        found = self._fine_fit(model, target, screened, up, from_rest, fitness_to_verify, from_prior)
+        shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
+        found = self._fine_fit(model, target, screened, up, from_rest, shared_fitness, from_prior)
         if found is not None or not (target.coloured and model.colours is not None):
             return found
         # Nothing passed. Open3D's undamped steps run off a small curved patch: the start with the
@@ -327,7 +328,7 @@ class Matcher:
         # damped ones (``damped_icp``). What that finds needs its colour judged: without it such fits
         # took the milk carton (a model without colour) for a white roll at 3.2 m.
         shares = self._overlap(sparse_points, facings, poses, target.index) if shares is None else shares
-        floor = min(c.min_fitness, c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify)
+        floor = min(c.min_fitness, shared_fitness)  # as the fine fit's: a start under it is not refined
         ran_off = [k for k, res in enumerate(passes) if res.fitness < shares[k] - RAN_OFF and shares[k] >= floor]
         if not ran_off:
             return None
@@ -336,14 +337,15 @@ class Matcher:
                             SCREEN_ITERATIONS, max_shift_m=model.diameter_m)
         if damped.fitness <= 0 or not _upright(damped.camera_T_object @ from_rest, up):
             return None
-        return self._fine_fit(model, target, [damped], up, from_rest, fitness_to_verify, from_prior, needs_colour=True)
+        return self._fine_fit(model, target, [damped], up, from_rest, shared_fitness, from_prior, needs_colour=True)
 
     def _fine_fit(
         self, model: ObjectModel, target: Target, screened: list[IcpResult], up: np.ndarray | None,
-        from_rest: np.ndarray, fitness_to_verify: float | None, from_prior: bool, needs_colour: bool = False,
+        from_rest: np.ndarray, shared_fitness: float, from_prior: bool, needs_colour: bool = False,
     ) -> tuple[Detection, np.ndarray] | None:
         """The best few screened poses refined with the whole model (``refine_icp``): the best result,
-        with the mask of the target points it explains, if it passes ``score``'s acceptance tests."""
+        with the mask of the target points it explains, if it passes ``score``'s acceptance tests
+        (shared_fitness: what a match on a cluster several objects share needs)."""
         c = self.config
         screened = sorted(screened, key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
         dense_points, dense_normals = self._dense[model.object_id]
@@ -351,7 +353,6 @@ class Matcher:
         # A start that explains under min_fitness of the model even at twice the final distance is
         # not refined: no refined start from that low has passed in the benchmark's frames.
         refined: list[np.ndarray] = []
-        shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
         floor = min(c.min_fitness, shared_fitness)
         for coarse in [r for r in screened[:REFINED_STARTS] if r.fitness >= floor]:
             if any(_same_pose(coarse.camera_T_object, done) for done in refined):
