@@ -40,6 +40,10 @@ TOPPED_SHARE = 0.05
 TWIN_SHARE = 0.97
 TWIN_M = 0.02
 
+#: Of two objects' candidates that verification accepts on the same pixels, one is taken only if it
+#: explains at least this many times as many of them as the other (``Resolver._contest``).
+RIVAL_SHARE = 1.5
+
 
 class Resolver:
     """The joint resolution of candidates for a model database's objects."""
@@ -91,16 +95,16 @@ class Resolver:
                     waiting.append(cand)
                     continue
                 # Judged only once it could be taken: most frames hold candidates for objects already found.
-                if view is not None and (upright := self._upright_twin(cand, up)) is not None:
-                    if self._verified(view, upright.detection, stance, planes, pixels):
-                        log.debug("%s found upside down: reported upright, which the frame holds as well", det.object_id)
-                        cand, det = upright, upright.detection
-                    elif not self._verified(view, det, stance, planes, pixels):
+                if view is not None:
+                    if (judged := self._judged(cand, up, view, planes, pixels)) is None:
                         continue
-                elif view is not None and not self._verified(view, det, stance, planes, pixels):
-                    continue
+                    if (won := self._contest(judged, pending, found, below, up, view, planes, pixels)) is None:
+                        taken.add(cand.part)  # which object it is cannot be told: nothing is reported from it
+                        continue
+                    cand, v = won
+                    pixels.admit(v)
                 taken.add(cand.part)
-                found[det.object_id] = cand
+                found[cand.detection.object_id] = cand
             if len(found) == before:
                 for cand in waiting:
                     log.debug("%s rejected: it floats above the support with nothing found under it",
@@ -149,32 +153,75 @@ class Resolver:
         T = det.camera_T_object
         return T[:3, :3] @ self.db.models[det.object_id].centre + T[:3, 3]
 
-    def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> bool:
-        """Whether verification accepts a hypothesis, its pixels then counted as explained (``pixels``)."""
+    def _judged(self, cand: Candidate, up: np.ndarray | None, view: DepthView, planes: np.ndarray,
+                pixels: Explained) -> tuple[Candidate, Verdict] | None:  # fmt: skip
+        """The candidate and its verdict if verification accepts it (a free one found upside down
+        turned upright first, ``_upright_twin``), else None; its pixels are not yet explained."""
+        if (upright := self._upright_twin(cand, up)) is not None:
+            if (v := self._verified(view, upright.detection, cand.stance, planes, pixels)) is not None:
+                log.debug("%s found upside down: reported upright, which the frame holds as well", cand.detection.object_id)
+                return upright, v
+        v = self._verified(view, cand.detection, cand.stance, planes, pixels)
+        return None if v is None else (cand, v)
+
+    def _contest(self, judged: tuple[Candidate, Verdict], pending: Sequence[Candidate], found: dict[str, Candidate],
+                 below: list[Detection], up: np.ndarray | None, view: DepthView, planes: np.ndarray,
+                 pixels: Explained) -> tuple[Candidate, Verdict] | None:  # fmt: skip
+        """Of ``judged`` and its rivals (each other object's best-ranked candidate on the same part
+        that verification accepts, competing for the same pixels: ``Explained.competing``), the one
+        explaining at least RIVAL_SHARE times as many of the scene's pixels as each other; None if
+        none does: two shapes fit what the sensor saw about as well, and which it is cannot be told."""
+        cand = judged[0]
+        contenders, tried = [judged], {cand.detection.object_id}
+        for other in pending:
+            det = other.detection
+            if other.part != cand.part or det.object_id in tried or det.object_id in found:
+                continue
+            if other.stance.support is not None and self.config.max_float_m > 0 and not self.rests(det, below, other.stance.support):
+                continue
+            if (rival := self._judged(other, up, view, planes, pixels)) is None:
+                continue
+            tried.add(det.object_id)
+            if pixels.competing(judged[1], rival[1]):
+                contenders.append(rival)
+        if len(contenders) == 1:
+            return judged
+        best, second = sorted(contenders, key=lambda c: len(c[1].pixels), reverse=True)[:2]
+        if len(best[1].pixels) >= RIVAL_SHARE * len(second[1].pixels):
+            if best is not judged:
+                log.debug("%s taken for %s: it explains %d pixels of the part, against %d", best[0].detection.object_id,
+                          cand.detection.object_id, len(best[1].pixels), len(judged[1].pixels))  # fmt: skip
+            return best
+        log.debug("%s and %s fit the same pixels about as well (%d and %d): neither is reported", best[0].detection.object_id,
+                  second[0].detection.object_id, len(best[1].pixels), len(second[1].pixels))  # fmt: skip
+        return None
+
+    def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> Verdict | None:
+        """The hypothesis's verdict if verification accepts it, else None (``pixels``: those explained so far)."""
         c = self.config
         v = self._verdict(view, det, planes)
         if det.needs_colour and v.colour_judged < MIN_COLOUR_PIXELS:
             log.debug("%s rejected: only damped steps reached it, and its colour was not judged (%d pixels could be)",
                       det.object_id, v.colour_judged)  # fmt: skip
-            return False
+            return None
         if stance.lying and v.colour_judged < MIN_COLOUR_PIXELS:
             log.debug("%s rejected: lying on a side, it needs its colour judged (%d pixels could be)",
                       det.object_id, v.colour_judged)  # fmt: skip
-            return False
+            return None
         seen = pixels.support(v)
         if not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
                 and v.facing_share >= c.min_facing_share and v.clutter <= c.max_clutter
                 and v.outline_seen >= c.min_outline_seen and v.penetration <= c.max_penetration
                 and v.colour_agreement >= c.min_colour_agreement and v.shape_error <= c.max_shape_error
-                and pixels.admit(v)):  # fmt: skip
+                and pixels.admits(v)):  # fmt: skip
             log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
                       "pixels, %d seen through), facing %.2f (%d pixels seen from behind), clutter %.2f, outline seen "
                       "%.2f (of %d pixels), inside a support %.3f, colour %.2f (of %d pixels), shape error %.1f sigma",
                       det.object_id, v.fitness, seen, v.inliers, v.visible, v.violations, v.facing_share, v.backfacing,
                       v.clutter, v.outline_seen, v.outline, v.penetration, v.colour_agreement, v.colour_judged,
                       v.shape_error)  # fmt: skip
-            return False
-        return True
+            return None
+        return v
 
     def _alone(self, cand: Candidate, found: Iterable[Candidate]) -> bool:
         """Whether a candidate explains under min_coverage of its cluster with no other object found there."""

@@ -418,13 +418,22 @@ class Explained:
         behind_found = len(self.pixels.intersection(v.hidden.tolist()))
         return v.inliers / max(v.visible - behind_found, 1)
 
+    def admits(self, v: Verdict) -> bool:
+        """Whether at most ``max_shared`` of ``v``'s inlier pixels are already explained (more: it
+        competes for the same surface with a better hypothesis and loses)."""
+        return len(self.pixels.intersection(v.pixels.tolist())) <= self.max_shared * max(len(v.pixels), 1)
+
+    def competing(self, a: Verdict, b: Verdict) -> bool:
+        """Whether two hypotheses compete for the same surface: more than ``max_shared`` of the
+        fewer's inlier pixels are the other's too."""
+        shared = len(np.intersect1d(a.pixels, b.pixels))
+        return shared > self.max_shared * max(min(len(a.pixels), len(b.pixels)), 1)
+
     def admit(self, v: Verdict) -> bool:
-        """Accept ``v`` unless more than ``max_shared`` of its inlier pixels are already explained
-        (it then competes for the same surface with a better hypothesis and loses)."""
-        mine = v.pixels.tolist()
-        if len(self.pixels.intersection(mine)) > self.max_shared * max(len(mine), 1):
+        """Accept ``v`` if it ``admits`` it, its inlier pixels then explained."""
+        if not self.admits(v):
             return False
-        self.pixels.update(mine)
+        self.pixels.update(v.pixels.tolist())
         return True
 
 

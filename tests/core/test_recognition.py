@@ -778,6 +778,33 @@ def test_a_curved_object_open3ds_steps_run_off_is_found_by_damped_ones_and_its_c
     assert adds_m(model.points, found[0].camera_T_object, truth) < 0.1 * model.diameter_m
 
 
+def test_on_depth_alone_a_shape_another_fits_as_well_is_not_reported_as_that_other(tmp_path: Path) -> None:
+    """The duck (``drivers.sim.shapes``) alone on the table, seen from cam1 ~2 m away without
+    colour, the four shapes in the database: at that range the cone's fit, ranked first, verifies
+    on the duck's pixels too. Of two objects that verification accepts on the same pixels, one is
+    taken only if it explains half as many again: the duck, or nothing, never the cone."""
+    from cellsight.bop import adds_m
+    from drivers.sim.render import SimCell, object_mesh
+    from drivers.sim.scenario import load_scenario
+    from drivers.sim.shapes import shapes
+    from schemas.spec import PoseSpec
+
+    objects = shapes(tmp_path)
+    duck = next(o for o in objects if o.id == "duck")
+    duck = duck.still().model_copy(update={"pose": PoseSpec(position=(-0.162, 0.109, 0.75), rpy_deg=(0.0, 0.0, 195.0))})
+    base = load_scenario()
+    scenario = base.model_copy(update={"objects": [duck], "markers": [m for m in base.markers if m.object is None]})
+    cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
+    meshes = {o.id: object_mesh(o).paint_uniform_color(o.color) for o in objects}
+    db = ModelDatabase(cfg.descriptor, {oid: model_from_mesh(oid, mesh, cfg.descriptor) for oid, mesh in meshes.items()})
+    frame = SimCell(scenario).render("cam1", 0.0, 5)
+    truth = invert_pose(frame.world_T_camera) @ duck.world_T_object(0.0)
+    found = Recognizer(db, cfg).recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera)
+    assert [d.object_id for d in found] in ([], ["duck"])
+    for d in found:
+        assert adds_m(db.models["duck"].points, d.camera_T_object, truth) < 0.1 * db.models["duck"].diameter_m
+
+
 def test_with_free_with_pose_an_object_not_standing_on_its_base_is_found_in_a_posed_frame(tmp_path: Path) -> None:
     """The cone (``drivers.sim.shapes``) lying on its side, its model's +z level, seen by a camera
     whose world pose is known, as a dataset's frame may be: the cell's reading (every object stands

@@ -70,6 +70,7 @@ def test_a_pixel_explains_one_object() -> None:
     b = verdict(view, points, normals, make_pose(t=[0.02, 0.0, 1.0]), TOL, NOISE)  # mostly the same surface
     c = verdict(view, points, normals, make_pose(t=[0.4, 0.0, 1.0]), TOL, NOISE)  # beside it
     explained = Explained()  # in order, best first
+    assert explained.competing(a, b) and not explained.competing(a, c)
     assert [explained.admit(v) for v in (a, b, c)] == [True, False, True]
 
 
