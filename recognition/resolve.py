@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
 from recognition.hypotheses import UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, stand_up
 from recognition.models import ModelDatabase
-from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, verdict
+from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, cluster_labels, hidden_apart, verdict
 from schemas.geometry import invert_pose
 
 log = logging.getLogger(__name__)
@@ -46,6 +46,18 @@ TWIN_M = 0.02
 RIVAL_SHARE = 1.5
 
 
+@dataclass
+class Evidence:
+    """What a frame's hypotheses are judged against: its depth view, the planes removed from it
+    (rows a, b, c, d, camera frame), each view pixel's cluster (``cluster_labels``) and the pixels
+    the objects taken so far explain."""
+
+    view: DepthView
+    planes: np.ndarray
+    labels: np.ndarray
+    pixels: Explained = field(default_factory=Explained)
+
+
 class Resolver:
     """The joint resolution of candidates for a model database's objects."""
 
@@ -58,7 +70,8 @@ class Resolver:
                 clusters: Sequence[np.ndarray]) -> list[Detection]:
         """The detections the frame holds, by object id: of ``candidates`` fitted in ``scene`` (its
         ``clusters`` as indices into its points), those verified against ``view`` (None: not verified)."""
-        found = self._take(candidates, view, scene.planes)
+        evidence = None if view is None else Evidence(view, scene.planes, cluster_labels(view, scene.points, clusters))
+        found = self._take(candidates, evidence)
         # A match explaining only part of its cluster was kept for touching objects: it stands only
         # if another object was found in the same cluster. Alone, it is a shape that fits a piece of
         # some larger unknown surface (a carton's faces on a person, on a cabinet).
@@ -73,14 +86,13 @@ class Resolver:
                 del found[oid]
         return sorted((cand.detection for cand in found.values()), key=lambda d: d.object_id)
 
-    def _take(self, candidates: Sequence[Candidate], view: DepthView | None, planes: np.ndarray) -> dict[str, Candidate]:
+    def _take(self, candidates: Sequence[Candidate], evidence: Evidence | None) -> dict[str, Candidate]:
         """The candidates taken, by object id: best first, so that a part two objects fit goes to the
         one not found better elsewhere. A hypothesis the frame contradicts never takes a part, and a
-        pixel explains one object."""
+        pixel explains one object (None: nothing is verified)."""
         c = self.config
         found: dict[str, Candidate] = {}
         taken: set[int] = set()
-        pixels = Explained()
         # Objects rest on the support or on an object found under them (``rests``): one that does
         # not yet waits for another pass, in case what it stands on is found after it.
         pending = self._ordered(candidates)
@@ -96,14 +108,14 @@ class Resolver:
                     waiting.append(cand)
                     continue
                 # Judged only once it could be taken: most frames hold candidates for objects already found.
-                if view is not None:
-                    if (judged := self._judged(cand, up, view, planes, pixels)) is None:
+                if evidence is not None:
+                    if (judged := self._judged(cand, up, evidence)) is None:
                         continue
-                    if (won := self._contest(judged, pending, found, below, up, view, planes, pixels)) is None:
+                    if (won := self._contest(judged, pending, found, below, up, evidence)) is None:
                         taken.add(cand.part)  # which object it is cannot be told: nothing is reported from it
                         continue
                     cand, v = won
-                    pixels.admit(v)
+                    evidence.pixels.admit(v)
                 taken.add(cand.part)
                 found[cand.detection.object_id] = cand
             if len(found) == before:
@@ -154,20 +166,20 @@ class Resolver:
         T = det.camera_T_object
         return T[:3, :3] @ self.db.models[det.object_id].centre + T[:3, 3]
 
-    def _judged(self, cand: Candidate, up: np.ndarray | None, view: DepthView, planes: np.ndarray,
-                pixels: Explained) -> tuple[Candidate, Verdict] | None:  # fmt: skip
+    def _judged(self, cand: Candidate, up: np.ndarray | None, evidence: Evidence) -> tuple[Candidate, Verdict] | None:
         """The candidate and its verdict if verification accepts it (a free one found upside down
         turned upright first, ``_upright_twin``), else None; its pixels are not yet explained."""
         if (upright := self._upright_twin(cand, up)) is not None:
-            if (v := self._verified(view, upright.detection, cand.stance, planes, pixels)) is not None:
-                log.debug("%s found upside down: reported upright, which the frame holds as well", cand.detection.object_id)
+            if (v := self._verified(upright.detection, cand.stance, evidence)) is not None:
+                log.debug("%s found upside down: reported upright, which the frame holds as well",
+                          cand.detection.object_id)
                 return upright, v
-        v = self._verified(view, cand.detection, cand.stance, planes, pixels)
+        v = self._verified(cand.detection, cand.stance, evidence)
         return None if v is None else (cand, v)
 
     def _contest(self, judged: tuple[Candidate, Verdict], pending: Sequence[Candidate], found: dict[str, Candidate],
-                 below: list[Detection], up: np.ndarray | None, view: DepthView, planes: np.ndarray,
-                 pixels: Explained) -> tuple[Candidate, Verdict] | None:  # fmt: skip
+                 below: list[Detection], up: np.ndarray | None,
+                 evidence: Evidence) -> tuple[Candidate, Verdict] | None:  # fmt: skip
         """Of ``judged`` and its rivals (each other object's best-ranked candidate on the same part
         that verification accepts, competing for the same pixels: ``Explained.competing``), the one
         explaining at least RIVAL_SHARE times as many of the scene's pixels as each other; None if
@@ -178,12 +190,13 @@ class Resolver:
             det = other.detection
             if other.part != cand.part or det.object_id in tried or det.object_id in found:
                 continue
-            if other.stance.support is not None and self.config.max_float_m > 0 and not self.rests(det, below, other.stance.support):
+            support = other.stance.support
+            if support is not None and self.config.max_float_m > 0 and not self.rests(det, below, support):
                 continue
-            if (rival := self._judged(other, up, view, planes, pixels)) is None:
+            if (rival := self._judged(other, up, evidence)) is None:
                 continue
             tried.add(det.object_id)
-            if pixels.competing(judged[1], rival[1]):
+            if evidence.pixels.competing(judged[1], rival[1]):
                 contenders.append(rival)
         if len(contenders) == 1:
             return judged
@@ -193,14 +206,15 @@ class Resolver:
                 log.debug("%s taken for %s: it explains %d pixels of the part, against %d", best[0].detection.object_id,
                           cand.detection.object_id, len(best[1].pixels), len(judged[1].pixels))  # fmt: skip
             return best
-        log.debug("%s and %s fit the same pixels about as well (%d and %d): neither is reported", best[0].detection.object_id,
-                  second[0].detection.object_id, len(best[1].pixels), len(second[1].pixels))  # fmt: skip
+        log.debug("%s and %s fit the same pixels about as well (%d and %d): neither is reported",
+                  best[0].detection.object_id, second[0].detection.object_id, len(best[1].pixels),
+                  len(second[1].pixels))  # fmt: skip
         return None
 
-    def _verified(self, view: DepthView, det: Detection, stance: Stance, planes: np.ndarray, pixels: Explained) -> Verdict | None:
-        """The hypothesis's verdict if verification accepts it, else None (``pixels``: those explained so far)."""
-        c = self.config
-        v = self._verdict(view, det, planes)
+    def _verified(self, det: Detection, stance: Stance, evidence: Evidence) -> Verdict | None:
+        """The hypothesis's verdict if verification accepts it, else None."""
+        c, pixels = self.config, evidence.pixels
+        v = self._verdict(evidence.view, det, evidence.planes)
         if det.needs_colour and v.colour_judged < MIN_COLOUR_PIXELS:
             log.debug("%s rejected: only damped steps reached it, and its colour was not judged (%d pixels could be)",
                       det.object_id, v.colour_judged)  # fmt: skip
@@ -209,7 +223,9 @@ class Resolver:
             log.debug("%s rejected: lying on a side, it needs its colour judged (%d pixels could be)",
                       det.object_id, v.colour_judged)  # fmt: skip
             return None
-        seen = pixels.support(v)
+        # With its colour judged, what another cluster hides in front of it is no evidence against
+        # it either: in clutter objects stand behind things no database holds.
+        seen = pixels.support(v, hidden_apart(v, evidence.labels) if v.colour_judged >= MIN_COLOUR_PIXELS else None)
         if not (v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
                 and v.facing_share >= c.min_facing_share and v.clutter <= c.max_clutter
                 and v.outline_seen >= c.min_outline_seen and v.penetration <= c.max_penetration

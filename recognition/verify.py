@@ -51,6 +51,7 @@ A hypothesis is kept when these reach their thresholds (``recognition.config``, 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -412,11 +413,14 @@ class Explained:
         self.max_shared = max_shared
         self.pixels: set[int] = set()
 
-    def support(self, v: Verdict) -> float:
+    def support(self, v: Verdict, apart: np.ndarray | None = None) -> float:
         """``v.support`` with the pixels an accepted object explains in front of it left out of what
-        it should show: the part of an object a found one hides is no evidence against it."""
-        behind_found = len(self.pixels.intersection(v.hidden.tolist()))
-        return v.inliers / max(v.visible - behind_found, 1)
+        it should show: the part of an object a found one hides is no evidence against it. apart:
+        flat indices of pixels something else is known to hide (left out too)."""
+        hidden = self.pixels.intersection(v.hidden.tolist())
+        if apart is not None:
+            hidden.update(apart.tolist())
+        return v.inliers / max(v.visible - len(hidden), 1)
 
     def admits(self, v: Verdict) -> bool:
         """Whether at most ``max_shared`` of ``v``'s inlier pixels are already explained (more: it
@@ -435,6 +439,27 @@ class Explained:
             return False
         self.pixels.update(v.pixels.tolist())
         return True
+
+
+def cluster_labels(view: DepthView, points: np.ndarray, clusters: Sequence[np.ndarray]) -> np.ndarray:
+    """Each view pixel's cluster (H * W,), flat: the index in ``clusters`` (index arrays into
+    ``points`` (N, 3), camera frame) of a point landing there, -1 where none does."""
+    H, W = view.near.shape
+    labels = np.full(H * W, -1, np.int64)
+    for k, idx in enumerate(clusters):
+        u, v, ok = _project(points[idx], view.K, (H, W))
+        labels[(v * W + u)[ok]] = k
+    return labels
+
+
+def hidden_apart(v: Verdict, labels: np.ndarray, own_share: float = 0.25) -> np.ndarray:
+    """Flat indices of ``v``'s hidden pixels where a cluster stands in front other than those
+    holding ``own_share`` or more of its inlier pixels: something separate from the surface it
+    explains (``cluster_labels``; inliers at its edge spill onto what hides it)."""
+    ids, counts = np.unique(labels[v.pixels], return_counts=True)
+    own = ids[counts >= own_share * max(len(v.pixels), 1)]
+    in_front = labels[v.hidden]
+    return v.hidden[(in_front >= 0) & ~np.isin(in_front, own)]
 
 
 def _project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
