@@ -61,7 +61,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visible_share  # pins this process to one core first
+from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visibility_class, visible_share  # pins this process to one core first
 
 import numpy as np  # noqa: E402
 from rich.progress import track  # noqa: E402
@@ -79,7 +79,6 @@ from recognition.models import VIEW_DISTANCES_M, ModelDatabase, model_from_mesh 
 from recognition.pipeline import Recognizer  # noqa: E402
 from schemas.geometry import invert_pose  # noqa: E402
 
-SCORED, UNOCCLUDED = 0.40, 0.95
 NEAR_M = 1.2  # instances nearer the camera than this (m) are scored apart too (``bop_adds_recall_near``)
 #: PCL's real Kinect frames (organised clouds, fx = fy = 525 px), none holding a demo object.
 REAL_FRAMES = ("milk_cartoon_all_small_clorox.pcd", "office1.pcd", "five_people.pcd",
@@ -309,9 +308,7 @@ def _baseline(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, 
 
 def _class(visible: float | None) -> str | None:
     """The scoring class of an instance by its visible share (None: too hidden to score)."""
-    if visible is None:
-        return "all"
-    return None if visible < SCORED else "unoccluded" if visible >= UNOCCLUDED else "partly_occluded"
+    return "all" if visible is None else visibility_class(visible)
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
