@@ -8,8 +8,8 @@ if verification accepts it, judged against the whole frame from the camera's vie
 judged), and no pixel it explains is already another object's; of two objects accepted on the
 same pixels, one is taken only if it explains RIVAL_SHARE times as many, else neither; a free
 candidate found upside down is judged turned upright first, the same reading of a symmetric shape.
-Standing or lying, nothing hovers: a candidate must rest on the support or on an object taken under it, so one
-that does not yet waits for another pass. Then two rules on what was taken: a match explaining
+Standing or lying, nothing hovers: a candidate must rest on the support or on an object taken
+under it, so one that does not yet waits for another pass. Then two rules on what was taken: a match explaining
 only part of its cluster stands only beside another object found in that cluster, and an upright
 object is no lower part of something taller.
 """

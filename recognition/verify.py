@@ -74,6 +74,9 @@ SAME_SURFACE_DEG = 30.0
 #: Normals from depth differences this many pixels either side (a Kinect's depth noise at 2 m, ~7 mm,
 #: would swamp neighbouring pixels' 8 mm spacing).
 NORMAL_STEP_PX = 2
+#: A cluster holding at least this share of a hypothesis's inlier pixels is a surface it explains
+#: (``hidden_apart``); a cluster with fewer is what hides it, onto which inliers at its edge spill.
+OWN_CLUSTER_SHARE = 0.25
 #: Colours darker than this (r + g + b, each 0-1) have no usable chromaticity: 8-bit noise of a few
 #: levels would move it by more than the tolerance.
 MIN_BRIGHTNESS = 0.25
@@ -452,12 +455,12 @@ def cluster_labels(view: DepthView, points: np.ndarray, clusters: Sequence[np.nd
     return labels
 
 
-def hidden_apart(v: Verdict, labels: np.ndarray, own_share: float = 0.25) -> np.ndarray:
+def hidden_apart(v: Verdict, labels: np.ndarray) -> np.ndarray:
     """Flat indices of ``v``'s hidden pixels where a cluster stands in front other than those
-    holding ``own_share`` or more of its inlier pixels: something separate from the surface it
-    explains (``cluster_labels``; inliers at its edge spill onto what hides it)."""
+    holding OWN_CLUSTER_SHARE or more of its inlier pixels: something separate from the surface it
+    explains (``cluster_labels``)."""
     ids, counts = np.unique(labels[v.pixels], return_counts=True)
-    own = ids[counts >= own_share * max(len(v.pixels), 1)]
+    own = ids[counts >= OWN_CLUSTER_SHARE * max(len(v.pixels), 1)]
     in_front = labels[v.hidden]
     return v.hidden[(in_front >= 0) & ~np.isin(in_front, own)]
 
