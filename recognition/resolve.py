@@ -90,7 +90,6 @@ class Resolver:
         """The candidates taken, by object id: best first, so that a part two objects fit goes to the
         one not found better elsewhere. A hypothesis the frame contradicts never takes a part, and a
         pixel explains one object (None: nothing is verified)."""
-        c = self.config
         found: dict[str, Candidate] = {}
         taken: set[int] = set()
         # Objects rest on the support or on an object found under them (``rests``): one that does
@@ -100,11 +99,10 @@ class Resolver:
         while pending:
             waiting, before = [], len(found)
             for cand in pending:
-                det, stance = cand.detection, cand.stance
-                if cand.part in taken or det.object_id in found:
+                if cand.part in taken or cand.detection.object_id in found:
                     continue
                 below = [f.detection for f in found.values()]
-                if stance.support is not None and c.max_float_m > 0 and not self.rests(det, below, stance.support):
+                if self._floats(cand, below):
                     waiting.append(cand)
                     continue
                 # Judged only once it could be taken: most frames hold candidates for objects already found.
@@ -190,8 +188,7 @@ class Resolver:
             det = other.detection
             if other.part != cand.part or det.object_id in tried or det.object_id in found:
                 continue
-            support = other.stance.support
-            if support is not None and self.config.max_float_m > 0 and not self.rests(det, below, support):
+            if self._floats(other, below):
                 continue
             if (rival := self._judged(other, up, evidence)) is None:
                 continue
@@ -270,6 +267,12 @@ class Resolver:
         model, c = self.db.models[det.object_id], self.config
         return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes,
                        model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m)  # fmt: skip
+
+    def _floats(self, cand: Candidate, below: Iterable[Detection]) -> bool:
+        """Whether a candidate with a support to rest on rests neither on it nor on a detection in
+        ``below`` (``rests``; never with the rest test off, ``max_float_m`` 0)."""
+        support = cand.stance.support
+        return support is not None and self.config.max_float_m > 0 and not self.rests(cand.detection, below, support)
 
     def rests(self, det: Detection, found: Iterable[Detection], support: np.ndarray) -> bool:
         """Whether a detection's lowest point is within max_float_m of the support plane (a, b, c, d;
