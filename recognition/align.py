@@ -17,6 +17,7 @@ import open3d as o3d
 
 from recognition.cloud import PointIndex
 from recognition.vfh import ROLL_BINS
+from recognition.verify import project
 from schemas.geometry import rotation_between
 
 
@@ -241,6 +242,54 @@ def damped_icp(
         return failed
     fitness, rmse = fit_at(source, surface, pose, distance_m)
     return IcpResult(pose, fitness, rmse) if fitness > 0 else failed
+
+
+def projective_icp(
+    model_points: np.ndarray,
+    model_normals: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    camera_T_object: np.ndarray,
+    tolerance_m: float,
+    noise_per_m2: float,
+    iterations: int = 15,
+) -> np.ndarray | None:
+    """The pose (4, 4) at which the model's points (M, 3, object frame, outward normals (M, 3))
+    facing the camera best lie on a depth image (H, W, m, NaN: none; pinhole K (3, 3)), from
+    camera_T_object; None with fewer than 20 pairs at some step.
+
+    Each point is paired with the measured surface on its own ray (the pixel it lands on, as
+    ``recognition.verify`` judges it) when within ``tolerance_m + noise_per_m2 * z^2`` of it, and
+    the damped point-to-plane step of ``damped_icp`` is taken along the model's normals: the fit
+    verification judges, pixel by pixel, rather than one to a cluster's points (which in clutter
+    holds what stands beside the object too); what stands in front of it is out of reach."""
+    pose = np.asarray(camera_T_object, dtype=np.float64).copy()
+    H, W = depth.shape
+    measured = depth.reshape(-1)
+    for _ in range(iterations):
+        p = model_points @ pose[:3, :3].T + pose[:3, 3]
+        n = model_normals @ pose[:3, :3].T
+        u, v, ok = project(p, K, (H, W))
+        ok &= np.einsum("ij,ij->i", n, p) < 0  # facing the camera at the origin
+        z = measured[v[ok] * W + u[ok]]
+        p, n = p[ok], n[ok]
+        pair = np.abs(z - p[:, 2]) <= tolerance_m + noise_per_m2 * p[:, 2] ** 2  # False where no depth (NaN)
+        if pair.sum() < 20:
+            return None
+        p, n = p[pair], n[pair]
+        q = p * (z[pair] / p[:, 2])[:, None]  # the measured point on the model point's ray
+        centre = p.mean(axis=0)
+        J = np.empty((len(p), 6))  # d(residual) / (turn about the centre, shift): (a x n, n)
+        J[:, :3] = np.cross(p - centre, n)
+        J[:, 3:] = n
+        Hm = J.T @ J
+        Hm[_DIAGONAL] += ICP_DAMPING * Hm[_DIAGONAL].max()
+        step = np.linalg.solve(Hm, -J.T @ np.einsum("ij,ij->i", n, p - q))
+        turn = cv2.Rodrigues(step[:3])[0]
+        pose[:3, :3], pose[:3, 3] = turn @ pose[:3, :3], turn @ (pose[:3, 3] - centre) + centre + step[3:]
+        if np.sqrt(np.mean((J @ step) ** 2)) < CONVERGED_M:
+            break
+    return pose if np.all(np.isfinite(pose)) else None
 
 
 def fit_at(source: np.ndarray, surface: Surface, pose: np.ndarray, distance_m: float) -> tuple[float, float]:

@@ -82,7 +82,8 @@ class Detection:
     rmse_m: float
     points: int  # scene points the model explains
     from_prior: bool = False
-    needs_colour: bool = False  # only damped steps reached it (``Matcher.score``): taken only with its colour judged
+    #: Only damped steps (``Matcher.score``) or a refit to the depth reached it: taken only with its colour judged.
+    needs_colour: bool = False
 
 
 @dataclass(frozen=True)

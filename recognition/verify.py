@@ -130,7 +130,7 @@ class DepthView:
             pts = pts.astype(np.float64)
             finite = np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
             pts = pts[finite]
-            u, v, ok = _project(pts, K, (H, W))
+            u, v, ok = project(pts, K, (H, W))
             z = np.full(H * W, np.inf)
             np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
             if colour is not None:  # each pixel's colour is its nearest point's
@@ -161,6 +161,7 @@ class Verdict:
     hidden: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat indices of the occluded pixels
     colour_judged: int = 0  # inlier pixels where both scene and model have a chromaticity
     colour_agreeing: int = 0  # ... within the colour tolerance of each other
+    colour_distinct: int = 0  # judged pixels where the model's colour is no grey (``distinct_from_grey``)
     shape_error: float = 0.0  # the residual's spread beyond SPREAD_FLOOR_M, in depth-noise sigmas (``residual_spread``)
     backfacing: int = 0  # pixels where the model's nearest surface faces away from the camera
 
@@ -221,7 +222,7 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     n = normals @ R.T
     front = np.einsum("ij,ij->i", n, p) < 0  # facing the camera at the origin
     H, W = view.near.shape
-    u, v, ok = _project(p, view.K, (H, W))
+    u, v, ok = project(p, view.K, (H, W))
     backfacing = _backfacing(p[ok], u[ok], v[ok], front[ok], W)
     keep = front & ok
     p, u, v = p[keep], u[keep], v[keep]
@@ -247,7 +248,7 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     gap_px = view.K[0, 0] * spacing_m / float(np.median(z)) if len(z) else 0.0
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2, gap_px)
-    judged = agreeing = 0
+    judged = agreeing = distinct = 0
     if chroma_range is not None and view.chroma is not None:
         scene = view.chroma.reshape(-1, 2)[flat[inlier]]
         lo, hi = chroma_range[voter[inlier], :2], chroma_range[voter[inlier], 2:]
@@ -255,13 +256,14 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         judged = int(both.sum())
         with np.errstate(invalid="ignore"):
             agreeing = int((np.all((scene >= lo - colour_tolerance) & (scene <= hi + colour_tolerance), axis=1) & both).sum())
+            distinct = int((distinct_from_grey(lo, hi, colour_tolerance) & both).sum())
     shape_error = 0.0
     if inlier.sum() >= MIN_SHAPE_PIXELS:
         sigma = noise_per_m2 / 3 * float(np.median(z[inlier])) ** 2  # noise_per_m2 is three sigmas' worth
         spread = residual_spread(view, flat[inlier], z[inlier], tol[inlier])
         shape_error = max(spread - SPREAD_FLOOR_M, 0.0) / max(sigma, 1e-6)
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), _filled(flat[inlier], W, gap_px),
-                   *outline, inside, flat[occluded], judged, agreeing, shape_error, backfacing)  # fmt: skip
+                   *outline, inside, flat[occluded], judged, agreeing, distinct, shape_error, backfacing)  # fmt: skip
 
 
 def _cells(u: np.ndarray, v: np.ndarray, W: int) -> np.ndarray:
@@ -311,6 +313,13 @@ def chroma_ranges(points: np.ndarray, colours: np.ndarray, radius_m: float = COL
         lo = np.fmin.reduceat(chroma[near.index], starts, axis=0)  # fmin: NaN only where all are
         hi = np.fmax.reduceat(chroma[near.index], starts, axis=0)
     return np.concatenate([lo, hi], axis=1)
+
+
+def distinct_from_grey(lo: np.ndarray, hi: np.ndarray, tolerance: float) -> np.ndarray:
+    """Mask (N,) of model colour ranges (rg-chromaticity, lo and hi (N, 2)) that a grey or white
+    surface (chromaticity 1/3, 1/3) falls outside of by more than the tolerance: only there can the
+    colour of an unsaturated surface, most of a room, disagree with the model's."""
+    return np.any((lo > 1 / 3 + tolerance) | (hi < 1 / 3 - tolerance), axis=1)
 
 
 def chromaticity(rgb: np.ndarray) -> np.ndarray:
@@ -450,7 +459,7 @@ def cluster_labels(view: DepthView, points: np.ndarray, clusters: Sequence[np.nd
     H, W = view.near.shape
     labels = np.full(H * W, -1, np.int64)
     for k, idx in enumerate(clusters):
-        u, v, ok = _project(points[idx], view.K, (H, W))
+        u, v, ok = project(points[idx], view.K, (H, W))
         labels[(v * W + u)[ok]] = k
     return labels
 
@@ -465,7 +474,7 @@ def hidden_apart(v: Verdict, labels: np.ndarray) -> np.ndarray:
     return v.hidden[(in_front >= 0) & ~np.isin(in_front, own)]
 
 
-def _project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel columns, rows (int) of camera-frame points (N, 3), and which fall inside the image."""
     H, W = size
     z = np.where(p[:, 2] > 0, p[:, 2], np.nan)

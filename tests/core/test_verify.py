@@ -287,6 +287,22 @@ def test_colour_agrees_on_the_models_colour_and_not_on_another() -> None:
     assert agreement(grey, DepthView.of(wall(), np.full((480, 640, 3), 20, np.uint8))) == (0, 1.0)
 
 
+def test_only_a_models_colour_a_grey_surface_disagrees_with_is_distinct() -> None:
+    """On a grey wall: the demo crate's blue and can's red are colours a grey surface disagrees with
+    (every judged pixel distinct), a white or grey model's are not (none), whatever the wall's
+    colour agreement says."""
+    points, normals = patch()
+    on = make_pose(t=[0.0, 0.0, 1.0])
+    view = DepthView.of(wall(), np.full((480, 640, 3), 128, np.uint8))
+    for colour, distinct in (((0.2, 0.45, 0.7), True), ((0.8, 0.2, 0.15), True), ((0.9, 0.9, 0.9), False),
+                             ((0.5, 0.5, 0.5), False)):  # fmt: skip
+        chroma = chroma_ranges(points, np.tile(colour, (len(points), 1)))
+        out = verdict(view, points, normals, on, TOL, NOISE, chroma_range=chroma)
+        assert out.colour_judged > 100
+        assert out.colour_distinct == (out.colour_judged if distinct else 0), colour
+        assert (out.colour_agreement == 1.0) != distinct, colour
+
+
 def test_a_printed_surface_agrees_with_its_model_a_few_millimetres_off() -> None:
     """A wall printed in 2 cm red and green stripes and its patch posed 6 mm off across them: a
     third of its pixels see the other stripe than the model point there, yet every one is a colour
