@@ -82,7 +82,8 @@ class Detection:
     rmse_m: float
     points: int  # scene points the model explains
     from_prior: bool = False
-    #: Only damped steps (``Matcher.score``) or a refit to the depth reached it: taken only with its colour judged.
+    #: Only damped steps (``Matcher.score``) or a refit to the depth reached it: taken only with its colour
+    #: agreeing where a grey surface's would not (``Verdict.distinct_agreement``).
     needs_colour: bool = False
 
 
@@ -326,8 +327,9 @@ class Matcher:
             return found
         # Nothing passed. Open3D's undamped steps run off a small curved patch: the start with the
         # most overlap they ran off from (fitness RAN_OFF under its share) is screened again with
-        # damped ones (``damped_icp``). What that finds needs its colour judged: without it such fits
-        # took the milk carton (a model without colour) for a white roll at 3.2 m.
+        # damped ones (``damped_icp``). What that finds needs its colour to agree where a grey
+        # surface's would not: without it such fits took the milk carton (a model without colour)
+        # for a white roll at 3.2 m, and its coloured model for a pale cabinet's edge.
         shares = self._overlap(sparse_points, facings, poses, target.index) if shares is None else shares
         floor = min(c.min_fitness, shared_fitness)  # as the fine fit's: a start under it is not refined
         ran_off = [k for k, res in enumerate(passes) if res.fitness < shares[k] - RAN_OFF and shares[k] >= floor]

@@ -161,7 +161,8 @@ class Verdict:
     hidden: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat indices of the occluded pixels
     colour_judged: int = 0  # inlier pixels where both scene and model have a chromaticity
     colour_agreeing: int = 0  # ... within the colour tolerance of each other
-    colour_distinct: int = 0  # judged pixels where the model's colour is no grey (``distinct_from_grey``)
+    colour_distinct: int = 0  # judged pixels where the model's colour is no grey (``distinct_from_grey``) ...
+    colour_distinct_agreeing: int = 0  # ... and of those, agreeing
     shape_error: float = 0.0  # the residual's spread beyond SPREAD_FLOOR_M, in depth-noise sigmas (``residual_spread``)
     backfacing: int = 0  # pixels where the model's nearest surface faces away from the camera
 
@@ -194,6 +195,15 @@ class Verdict:
         """Share of the colour-judged inlier pixels whose colour is the model's (1 when fewer than
         ``MIN_COLOUR_PIXELS`` could be judged: no colour, or too dark)."""
         return self.colour_agreeing / self.colour_judged if self.colour_judged >= MIN_COLOUR_PIXELS else 1.0
+
+    @property
+    def distinct_agreement(self) -> float:
+        """Share of the judged pixels where the model's colour is no grey (``colour_distinct``) whose
+        colour is the model's: the agreement a grey or white surface cannot give (0 when fewer than
+        ``MIN_COLOUR_PIXELS``: no such evidence)."""
+        if self.colour_distinct < MIN_COLOUR_PIXELS:
+            return 0.0
+        return self.colour_distinct_agreeing / self.colour_distinct
 
     @property
     def outline_seen(self) -> float:
@@ -248,22 +258,24 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     gap_px = view.K[0, 0] * spacing_m / float(np.median(z)) if len(z) else 0.0
     outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2, gap_px)
-    judged = agreeing = distinct = 0
+    judged = agreeing = distinct = distinct_agreeing = 0
     if chroma_range is not None and view.chroma is not None:
         scene = view.chroma.reshape(-1, 2)[flat[inlier]]
         lo, hi = chroma_range[voter[inlier], :2], chroma_range[voter[inlier], 2:]
         both = np.all(np.isfinite(scene), axis=1) & np.all(np.isfinite(lo), axis=1)
         judged = int(both.sum())
         with np.errstate(invalid="ignore"):
-            agreeing = int((np.all((scene >= lo - colour_tolerance) & (scene <= hi + colour_tolerance), axis=1) & both).sum())
-            distinct = int((distinct_from_grey(lo, hi, colour_tolerance) & both).sum())
+            agree = np.all((scene >= lo - colour_tolerance) & (scene <= hi + colour_tolerance), axis=1) & both
+            distinct = distinct_from_grey(lo, hi, colour_tolerance) & both
+            agreeing, distinct_agreeing, distinct = int(agree.sum()), int((agree & distinct).sum()), int(distinct.sum())
     shape_error = 0.0
     if inlier.sum() >= MIN_SHAPE_PIXELS:
         sigma = noise_per_m2 / 3 * float(np.median(z[inlier])) ** 2  # noise_per_m2 is three sigmas' worth
         spread = residual_spread(view, flat[inlier], z[inlier], tol[inlier])
         shape_error = max(spread - SPREAD_FLOOR_M, 0.0) / max(sigma, 1e-6)
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), _filled(flat[inlier], W, gap_px),
-                   *outline, inside, flat[occluded], judged, agreeing, distinct, shape_error, backfacing)  # fmt: skip
+                   *outline, inside, flat[occluded], judged, agreeing, distinct, distinct_agreeing, shape_error,
+                   backfacing)  # fmt: skip
 
 
 def _cells(u: np.ndarray, v: np.ndarray, W: int) -> np.ndarray:

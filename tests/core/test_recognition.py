@@ -871,6 +871,40 @@ def test_an_object_packed_among_others_no_database_holds_is_found_refitted_to_th
     assert adds_m(model.points, found["tote"].camera_T_object, truth) < 0.1 * model.diameter_m
 
 
+def test_a_can_whose_colour_vouches_for_it_stands_beside_an_unknown_box_in_its_cluster() -> None:
+    """The demo objects packed with four objects no database holds, seen from cam2: the red can,
+    in full view, shares its cluster with a grey box beside it and explains half of it. The rule
+    for a match alone in its cluster (a shape fitting a piece of a larger surface) would refuse it;
+    its colour, one no grey surface has, vouches for it, and it is found within ADD-S 0.1 d."""
+    from cellsight.bop import adds_m
+    from cellsight.model_build import database_from_scenario
+    from drivers.sim.render import SimCell
+    from drivers.sim.scenario import ObjectSpec, load_scenario
+    from schemas.spec import PoseSpec
+
+    base = load_scenario().still()
+    where = {"crate": (0.115, 0.152, 171.4), "can": (0.263, -0.1, 96.1), "tote": (-0.272, 0.091, 300.4)}
+    objects = [o.model_copy(update={"pose": PoseSpec(position=(*where[o.id][:2], 0.75), rpy_deg=(0.0, 0.0, where[o.id][2]))})
+               for o in base.objects]  # fmt: skip
+    unknown = [("cylinder", (0.044, 0.044, 0.223), -0.257, -0.181, 292.2), ("box", (0.118, 0.057, 0.239), 0.114, -0.065, 337.5),
+               ("cylinder", (0.06, 0.06, 0.292), 0.014, -0.174, 43.1), ("box", (0.081, 0.075, 0.151), -0.109, -0.143, 229.5)]  # fmt: skip
+    for i, (shape, size, x, y, yaw) in enumerate(unknown):
+        pose = PoseSpec(position=(x, y, 0.75), rpy_deg=(0.0, 0.0, yaw))
+        grey = (0.5, 0.5, 0.5) if shape == "box" else (0.4, 0.5, 0.4)
+        objects.append(ObjectSpec(id=f"unknown{i}", shape=shape, size=size, color=grey, pose=pose))
+    scenario = base.model_copy(update={"objects": objects, "markers": [m for m in base.markers if m.object is None]})
+    cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
+    recognizer = Recognizer(database_from_scenario(base, cfg.descriptor), cfg)
+    frame = SimCell(scenario).render("cam2", 0.0, 2)
+    can = next(o for o in objects if o.id == "can")
+    truth = invert_pose(frame.world_T_camera) @ can.world_T_object(0.0)
+    model = recognizer.db.models["can"]
+    found = {d.object_id: d for d in recognizer.recognize(depth_to_cloud(frame.depth_mm, frame.info.K),
+                                                          world_T_camera=frame.world_T_camera, rgb=frame.rgb)}  # fmt: skip
+    assert "can" in found, sorted(found)
+    assert adds_m(model.points, found["can"].camera_T_object, truth) < 0.1 * model.diameter_m
+
+
 def test_with_free_with_pose_an_object_not_standing_on_its_base_is_found_in_a_posed_frame(tmp_path: Path) -> None:
     """The cone (``drivers.sim.shapes``) lying on its side, its model's +z level, seen by a camera
     whose world pose is known, as a dataset's frame may be: the cell's reading (every object stands
