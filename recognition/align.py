@@ -223,20 +223,7 @@ def damped_icp(
         pair = sq_dist <= distance_m**2
         if pair.sum() < 6:  # fewer pairs than unknowns
             break
-        p, q, n = p[pair], surface.points[idx[pair]], surface.normals[idx[pair]]
-        centre = p.mean(axis=0)
-        a = p - centre
-        J = np.empty((len(p), 6))  # d(residual) / (turn about the centre, shift): (a x n, n)
-        J[:, 0] = a[:, 1] * n[:, 2] - a[:, 2] * n[:, 1]
-        J[:, 1] = a[:, 2] * n[:, 0] - a[:, 0] * n[:, 2]
-        J[:, 2] = a[:, 0] * n[:, 1] - a[:, 1] * n[:, 0]
-        J[:, 3:] = n
-        H = J.T @ J
-        H[_DIAGONAL] += ICP_DAMPING * H[_DIAGONAL].max()
-        step = np.linalg.solve(H, -J.T @ np.einsum("ij,ij->i", n, p - q))
-        turn = cv2.Rodrigues(step[:3])[0]
-        pose[:3, :3], pose[:3, 3] = turn @ pose[:3, :3], turn @ (pose[:3, 3] - centre) + centre + step[3:]
-        if np.sqrt(np.mean((J @ step) ** 2)) < CONVERGED_M:
+        if _damped_step(pose, p[pair], surface.points[idx[pair]], surface.normals[idx[pair]]) < CONVERGED_M:
             break
     if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
         return failed
@@ -276,20 +263,30 @@ def projective_icp(
         pair = np.abs(z - p[:, 2]) <= tolerance_m + noise_per_m2 * p[:, 2] ** 2  # False where no depth (NaN)
         if pair.sum() < 20:
             return None
-        p, n = p[pair], n[pair]
+        p = p[pair]
         q = p * (z[pair] / p[:, 2])[:, None]  # the measured point on the model point's ray
-        centre = p.mean(axis=0)
-        J = np.empty((len(p), 6))  # d(residual) / (turn about the centre, shift): (a x n, n)
-        J[:, :3] = np.cross(p - centre, n)
-        J[:, 3:] = n
-        Hm = J.T @ J
-        Hm[_DIAGONAL] += ICP_DAMPING * Hm[_DIAGONAL].max()
-        step = np.linalg.solve(Hm, -J.T @ np.einsum("ij,ij->i", n, p - q))
-        turn = cv2.Rodrigues(step[:3])[0]
-        pose[:3, :3], pose[:3, 3] = turn @ pose[:3, :3], turn @ (pose[:3, 3] - centre) + centre + step[3:]
-        if np.sqrt(np.mean((J @ step) ** 2)) < CONVERGED_M:
+        if _damped_step(pose, p, q, n[pair]) < CONVERGED_M:
             break
     return pose if np.all(np.isfinite(pose)) else None
+
+
+def _damped_step(pose: np.ndarray, p: np.ndarray, q: np.ndarray, n: np.ndarray) -> float:
+    """One damped Gauss-Newton step (``ICP_DAMPING``) of posed points p (N, 3) towards the planes
+    through their pairs q (N, 3) with unit normals n (N, 3), taken about the points' centroid and
+    applied to ``pose`` (4, 4) in place; returns how far it moved the points along the normals (m, RMS)."""
+    centre = p.mean(axis=0)
+    a = p - centre
+    J = np.empty((len(p), 6))  # d(residual) / (turn about the centre, shift): (a x n, n)
+    J[:, 0] = a[:, 1] * n[:, 2] - a[:, 2] * n[:, 1]
+    J[:, 1] = a[:, 2] * n[:, 0] - a[:, 0] * n[:, 2]
+    J[:, 2] = a[:, 0] * n[:, 1] - a[:, 1] * n[:, 0]
+    J[:, 3:] = n
+    H = J.T @ J
+    H[_DIAGONAL] += ICP_DAMPING * H[_DIAGONAL].max()
+    step = np.linalg.solve(H, -J.T @ np.einsum("ij,ij->i", n, p - q))
+    turn = cv2.Rodrigues(step[:3])[0]
+    pose[:3, :3], pose[:3, 3] = turn @ pose[:3, :3], turn @ (pose[:3, 3] - centre) + centre + step[3:]
+    return float(np.sqrt(np.mean((J @ step) ** 2)))
 
 
 def fit_at(source: np.ndarray, surface: Surface, pose: np.ndarray, distance_m: float) -> tuple[float, float]:
