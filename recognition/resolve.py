@@ -4,10 +4,10 @@ Best candidates first (``rank``; a free candidate right after a twin resting on 
 fits about as well: both fitted the same surface, and the resting reading is the physical one),
 each object is in the frame once and each part of the scene is one object: a candidate is taken
 if verification accepts it, judged against the whole frame from the camera's viewpoint
-(``recognition.verify``; one lying on a side, or only damped steps reached, with its colour agreeing
-where a grey surface's would not; one refused for where it is alone is judged once more refitted
-to the frame's depth, so too), and no pixel it explains is already another object's; of two objects accepted on the
-same pixels, one is taken only if it explains RIVAL_SHARE times as many, else neither; a free
+(``recognition.verify``; one lying on a side, or only damped steps reached, with its colour
+agreeing where a grey surface's would not; one refused for where it is alone is judged once more
+refitted to the frame's depth, so too), and no pixel it explains is already another object's; of
+two objects accepted on the same pixels, one is taken only if it explains RIVAL_SHARE times as many, else neither; a free
 candidate found upside down is judged turned upright first, the same reading of a symmetric shape.
 Standing or lying, nothing hovers: a candidate must rest on the support or on an object taken
 under it, so one that does not yet waits for another pass. Then two rules on what was taken, for
@@ -49,9 +49,9 @@ TWIN_M = 0.02
 RIVAL_SHARE = 1.5
 
 #: An object taken whose colour agrees on at least this share of its judged pixels where a grey or
-#: white surface would disagree (``Verdict.distinct_agreement``) is the object
-#: by colour as well as by shape: the rules that judge a match by the rest of its cluster's shape
-#: (``Resolver._alone``, ``_topped``) do not refuse it. Those two rules refused, among the demo
+#: white surface would disagree (``Verdict.distinct_agreement``) is the object by colour as well as
+#: by shape: the rules that judge a match by the rest of its cluster's shape (``Resolver._alone``,
+#: ``_topped``) do not refuse it. Those two rules refused, among the demo
 #: objects packed with unknown ones (``benchmarks.recognition``'s clutter on 24 other layouts, ad
 #: hoc), 10 right poses with agreement 0.81-0.98 but one 0.50, and 2 wrong ones at 0.32 and 0.43.
 COLOUR_VOUCHES = 0.7
@@ -134,7 +134,7 @@ class Resolver:
                         continue
                     cand, v = won
                     evidence.pixels.admit(v)
-                    if v.distinct_agreement >= COLOUR_VOUCHES:
+                    if self._coloured(v, COLOUR_VOUCHES):
                         evidence.vouched.add(cand.detection.object_id)
                 taken.add(cand.part)
                 found[cand.detection.object_id] = cand
@@ -266,7 +266,7 @@ class Resolver:
         c, pixels = self.config, evidence.pixels
         # Colour is the second opinion these need, and only where a grey or white surface would
         # disagree is it one: a white carton's colour agrees with a pale cabinet.
-        if (det.needs_colour or stance.lying) and v.distinct_agreement < c.min_colour_agreement:
+        if (det.needs_colour or stance.lying) and not self._coloured(v, c.min_colour_agreement):
             why = "lying on a side" if stance.lying else "only damped steps or a refit to the depth reached it"
             log.debug("%s rejected: %s, and its colour where grey would differ is not the model's or not judged "
                       "(%d of %d pixels agree)", det.object_id, why, v.colour_distinct_agreeing,
@@ -289,8 +289,15 @@ class Resolver:
         far hide left out (``Explained.support``)."""
         # With its colour agreeing where grey would differ, what another cluster hides in front of
         # it is no evidence against it either: in clutter objects stand behind things no database holds.
-        apart = hidden_apart(v, evidence.labels) if v.distinct_agreement >= self.config.min_colour_agreement else None
+        apart = hidden_apart(v, evidence.labels) if self._coloured(v, self.config.min_colour_agreement) else None
         return evidence.pixels.support(v, apart)
+
+    @staticmethod
+    def _coloured(v: Verdict, share: float) -> bool:
+        """Whether the hypothesis's colour agrees on at least ``share`` of its judged pixels where a
+        grey or white surface's would not, MIN_COLOUR_PIXELS of them or more (with colour off,
+        ``min_colour_agreement`` 0, still they must be judged)."""
+        return v.colour_distinct >= MIN_COLOUR_PIXELS and v.distinct_agreement >= share
 
     def _plausible(self, v: Verdict) -> bool:
         """Whether the verdict passes verification's tests of what the object is, all but where it
