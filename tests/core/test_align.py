@@ -10,6 +10,7 @@ import numpy as np
 
 from recognition.align import RAN_OFF, Surface, facing_camera, fit_at, icp_pass, projective_icp, refine_icp, rot_z
 from recognition.cloud import estimate_normals
+from recognition.config import RecognitionConfig
 from schemas.geometry import make_pose, rotation_angle
 
 #: A Kinect's depth noise, one sigma at 1 m (m; it grows with z^2).
@@ -92,9 +93,10 @@ def ray_cast(boxes: list[tuple[np.ndarray, tuple[float, float, float]]], K: np.n
 def test_the_fit_to_the_depth_image_finds_a_box_beside_another_from_a_pose_cm_off() -> None:
     """A 24 x 18 x 14 cm box 1.5 m away seen from above at an angle, a taller box 5 mm beside it,
     Kinect depth noise: fitted to the depth on each model point's own ray from starts 1.5 cm and
-    4 deg off, it ends within 3 mm (a fortieth of its size) and 0.5 deg of where it stands; started
+    4 deg off, it ends within 3 mm (an eightieth of its length) and 0.5 deg of where it stands; started
     half a metre away, where its points land on nothing, it gives no pose."""
     K, size = np.array([[262.5, 0.0, 159.75], [0.0, 262.5, 119.75], [0.0, 0.0, 1.0]]), (240, 320)
+    c = RecognitionConfig()  # verification's tolerance: the one the resolver refits with
     tilt = cv2.Rodrigues(np.array([np.radians(-120.0), 0.0, 0.0]))[0]
     camera_T_box = make_pose(tilt @ rot_z(np.radians(30.0)), [0.0, 0.0, 1.5])
     beside = camera_T_box @ make_pose(np.eye(3), [0.175, 0.0, 0.055])
@@ -103,9 +105,9 @@ def test_the_fit_to_the_depth_image_finds_a_box_beside_another_from_a_pose_cm_of
     points, normals = box_surface((0.24, 0.18, 0.14), 0.005)
     for offset in ([0.015, 0.0, 0.0], [-0.015, 0.0, 0.0], [0.0, 0.015, 0.0], [0.0, 0.0, 0.015], [0.015, -0.01, 0.01]):
         start = camera_T_box @ make_pose(rot_z(np.radians(4.0)), offset)
-        fit = projective_icp(points, normals, depth, K, start, 0.015, 0.0045)
+        fit = projective_icp(points, normals, depth, K, start, c.icp_distance_m, c.plane_noise_per_m2)
         assert fit is not None
         assert np.linalg.norm(fit[:3, 3] - camera_T_box[:3, 3]) < 0.003, offset
         assert np.degrees(rotation_angle(fit[:3, :3], camera_T_box[:3, :3])) < 0.5, offset
     far_away = camera_T_box @ make_pose(np.eye(3), [0.5, 0.0, 0.0])
-    assert projective_icp(points, normals, depth, K, far_away, 0.015, 0.0045) is None
+    assert projective_icp(points, normals, depth, K, far_away, c.icp_distance_m, c.plane_noise_per_m2) is None
