@@ -56,7 +56,7 @@ from a model (a can of 12 cm fits a 6 x 12 cm box within the depth noise at 2 m)
 are grey; the same frames are run without colour too (``..._depth_only``).
 
 Clutter (``adds_recall_partly_occluded_clutter``, ``..._unoccluded_clutter``): all three objects
-packed with 1.5 cm gaps among four such objects over 0.7 of the table (8 layouts; 2 with
+packed with 1.5 cm gaps among four such objects over 0.7 of the table (24 layouts; 2 with
 ``--quick``), every camera with colour, scored per camera as the main pass; wrong or absent
 objects reported in ``false_detections_per_frame_clutter``. What hides an object there is mostly
 something no database holds, as on a real table.
@@ -538,7 +538,7 @@ def run(quick: bool) -> dict[str, float]:
     for colour in (True, False):
         out.update(distractors(recognisers["pcl"], 2 if quick else 12, colour))
     out["distractor_trials"] = 2 if quick else 12
-    out.update(clutter(recognisers["pcl"], 2 if quick else 8))
+    out.update(clutter(recognisers["pcl"], 2 if quick else 24))
     return out
 
 
