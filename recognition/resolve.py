@@ -216,7 +216,7 @@ class Resolver:
         det, c = cand.detection, self.config
         if v.colour_distinct < MIN_COLOUR_PIXELS or v.fitness < REFIT_FITNESS or not self._plausible(v):
             return None
-        if v.fitness >= c.min_visible_fitness and self._support(v, evidence) >= c.min_visible_support:
+        if self._placed(v, self._support(v, evidence)):
             return None  # rejected for another reason (its pixels another object's)
         model = self.db.models[det.object_id]
         T = projective_icp(model.points, model.normals, evidence.view.z, evidence.view.K, det.camera_T_object,
@@ -273,8 +273,7 @@ class Resolver:
                       v.colour_distinct)  # fmt: skip
             return False
         seen = self._support(v, evidence)
-        placed = v.fitness >= c.min_visible_fitness and seen >= c.min_visible_support
-        if not (placed and self._plausible(v) and pixels.admits(v)):
+        if not (self._placed(v, seen) and self._plausible(v) and pixels.admits(v)):
             log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
                       "pixels, %d seen through), facing %.2f (%d pixels seen from behind), clutter %.2f, outline seen "
                       "%.2f (of %d pixels), inside a support %.3f, colour %.2f (of %d pixels), shape error %.1f sigma",
@@ -292,6 +291,11 @@ class Resolver:
         apart = hidden_apart(v, evidence.labels) if self._coloured(v, self.config.min_colour_agreement) else None
         return evidence.pixels.support(v, apart)
 
+    def _placed(self, v: Verdict, support: float) -> bool:
+        """Whether the verdict passes verification's tests of where the object is: its visible
+        fitness, and its support (``_support``)."""
+        return v.fitness >= self.config.min_visible_fitness and support >= self.config.min_visible_support
+
     @staticmethod
     def _coloured(v: Verdict, share: float) -> bool:
         """Whether the hypothesis's colour agrees on at least ``share`` of its judged pixels where a
@@ -301,7 +305,7 @@ class Resolver:
 
     def _plausible(self, v: Verdict) -> bool:
         """Whether the verdict passes verification's tests of what the object is, all but where it
-        is (visible fitness and support): the side it shows facing the camera, its outline, not
+        is (``_placed``): the side it shows facing the camera, its outline, not
         inside a support, its colour and its surface's shape."""
         c = self.config
         return (v.facing_share >= c.min_facing_share and v.clutter <= c.max_clutter
