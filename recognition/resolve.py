@@ -51,9 +51,9 @@ RIVAL_SHARE = 1.5
 #: An object taken whose colour agrees on at least this share of its judged pixels where a grey or
 #: white surface would disagree (``Verdict.distinct_agreement``) is the object by colour as well as
 #: by shape: the rules that judge a match by the rest of its cluster's shape (``Resolver._alone``,
-#: ``_topped``) do not refuse it. Those two rules refused, among the demo
-#: objects packed with unknown ones (``benchmarks.recognition``'s clutter on 24 other layouts, ad
-#: hoc), 10 right poses with agreement 0.81-0.98 but one 0.50, and 2 wrong ones at 0.32 and 0.43.
+#: ``_topped``) do not refuse it. Those two rules refused, among the demo objects packed with
+#: unknown ones (``benchmarks.recognition``'s clutter on 24 other layouts, ad hoc), 10 right poses
+#: with agreement 0.81-0.98 but one 0.50, and 2 wrong ones at 0.32 and 0.43.
 COLOUR_VOUCHES = 0.7
 
 #: A candidate verification rejects is refitted to the frame's depth and judged again when at least
