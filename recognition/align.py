@@ -78,6 +78,20 @@ def rot_z(angle: float | np.ndarray) -> np.ndarray:
     return R
 
 
+def _rot_y(angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.zeros(np.shape(angle) + (3, 3))
+    R[..., 0, 0], R[..., 0, 2], R[..., 2, 0], R[..., 2, 2], R[..., 1, 1] = c, s, -s, c, 1.0
+    return R
+
+
+def _rot_x(angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.zeros(np.shape(angle) + (3, 3))
+    R[..., 1, 1], R[..., 1, 2], R[..., 2, 1], R[..., 2, 2], R[..., 0, 0] = c, -s, s, c, 1.0
+    return R
+
+
 def views_to_scene(
     scene_centroid: np.ndarray, view_centroids: np.ndarray, view_to_z: np.ndarray, rolls: np.ndarray
 ) -> np.ndarray:
@@ -193,6 +207,86 @@ def icp_pass(
     if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
         return failed
     return IcpResult(pose, float(reg.fitness), float(reg.inlier_rmse) if reg.fitness > 0 else float("inf"))
+
+
+def icp_passes(
+    source_points: np.ndarray,
+    facing: np.ndarray,
+    surface: Surface,
+    starts: np.ndarray,
+    distance_m: float,
+    iterations: int,
+    max_shift_m: float = np.inf,
+) -> list[IcpResult]:
+    """``icp_pass`` from every start (S, 4, 4) at once, each with its own model points (the rows of
+    ``facing`` (S, M) over the points (M, 3), object frame): Open3D's point-to-plane ICP (pairs the
+    nearest surface point within distance_m, a linearised least-squares step per start, stop when
+    neither fitness nor RMSE changes by 1e-6), with the surface's one index for every start and
+    iteration: Open3D builds a k-d tree of the surface per call, which costs more than a short
+    pass. A start left with fewer pairs than unknowns (6) fails: Open3D's steps run off there."""
+    poses = np.array(starts, dtype=np.float64).reshape(-1, 4, 4)
+    n_starts = len(poses)
+    owner, point = np.nonzero(facing)  # start and model point of each posed point, grouped by start
+    counts = np.bincount(owner, minlength=n_starts)
+    src = np.asarray(source_points, dtype=np.float64)[point]
+    active = counts >= 3
+    fitness, sq_sum = np.zeros(n_starts), np.zeros(n_starts)
+    pairs = np.zeros(n_starts)
+
+    def paired(live: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The live starts' posed points (grouped by start), their nearest surface points, whether
+        they pair, and whose they are; the live starts' scores updated."""
+        mine = np.flatnonzero(live[owner])
+        who = owner[mine]
+        p = np.einsum("nij,nj->ni", poses[who, :3, :3], src[mine]) + poses[who, :3, 3]
+        idx, sq = surface.index.nearest(p)
+        ok = sq <= distance_m**2
+        pairs[live] = np.bincount(who[ok], minlength=n_starts)[live]
+        sq_sum[live] = np.bincount(who[ok], sq[ok].astype(np.float64), minlength=n_starts)[live]
+        fitness[live] = pairs[live] / counts[live]
+        return p, idx, ok, who
+
+    p, idx, ok, who = paired(active)
+    starved = np.zeros(n_starts, dtype=bool)
+    for _ in range(iterations):
+        starved |= active & (pairs < 6)
+        live = active & ~starved
+        if not live.any():
+            break
+        sel = np.flatnonzero(ok & live[who])  # grouped by start, as the points are
+        q, n, ps = surface.points[idx[sel]], surface.normals[idx[sel]], p[sel]
+        J = np.empty((len(sel), 6))  # d(residual) / (small rotation, shift): (p x n, n)
+        J[:, 0] = ps[:, 1] * n[:, 2] - ps[:, 2] * n[:, 1]
+        J[:, 1] = ps[:, 2] * n[:, 0] - ps[:, 0] * n[:, 2]
+        J[:, 2] = ps[:, 0] * n[:, 1] - ps[:, 1] * n[:, 0]
+        J[:, 3:] = n
+        r = np.einsum("ij,ij->i", ps - q, n)
+        first = np.r_[0, np.flatnonzero(np.diff(who[sel])) + 1]  # each live start's first pair
+        JtJ = np.add.reduceat((J[:, :, None] * J[:, None, :]).reshape(-1, 36), first).reshape(-1, 6, 6)
+        Jtr = np.add.reduceat(J * r[:, None], first)
+        x = np.zeros((n_starts, 6))
+        try:
+            x[live] = np.linalg.solve(JtJ, -Jtr[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # a singular system (points on one line): its least-norm step
+            x[live] = [np.linalg.lstsq(a, -b, rcond=None)[0] for a, b in zip(JtJ, Jtr)]
+        update = np.tile(np.eye(4), (n_starts, 1, 1))
+        update[:, :3, :3] = rot_z(x[:, 2]) @ _rot_y(x[:, 1]) @ _rot_x(x[:, 0])
+        update[:, :3, 3] = x[:, 3:]
+        poses[live] = update[live] @ poses[live]
+        before = fitness.copy(), np.sqrt(sq_sum / np.maximum(pairs, 1))
+        p, idx, ok, who = paired(live)
+        rmse = np.sqrt(sq_sum / np.maximum(pairs, 1))
+        # Open3D stops a pass once neither its fitness nor its RMSE changed by 1e-6.
+        active &= ~(live & (np.abs(before[0] - fitness) < 1e-6) & (np.abs(before[1] - rmse) < 1e-6))
+    out = []
+    for s in range(n_starts):
+        start = np.asarray(starts[s], dtype=np.float64)
+        pose = poses[s]
+        if counts[s] < 3 or starved[s] or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
+            out.append(IcpResult(start, 0.0, float("inf")))
+        else:
+            out.append(IcpResult(pose, float(fitness[s]), float(np.sqrt(sq_sum[s] / pairs[s])) if pairs[s] else float("inf")))
+    return out
 
 
 def damped_icp(

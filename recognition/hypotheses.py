@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recognition.align import (
-    RAN_OFF, ImageBounds, IcpResult, Surface, align_to_z, damped_icp, facing_camera, icp_pass, refine_icp,
+    RAN_OFF, ImageBounds, IcpResult, Surface, align_to_z, damped_icp, facing_camera, icp_passes, refine_icp,
     roll_correlations, roll_peaks, rot_z, views_to_scene,
 )
 from recognition.cloud import PointIndex
@@ -317,8 +317,8 @@ class Matcher:
             poses, facings, shares = poses[keep], facings[keep], shares[keep]
         else:
             shares = None
-        passes = [icp_pass(sparse_points[facing], target.surface, start, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
-                           max_shift_m=model.diameter_m) for start, facing in zip(poses, facings)]
+        passes = icp_passes(sparse_points, facings, target.surface, poses, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
+                            max_shift_m=model.diameter_m)
         # Not upright after the pass: a symmetric shape's mirror image.
         screened = [res for res in passes if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up)]
         shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
