@@ -24,7 +24,8 @@ from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
 from recognition.descriptor import ClusterDescription, describe
 from recognition.models import ModelDatabase, ObjectModel
-from recognition.segment import PointGraph
+from recognition.segment import PointGraph, euclidean_clusters
+from recognition.verify import distinct_from_grey
 from schemas.geometry import invert_pose, make_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,8 @@ MAX_SEEDS = 4
 #: ... a piece tried for an object only if the cluster's rest holds this share of its model's points
 #: (a view shows about half of a surface, and verification wants 40 % of that) ...
 PIECE_SHARE = 0.1
+#: ... and where the rest shows an object's colour (``Matcher._colour_seeds``), at most this many more ...
+COLOUR_SEEDS = 2
 #: ... the yaws an object is stood on the support at ...
 YAW_STEP_DEG = 30
 #: ... and the fitness from which a piece's hypothesis goes on to verification, which judges it on
@@ -69,6 +72,8 @@ RESTS = tuple(rotation_between(np.array(side, float), [0.0, 0.0, -1.0]) for side
 #: of a twentieth of its surface at another place: 2.5). Alike sides make the same candidates, so
 #: only the first is tried (a can on one side of four, a box on two).
 ALIKE_VOXELS = 1.0
+#: rg-chromaticity cells per axis of an object's palette (``palette``): 0.01 wide.
+PALETTE_CELLS = 100
 
 
 @dataclass(frozen=True)
@@ -115,6 +120,7 @@ class SceneCloud:
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
     image: ImageBounds | None = None  # the image an organised cloud was measured in
     coloured: bool = False  # the frame has colour: a screen with damped steps is tried (``Matcher.score``)
+    chroma: np.ndarray | None = None  # each point's rg-chromaticity (N, 2), NaN: none (``Matcher._colour_seeds``)
     #: Each part's descriptor, chosen views and target, by its point indices' bytes: every stance a
     #: frame is tried in matches the same parts (``Matcher._looks``).
     looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
@@ -170,6 +176,8 @@ class Matcher:
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
         self._rests = {oid: distinct_rests(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)
                        for oid, mdl in database.models.items()}  # fmt: skip
+        self._palettes = {oid: palette(mdl.chroma_range, config.colour_tolerance)
+                          for oid, mdl in database.models.items() if mdl.colours is not None}  # fmt: skip
 
     def tries(self, object_id: str, stance: Stance) -> bool:
         """Whether the object is tried in this stance: lying, only on the first of sides alike."""
@@ -215,11 +223,14 @@ class Matcher:
                 if not self.tries(oid, stance):
                     continue
                 model = self.db.models[oid]
-                starts = standing_starts(model.points @ stance.rest.T, centres, support) @ make_pose(stance.rest)
-                match = self.score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS, rest=stance.rest)
-                if match is not None:
-                    # Fragments are no cluster: the rule for a match explaining part of one does not apply.
-                    out.append(Candidate(next(parts), k if k < first_fragment else None, match[0], stance))
+                # Where the rest shows the object's colour, a piece there is tried on its own: a small
+                # object merged with larger ones lies near no ball's centroid.
+                for near in [centres] + self._colour_seeds(scene, rest, oid):
+                    starts = standing_starts(model.points @ stance.rest.T, near, support) @ make_pose(stance.rest)
+                    match = self.score(model, target, starts, up, fitness_to_verify=PIECE_FITNESS, rest=stance.rest)
+                    if match is not None:
+                        # Fragments are no cluster: the rule for a match explaining part of one does not apply.
+                        out.append(Candidate(next(parts), k if k < first_fragment else None, match[0], stance))
         return out
 
     def match_cluster(self, scene: SceneCloud, idx: np.ndarray, stance: Stance) -> list[tuple[Detection, np.ndarray]]:
@@ -422,12 +433,47 @@ class Matcher:
                 out[oid] = np.array(centres)
         return out
 
+    def _colour_seeds(self, scene: SceneCloud, idx: np.ndarray, object_id: str) -> list[np.ndarray]:
+        """Centroids (3,) of the groups (clustered at the clustering distance, COLOUR_SEEDS largest,
+        cluster_min_points or more) of the points ``idx`` whose chromaticity is one of the object's
+        that no grey surface has (``palette``); none without colour."""
+        table = self._palettes.get(object_id)
+        if table is None or scene.chroma is None:
+            return []
+        chroma = scene.chroma[idx]
+        c = self.config
+        with np.errstate(invalid="ignore"):
+            vivid = np.all(np.isfinite(chroma), axis=1) & np.any(np.abs(chroma - 1 / 3) > c.colour_tolerance, axis=1)
+        cell = np.clip((np.nan_to_num(chroma) * PALETTE_CELLS).astype(np.int64), 0, PALETTE_CELLS - 1)
+        mine = idx[vivid & table[cell[:, 0], cell[:, 1]]]
+        if len(mine) < c.cluster_min_points:
+            return []
+        groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
+                                    scene.graph.subgraph(mine, c.cluster_tolerance_m))
+        return [scene.points[mine[g]].mean(axis=0) for g in groups[:COLOUR_SEEDS]]
+
     def _overlap(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
         """Per start pose (S, 4, 4): the share (S,) of its facing model points (N, 3; ``facing`` (S, N))
         within the coarse ICP's distance of the target's points."""
         placed = (points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3])[facing]  # only facing ones count
         hits = np.bincount(np.nonzero(facing)[0], target.within(placed, 2.0 * self.config.icp_distance_m), len(poses))
         return hits / np.maximum(facing.sum(axis=1), 1)
+
+
+def palette(chroma_range: np.ndarray, tolerance: float) -> np.ndarray:
+    """The object's colours a grey surface has not, as a lookup (PALETTE_CELLS, PALETTE_CELLS) over rg-
+    chromaticity: every cell within ``tolerance`` of a model point's colours ([r_min, g_min, r_max,
+    g_max] (M, 4), ``verify.chroma_ranges``) where those are ``distinct_from_grey``."""
+    rows = chroma_range[np.all(np.isfinite(chroma_range), axis=1)]
+    rows = rows[distinct_from_grey(rows[:, :2], rows[:, 2:], tolerance)]
+    lo = np.clip(np.floor((rows[:, :2] - tolerance) * PALETTE_CELLS), 0, PALETTE_CELLS - 1).astype(np.int64)
+    hi = np.clip(np.floor((rows[:, 2:] + tolerance) * PALETTE_CELLS), 0, PALETTE_CELLS - 1).astype(np.int64)
+    marks = np.zeros((PALETTE_CELLS + 1, PALETTE_CELLS + 1))  # each box as the corners of a 2-D running sum
+    np.add.at(marks, (lo[:, 0], lo[:, 1]), 1)
+    np.add.at(marks, (hi[:, 0] + 1, lo[:, 1]), -1)
+    np.add.at(marks, (lo[:, 0], hi[:, 1] + 1), -1)
+    np.add.at(marks, (hi[:, 0] + 1, hi[:, 1] + 1), 1)
+    return marks.cumsum(axis=0).cumsum(axis=1)[:PALETTE_CELLS, :PALETTE_CELLS] > 0
 
 
 def explained_by(index: PointIndex, camera_T_object: np.ndarray, points: np.ndarray, distance_m: float) -> np.ndarray:

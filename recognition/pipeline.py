@@ -28,7 +28,7 @@ from recognition.hypotheses import RESTS, Candidate, Detection, Matcher, SceneCl
 from recognition.models import ModelDatabase
 from recognition.resolve import Resolver
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
-from recognition.verify import DepthView, Verdict, fit_intrinsics, verdict
+from recognition.verify import DepthView, Verdict, fit_intrinsics, project, verdict
 
 log = logging.getLogger(__name__)
 #: A plane past the first is removed as structure (a wall, a floor, a table seen across a room) when
@@ -129,6 +129,10 @@ class Recognizer:
         c = self.config
         coloured = view.chroma is not None if view is not None else rgb is not None
         scene.coloured = coloured
+        if coloured:  # the view is built now: the pieces path seeds objects where their colour shows
+            view = view or DepthView.of(cloud, rgb)
+            u, v, ok = project(scene.points, view.K, view.z.shape)
+            scene.chroma = np.where(ok[:, None], view.chroma[v, u], np.nan)
         stances = self._stances(scene.planes, world_T_camera, coloured)
         merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
                                     scene.graph)

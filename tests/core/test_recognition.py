@@ -850,6 +850,19 @@ def test_an_object_partly_hidden_by_one_no_database_holds_is_found_with_its_colo
     assert found and error < 0.1, (found, error)
 
 
+def test_a_small_object_merged_with_a_larger_one_is_tried_where_its_colour_shows() -> None:
+    """The demo objects packed with four grey boxes no database holds, seen from cam3: the can
+    shares its cluster with a box beside it (half the cluster), its descriptor no object's, and
+    the pieces path's balls around seeds spread over the cluster centre on neither. Where the
+    cluster shows the can's red, a colour no grey surface has, a piece is tried on its own
+    (``Matcher._colour_seeds``): the can is found within ADD-S 0.1 d (missed without)."""
+    where = {"crate": (-0.139, -0.042, 106.5), "can": (0.163, 0.114, 178.4), "tote": (0.275, -0.167, 6.0)}
+    unknown = [("box", (0.088, 0.075, 0.189), -0.234, 0.165, 156.2), ("box", (0.1, 0.103, 0.177), -0.309, -0.102, 186.6),
+               ("box", (0.098, 0.059, 0.231), 0.301, 0.194, 250.9), ("box", (0.099, 0.094, 0.176), 0.022, 0.083, 59.7)]  # fmt: skip
+    found, error = found_packed(where, unknown, "cam3", 3, "can")
+    assert found and error < 0.1, (found, error)
+
+
 def test_an_object_packed_among_others_no_database_holds_is_found_refitted_to_the_depth() -> None:
     """The demo objects packed on the table with two grey boxes and two cylinders no database
     holds, seen from cam2: the tote, half hidden, shares its cluster with its neighbours and the fit
