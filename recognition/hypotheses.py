@@ -4,7 +4,8 @@ Per cluster: VFH -> the nearest views of every object -> camera-roll alignment -
 every start, fine ICP from the best few -> accept on fitness, coverage and RMSE. Objects that
 touch share a cluster: a confident match explaining part of it is explained away and the rest is
 matched again. When objects stand on a known support (``Stance``), each is also stood on it at
-pieces of what no match explained, and at fragments a split of merged objects shed. Nothing here
+pieces of what no match explained (with colour, also where its colours show there), and at
+fragments a split of merged objects shed. Nothing here
 decides what the frame holds: every candidate goes on to the joint resolution (``recognition.resolve``).
 """
 
