@@ -18,7 +18,7 @@ import open3d as o3d
 from recognition.cloud import PointIndex
 from recognition.vfh import ROLL_BINS
 from recognition.verify import project
-from schemas.geometry import rotation_between
+from schemas.geometry import rotation_between, rpy_matrix
 
 
 def align_to_z(direction: np.ndarray) -> np.ndarray:
@@ -75,20 +75,6 @@ def rot_z(angle: float | np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     R = np.zeros(np.shape(angle) + (3, 3))
     R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
-    return R
-
-
-def _rot_y(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    R = np.zeros(np.shape(angle) + (3, 3))
-    R[..., 0, 0], R[..., 0, 2], R[..., 2, 0], R[..., 2, 2], R[..., 1, 1] = c, s, -s, c, 1.0
-    return R
-
-
-def _rot_x(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    R = np.zeros(np.shape(angle) + (3, 3))
-    R[..., 1, 1], R[..., 1, 2], R[..., 2, 1], R[..., 2, 2], R[..., 0, 0] = c, -s, s, c, 1.0
     return R
 
 
@@ -224,7 +210,8 @@ def icp_passes(
     neither fitness nor RMSE changes by 1e-6), with the surface's one index for every start and
     iteration: Open3D builds a k-d tree of the surface per call, which costs more than a short
     pass. A start left with fewer pairs than unknowns (6) fails: Open3D's steps run off there."""
-    poses = np.array(starts, dtype=np.float64).reshape(-1, 4, 4)
+    starts = np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)
+    poses = starts.copy()
     n_starts = len(poses)
     owner, point = np.nonzero(facing)  # start and model point of each posed point, grouped by start
     counts = np.bincount(owner, minlength=n_starts)
@@ -255,11 +242,7 @@ def icp_passes(
             break
         sel = np.flatnonzero(ok & live[who])  # grouped by start, as the points are
         q, n, ps = surface.points[idx[sel]], surface.normals[idx[sel]], p[sel]
-        J = np.empty((len(sel), 6))  # d(residual) / (small rotation, shift): (p x n, n)
-        J[:, 0] = ps[:, 1] * n[:, 2] - ps[:, 2] * n[:, 1]
-        J[:, 1] = ps[:, 2] * n[:, 0] - ps[:, 0] * n[:, 2]
-        J[:, 2] = ps[:, 0] * n[:, 1] - ps[:, 1] * n[:, 0]
-        J[:, 3:] = n
+        J = _plane_jacobian(ps, n)  # Open3D's linearisation: small turns about the camera's origin
         r = np.einsum("ij,ij->i", ps - q, n)
         first = np.r_[0, np.flatnonzero(np.diff(who[sel])) + 1]  # each live start's first pair
         JtJ = np.add.reduceat((J[:, :, None] * J[:, None, :]).reshape(-1, 36), first).reshape(-1, 6, 6)
@@ -270,7 +253,7 @@ def icp_passes(
         except np.linalg.LinAlgError:  # a singular system (points on one line): its least-norm step
             x[live] = [np.linalg.lstsq(a, -b, rcond=None)[0] for a, b in zip(JtJ, Jtr)]
         update = np.tile(np.eye(4), (n_starts, 1, 1))
-        update[:, :3, :3] = rot_z(x[:, 2]) @ _rot_y(x[:, 1]) @ _rot_x(x[:, 0])
+        update[:, :3, :3] = rpy_matrix(x[:, 0], x[:, 1], x[:, 2])  # Open3D's: Rz Ry Rx
         update[:, :3, 3] = x[:, 3:]
         poses[live] = update[live] @ poses[live]
         before = fitness.copy(), np.sqrt(sq_sum / np.maximum(pairs, 1))
@@ -279,9 +262,7 @@ def icp_passes(
         # Open3D stops a pass once neither its fitness nor its RMSE changed by 1e-6.
         active &= ~(live & (np.abs(before[0] - fitness) < 1e-6) & (np.abs(before[1] - rmse) < 1e-6))
     out = []
-    for s in range(n_starts):
-        start = np.asarray(starts[s], dtype=np.float64)
-        pose = poses[s]
+    for s, (start, pose) in enumerate(zip(starts, poses)):
         if counts[s] < 3 or starved[s] or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
             out.append(IcpResult(start, 0.0, float("inf")))
         else:
@@ -369,18 +350,24 @@ def _damped_step(pose: np.ndarray, p: np.ndarray, q: np.ndarray, n: np.ndarray) 
     through their pairs q (N, 3) with unit normals n (N, 3), taken about the points' centroid and
     applied to ``pose`` (4, 4) in place; returns how far it moved the points along the normals (m, RMS)."""
     centre = p.mean(axis=0)
-    a = p - centre
-    J = np.empty((len(p), 6))  # d(residual) / (turn about the centre, shift): (a x n, n)
-    J[:, 0] = a[:, 1] * n[:, 2] - a[:, 2] * n[:, 1]
-    J[:, 1] = a[:, 2] * n[:, 0] - a[:, 0] * n[:, 2]
-    J[:, 2] = a[:, 0] * n[:, 1] - a[:, 1] * n[:, 0]
-    J[:, 3:] = n
+    J = _plane_jacobian(p - centre, n)
     H = J.T @ J
     H[_DIAGONAL] += ICP_DAMPING * H[_DIAGONAL].max()
     step = np.linalg.solve(H, -J.T @ np.einsum("ij,ij->i", n, p - q))
     turn = cv2.Rodrigues(step[:3])[0]
     pose[:3, :3], pose[:3, 3] = turn @ pose[:3, :3], turn @ (pose[:3, 3] - centre) + centre + step[3:]
     return float(np.sqrt(np.mean((J @ step) ** 2)))
+
+
+def _plane_jacobian(a: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """d(residual) / (small turn, shift) (N, 6) of point-to-plane residuals: points at a (N, 3,
+    from the turn's centre) against planes with unit normals n (N, 3): (a x n, n)."""
+    J = np.empty((len(a), 6))
+    J[:, 0] = a[:, 1] * n[:, 2] - a[:, 2] * n[:, 1]
+    J[:, 1] = a[:, 2] * n[:, 0] - a[:, 0] * n[:, 2]
+    J[:, 2] = a[:, 0] * n[:, 1] - a[:, 1] * n[:, 0]
+    J[:, 3:] = n
+    return J
 
 
 def fit_at(source: np.ndarray, surface: Surface, pose: np.ndarray, distance_m: float) -> tuple[float, float]:

@@ -139,12 +139,13 @@ def skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
-def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation Rz(yaw) Ry(pitch) Rx(roll), angles in radians."""
+def rpy_matrix(roll: float | np.ndarray, pitch: float | np.ndarray, yaw: float | np.ndarray) -> np.ndarray:
+    """Rotation Rz(yaw) Ry(pitch) Rx(roll), angles in radians: (3, 3), or (..., 3, 3) for arrays of angles."""
     cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    Rx, Ry, Rz = (np.zeros(np.broadcast(roll, pitch, yaw).shape + (3, 3)) for _ in range(3))
+    Rx[..., 0, 0], Rx[..., 1, 1], Rx[..., 1, 2], Rx[..., 2, 1], Rx[..., 2, 2] = 1.0, cr, -sr, sr, cr
+    Ry[..., 0, 0], Ry[..., 0, 2], Ry[..., 1, 1], Ry[..., 2, 0], Ry[..., 2, 2] = cp, sp, 1.0, -sp, cp
+    Rz[..., 0, 0], Rz[..., 0, 1], Rz[..., 1, 0], Rz[..., 1, 1], Rz[..., 2, 2] = cy, -sy, sy, cy, 1.0
     return Rz @ Ry @ Rx
 
 
