@@ -544,6 +544,9 @@ def recognize_cmd(
         help="metres per unit of the scene (default: 1 for a cloud, 0.001 for a depth image in mm; 0.0001 for 0.1 mm depth)")] = None,
     standing: Annotated[bool, typer.Option("--standing", help="every object stands on its base on the table or floor: "
                                            "take that plane as level ([recognition] level_support)")] = False,
+    picture: Annotated[Optional[Path], typer.Option(
+        "--picture", help="write the scene (its colour, else its depth) with each object found drawn on it: its "
+        "visible points, outline, axes, id and fitness (.png or .jpg)")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
     cell_config: CellConfigOpt = None,
     verbose: VerboseOpt = False,
@@ -557,7 +560,7 @@ def recognize_cmd(
     db = ModelDatabase.load(models)
     update = {"descriptor": db.descriptor} | ({"level_support": True} if standing else {})
     result = recognize_file(scene, db, cfg.recognition.model_copy(update=update),
-                            fx=fx, fy=fy, cx=cx, cy=cy, scale=scale, rgb=rgb)
+                            picture=picture, fx=fx, fy=fy, cx=cx, cy=cy, scale=scale, rgb=rgb)
     typer.echo(result.to_json() if as_json else result.to_text())
     if not result.detections:
         raise typer.Exit(1)

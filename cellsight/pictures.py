@@ -1,7 +1,9 @@
-"""Pictures people look at: camera snapshots with detected markers, depth in false colour."""
+"""Pictures people look at: camera snapshots with detected markers, depth in false colour, the
+objects a scene was found to hold."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -12,6 +14,18 @@ from drivers.config import MarkerConfig
 from drivers.markers import MarkerDetector
 from drivers.sim.render import SimCell
 from drivers.sim.scenario import Scenario
+from recognition.align import facing_camera
+from recognition.hypotheses import Detection
+from recognition.models import ModelDatabase
+from recognition.verify import VIRTUAL_K, VIRTUAL_SIZE, fit_intrinsics, project
+
+#: Each object's colour in a recognition picture (BGR), by its place among the database's ids: none
+#: of them the pure red, green or blue of the axes.
+OBJECT_COLOURS = ((0, 165, 255), (255, 0, 255), (255, 255, 0), (0, 255, 255), (180, 105, 255), (255, 128, 0),
+                  (128, 255, 128), (0, 90, 200))
+#: A model point further than this behind the measured depth on its pixel is hidden by what the
+#: sensor saw in front of it, and not drawn (m).
+HIDDEN_M = 0.03
 
 
 def depth_colormap(depth_mm: np.ndarray, max_mm: float = 4500.0) -> np.ndarray:
@@ -38,3 +52,78 @@ def write_snapshot(scenario: Scenario, out: Path, t_s: float) -> list[Path]:
         cv2.imwrite(str(paths[3]), draw_detections(bgr, f.info, det.detect(f.rgb, f.info, f.depth_mm)))
         written += paths
     return written
+
+
+def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequence[Detection],
+                     database: ModelDatabase) -> np.ndarray:  # fmt: skip
+    """The scene as a picture (BGR): its colour, else its depth in false colour, with each detection's
+    model points that the camera would see drawn in the object's colour (``OBJECT_COLOURS``), the
+    outline they make, the object's axes (x red, y green, z blue; at its origin, when that lies on
+    the object) and its id and fitness.
+
+    cloud: the camera-frame scene (H, W, 3) organised, drawn at its own resolution, or (N, 3),
+    drawn as ``recognition.verify``'s virtual camera sees it; rgb: its points' colours (uint8,
+    the cloud's layout) or None."""
+    pts = np.asarray(cloud, dtype=np.float64)
+    organised = pts.ndim == 3 and min(pts.shape[:2]) > 1
+    if organised:
+        H, W = pts.shape[:2]
+        K = fit_intrinsics(pts)
+        z = np.where(np.isfinite(pts[..., 2]) & (pts[..., 2] > 0), pts[..., 2], np.nan)
+        colour = None if rgb is None else np.asarray(rgb, np.uint8).reshape(H, W, 3)
+    else:
+        (H, W), K = VIRTUAL_SIZE, VIRTUAL_K
+        flat = pts.reshape(-1, 3)
+        u, v, ok = project(flat, K, (H, W))
+        order = np.argsort(-flat[ok, 2])  # nearest last: it wins its pixel
+        z = np.full((H, W), np.nan)
+        z[v[ok][order], u[ok][order]] = flat[ok, 2][order]
+        colour = None
+        if rgb is not None:
+            colour = np.zeros((H, W, 3), np.uint8)
+            colour[v[ok][order], u[ok][order]] = np.asarray(rgb, np.uint8).reshape(-1, 3)[ok][order]
+    if colour is not None:
+        out = np.ascontiguousarray(colour[..., ::-1])
+    else:
+        out = depth_colormap(np.nan_to_num(z * 1000.0).astype(np.uint16))
+    ids = sorted(database.models)
+    labels: list[tuple[str, int, int]] = []  # text, left, top of the silhouette
+    for det in detections:
+        model = database.models[det.object_id]
+        bgr = OBJECT_COLOURS[ids.index(det.object_id) % len(OBJECT_COLOURS)]
+        T = det.camera_T_object
+        facing = facing_camera(model.points, model.normals, T)[0]
+        p = model.points[facing] @ T[:3, :3].T + T[:3, 3]
+        u, v, ok = project(p, K, (H, W))
+        u, v, p = u[ok], v[ok], p[ok]
+        measured = z[v, u]
+        seen = ~(p[:, 2] > measured + HIDDEN_M)  # no depth there, or not behind it
+        if not seen.any():
+            continue
+        mask = np.zeros((H, W), np.uint8)
+        mask[v[seen], u[seen]] = 255
+        # Close the gaps between the model's points: one voxel apart, that many pixels at its depth.
+        gap = int(np.ceil(K[0, 0] * database.descriptor.voxel_m / float(np.median(p[seen, 2]))))
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * max(gap, 2) + 1,) * 2)
+        closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disc)
+        inside = closed > 0
+        out[inside] = (0.65 * out[inside] + 0.35 * np.array(bgr)).astype(np.uint8)
+        contours, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(out, contours, -1, bgr, 1)
+        out[v[seen], u[seen]] = bgr
+        # A model from a captured cloud has its camera's frame: its origin is nowhere near it.
+        if T[2, 3] > 0 and np.linalg.norm(model.centre) <= model.diameter_m:
+            rvec, _ = cv2.Rodrigues(T[:3, :3])
+            cv2.drawFrameAxes(out, K, np.zeros(5), rvec, T[:3, 3], 0.4 * model.diameter_m, 2)
+        labels.append((f"{det.object_id} {det.fitness:.2f}", int(u[seen].min()), int(v[seen].min())))
+    placed: list[tuple[int, int, int, int]] = []
+    for text, x, top in labels:  # above the silhouette, raised past labels already there
+        (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+        y = top - 4
+        while any(x < x1 and x + w + 2 > x0 and y - h - 3 < y1 and y + 2 > y0 for x0, y0, x1, y1 in placed):
+            y -= h + 6
+        y = max(y, h + 3)
+        placed.append((x, y - h - 3, x + w + 2, y + 2))
+        cv2.rectangle(out, placed[-1][:2], placed[-1][2:], (0, 0, 0), -1)
+        cv2.putText(out, text, (x + 1, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    return out

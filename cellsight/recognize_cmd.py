@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from cellsight.detect import pose_json
+from cellsight.errors import RunError
 from recognition.cloud import depth_to_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
 from recognition.errors import CloudError
@@ -19,6 +20,7 @@ from recognition.pipeline import Recognizer
 from schemas.codec import CameraInfo
 
 
+PICTURE_SUFFIXES = (".png", ".jpg")
 MAX_SCENE_RANGE_M = 20.0  # a scene cloud's median range beyond this is in other units (millimetres)
 
 
@@ -29,6 +31,7 @@ class RecognizeResult:
     scene: Path
     points: int
     detections: list[Detection]
+    picture: Path | None = None  # the scene with what was found drawn on it, when asked for
 
     def rows(self) -> list[dict]:
         return [
@@ -44,7 +47,9 @@ class RecognizeResult:
         ]
 
     def to_json(self) -> str:
-        return json.dumps({"scene": str(self.scene), "points": self.points, "detections": self.rows()}, indent=2)
+        picture = None if self.picture is None else str(self.picture)
+        out = {"scene": str(self.scene), "points": self.points, "detections": self.rows(), "picture": picture}
+        return json.dumps(out, indent=2)
 
     def to_text(self) -> str:
         lines = [f"{self.scene}: {self.points} points, {len(self.detections)} object(s) (camera frame)"]
@@ -52,6 +57,8 @@ class RecognizeResult:
             x, y, z = r["position_m"]
             lines.append(f"  {r['object_id']:<12} at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  q {r['quaternion_xyzw']}  "
                          f"fitness {r['fitness']:.2f}  coverage {r['coverage']:.2f}  rmse {1000 * r['rmse_m']:.1f} mm")
+        if self.picture is not None:
+            lines.append(f"  picture: {self.picture}")
         return "\n".join(lines)
 
 
@@ -106,7 +113,19 @@ def read_registered_rgb(path: Path, depth_path: Path, shape: tuple[int, int]) ->
     return np.ascontiguousarray(bgr[..., ::-1])
 
 
-def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, **intrinsics) -> RecognizeResult:
+def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, picture: Path | None = None,
+                   **intrinsics) -> RecognizeResult:  # fmt: skip
+    """The database's objects in one scene file (``load_scene``'s ``intrinsics``); with ``picture``, a
+    PNG of the scene with them drawn (``cellsight.pictures.draw_recognition``) written there."""
+    if picture is not None and picture.suffix.lower() not in PICTURE_SUFFIXES:
+        raise RunError(f"picture {picture}: give a file ending in {' or '.join(PICTURE_SUFFIXES)}")
     cloud, rgb = load_scene(scene, **intrinsics)
     finite = int(np.all(np.isfinite(cloud.reshape(-1, 3)), axis=1).sum())
-    return RecognizeResult(scene, finite, Recognizer(db, config).recognize(cloud, rgb=rgb))
+    detections = Recognizer(db, config).recognize(cloud, rgb=rgb)
+    if picture is not None:
+        from cellsight.pictures import draw_recognition  # the simulator's renderer comes with it
+
+        picture.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(picture), draw_recognition(cloud, rgb, detections, db)):
+            raise RunError(f"picture {picture}: could not be written")
+    return RecognizeResult(scene, finite, detections, picture)

@@ -276,7 +276,7 @@ CLI_TEMPLATES = [
     ["config", "check", "P"],
     ["config", "show", "P"],
     ["markers", "detect", "P", "--size", "N", "--dict", "S", "--camera-info", "P", "--depth", "P", "--json"],
-    ["recognize", "--models", "P", "--scene", "P", "--fx", "N", "--cy", "N", "--rgb", "P"],
+    ["recognize", "--models", "P", "--scene", "P", "--fx", "N", "--cy", "N", "--rgb", "P", "--picture", "P"],
     ["model", "build", "--out", "OUT", "--cloud", "S=P", "--mesh", "S=P", "--distance", "N"],
     ["resolve", "P", "--out", "OUT"],
     ["compare", "P", "P"],

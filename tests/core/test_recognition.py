@@ -1022,3 +1022,40 @@ def test_sides_alike_are_tried_once() -> None:
     kinds = distinct_rests(surface(box), tol)
     assert len(kinds) == 2 and np.array_equal(kinds[0], RESTS[0]) and np.array_equal(kinds[1], RESTS[2])
     assert len(distinct_rests(surface(box + block), tol)) == 4
+
+
+def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(tmp_path: Path, milk: np.ndarray) -> None:
+    """``cellsight recognize --picture`` on PCL's real milk scene: what it draws over the scene's colour
+    covers the carton's true silhouette (the model was cut from the scene: its pose is the identity)
+    and little else (the label above it); a scene where nothing is found comes back as its colour
+    alone; a picture file of another kind is refused before recognition runs."""
+    from typer.testing import CliRunner
+
+    from cellsight.cli import app
+
+    db = tmp_path / "db"
+    assert CliRunner().invoke(app, ["model", "build", "--out", str(db), "--cloud", f"milk={PCL / 'milk.pcd'}"]).exit_code == 0
+    scene = PCL / "milk_cartoon_all_small_clorox.pcd"
+    picture = tmp_path / "found.png"
+    result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(scene), "--picture", str(picture), "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["picture"] == str(picture)
+    cloud, rgb = read_coloured_cloud(scene, organised=True)
+    drawn = np.any(cv2.imread(str(picture)) != rgb[..., ::-1], axis=2)
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])  # the scene's (data README)
+    uv = np.round(milk @ K.T / milk[:, 2:]).astype(int)[:, :2]
+    truth = np.zeros(drawn.shape, np.uint8)
+    truth[uv[:, 1], uv[:, 0]] = 1
+    truth = cv2.morphologyEx(truth, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)) > 0
+    near_truth = cv2.dilate(truth.astype(np.uint8), np.ones((11, 11), np.uint8)) > 0
+    assert (drawn & truth).sum() >= 0.9 * truth.sum()
+    label = 100 * 25  # the id and fitness on their box, px
+    assert (drawn & ~near_truth).sum() <= label, (drawn & ~near_truth).sum()
+    empty = tmp_path / "nothing.png"
+    office = PCL / "office1.pcd"
+    result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(office), "--picture", str(empty)])
+    assert result.exit_code == 1  # nothing found
+    _, office_rgb = read_coloured_cloud(office, organised=True)
+    np.testing.assert_array_equal(cv2.imread(str(empty)), office_rgb[..., ::-1])
+    result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(scene), "--picture", str(tmp_path / "p.txt")])
+    assert result.exit_code == 1 and "p.txt: give a file ending in .png or .jpg" in " ".join(result.output.split())
