@@ -48,7 +48,9 @@ too, not the default's with ``--quick``). And a dataset of
 objects that are no box or cylinder (``drivers.sim.shapes``: a mug, a duck, a drill, a cone; 3 layouts from
 the cell and from close, not with ``--quick``): ``bop_shapes_...``. So the reader,
 the model build from files in millimetres and the scoring run on every change, and a held-back
-dataset is one flag away.
+dataset is one flag away. ``--pictures OUT`` draws every frame a pass got wrong (a miss or a false
+detection) into OUT, named by the pass, scene and image: what was found, and the annotated poses
+outlined in white.
 
 One pinned core, as ``benchmarks.recognition``.
 """
@@ -56,6 +58,7 @@ One pinned core, as ``benchmarks.recognition``.
 from __future__ import annotations
 
 import argparse
+import re
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -63,6 +66,7 @@ from pathlib import Path
 
 from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visibility_class, visible_share  # pins this process to one core first
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from rich.progress import track  # noqa: E402
 
@@ -70,6 +74,7 @@ from benchmarks.common import PCL_DATA, main  # noqa: E402
 from cellsight.bop import BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
+from cellsight.pictures import draw_recognition  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
 from drivers.sim.shapes import shapes  # noqa: E402
@@ -176,8 +181,10 @@ class Tally:
     upside_down: int = 0
     times: list[float] = field(default_factory=list)
 
-    def add(self, frame: BopFrame, found: list[tuple[str, np.ndarray]], db: ModelDatabase, diameter: dict[str, float]) -> None:
-        """Score a frame's detections (object id, camera_T_object) against its annotations."""
+    def add(self, frame: BopFrame, found: list[tuple[str, np.ndarray]], db: ModelDatabase,
+            diameter: dict[str, float]) -> bool:  # fmt: skip
+        """Score a frame's detections (object id, camera_T_object) against its annotations: whether
+        all was right (no false detection, every scored instance found)."""
         s = score(frame.truth, found, {oid: m.points for oid, m in db.models.items()}, diameter)
         self.false += len(s.false)
         for inst, hit, j in zip(frame.truth, s.found, s.matched):
@@ -185,6 +192,8 @@ class Tally:
                 self.rows.append((cls, bool(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M), hit))
             if j is not None and db.models[inst.object_id].stands_on_z and found[j][1][:3, 2] @ inst.camera_T_object[:3, 2] < 0:
                 self.upside_down += 1
+        scored = [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share) is not None]
+        return not s.false and all(scored)
 
     def recall(self, cls: str | None = None, near: bool | None = None) -> float | None:
         """Share found of the scored instances of a class and band (None: all); None if there are none."""
@@ -193,29 +202,39 @@ class Tally:
 
 
 def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
-                db: ModelDatabase, diameter: dict[str, float], progress: str, colour: bool = True) -> Tally:  # fmt: skip
+                db: ModelDatabase, diameter: dict[str, float], progress: str, colour: bool = True,
+                pictures: Path | None = None) -> Tally:  # fmt: skip
     """The frames through ``rec`` with colour (unless not ``colour``: depth alone), each with its
-    world pose in ``pose_of`` (absent: none), scored; ``progress`` names the pass on its progress bar."""
+    world pose in ``pose_of`` (absent: none), scored; ``progress`` names the pass on its progress bar.
+    pictures: a folder for a picture of each frame with a miss or a false detection
+    (``draw_recognition``: what was found, the annotated poses outlined in white), named by the pass,
+    the scene and the image."""
     tally = Tally()
     for frame in track(frames, description=progress):
         cloud, rgb = frame.load()
         t0 = time.perf_counter()
         found = rec.recognize(cloud, world_T_camera=pose_of.get((frame.scene_id, frame.image_id)), rgb=rgb if colour else None)
         tally.times.append(time.perf_counter() - t0)
-        tally.add(frame, [(d.object_id, d.camera_T_object) for d in found], db, diameter)
+        right = tally.add(frame, [(d.object_id, d.camera_T_object) for d in found], db, diameter)
+        if pictures is not None and not right:
+            truth = [(inst.object_id, inst.camera_T_object) for inst in frame.truth]
+            name = f"{re.sub(r'[^a-z]+', '_', progress)}_{frame.scene_id:06d}_{frame.image_id:06d}.png"
+            pictures.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(pictures / name), draw_recognition(cloud, rgb if colour else None, found, rec.db, truth))
     return tally
 
 
 def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, ...], cfg: RecognitionConfig,
             lying_scenes: frozenset[int] = frozenset(), world_z_up: bool = False,
-            lookalikes: tuple[ObjectSpec, ...] = (), depth_only: bool = True) -> dict[str, float]:  # fmt: skip
+            lookalikes: tuple[ObjectSpec, ...] = (), depth_only: bool = True, pictures: Path | None = None) -> dict[str, float]:  # fmt: skip
     """Ours and the point-pair baseline on ``frames`` of the dataset's frames (all if None), the
     database built from its models with views at ``distances_m`` (m): the figures of the module
     docstring; ``bop_adds_recall_lying`` over the scenes in ``lying_scenes``. A frame's world pose is
     used when ``world_z_up`` says the dataset's world has z up, else only if a plane the frame shows
     is level in it (``level_world_pose``; the others: ``bop_frames_world_pose_set_aside``). With
     ``lookalikes``, the frames but the lying ones once more, those objects' models added; with
-    ``depth_only``, once more without their colour (``..._depth_only``)."""
+    ``depth_only``, once more without their colour (``..._depth_only``). ``pictures``: a folder for
+    a picture of each frame a pass got wrong (``_recognised``)."""
     meshes = {m.object_id: m.path for m in dataset.models.values() if m.is_mesh}
     points = {m.object_id: m.path for m in dataset.models.values() if not m.is_mesh}
     t0 = time.perf_counter()
@@ -230,16 +249,21 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     posed = [f for f in standing if f.world_T_camera is not None]
     pose_of = {(f.scene_id, f.image_id): f.world_T_camera if world_z_up else level_world_pose(rec, f.load()[0], f.world_T_camera)
                for f in posed}  # fmt: skip
-    ours = _recognised(rec, standing, pose_of, db, diameter, "recognising")
-    lying = _recognised(rec, [f for f in chosen if f.scene_id in lying_scenes], {}, db, diameter, "lying")
-    wide = _with_lookalikes(db, cfg, distances_m, lookalikes, standing, pose_of, diameter) if lookalikes else None
+    ours = _recognised(rec, standing, pose_of, db, diameter, "recognising", pictures=pictures)
+    lying_frames = [f for f in chosen if f.scene_id in lying_scenes]
+    lying = _recognised(rec, lying_frames, {}, db, diameter, "lying", pictures=pictures)
+    wide = None
+    if lookalikes:
+        wide = _with_lookalikes(db, cfg, distances_m, lookalikes, standing, pose_of, diameter, pictures)
     # As a sensor without colour, or models without it, leave recognition: shape alone.
-    depth = _recognised(rec, standing, pose_of, db, diameter, "depth alone", colour=False) if depth_only else None
+    depth = None
+    if depth_only:
+        depth = _recognised(rec, standing, pose_of, db, diameter, "depth alone", colour=False, pictures=pictures)
     # The frames with the camera's world pose once more without it, as `cellsight recognize` sees a
     # saved frame: the whole view, the room's floor and walls included.
-    alone = _recognised(rec, posed, {}, db, diameter, "camera frame")
+    alone = _recognised(rec, posed, {}, db, diameter, "camera frame", pictures=pictures)
     level = Recognizer(db, cfg.model_copy(update={"level_support": True}))
-    alone_level = _recognised(level, posed, {}, db, diameter, "camera frame, level support")
+    alone_level = _recognised(level, posed, {}, db, diameter, "camera frame, level support", pictures=pictures)
     theirs, ppf_times = _baseline(rec, standing, pose_of, db, diameter)
     out = {"bop_frames": float(len(chosen)), "bop_instances_scored": float(len(ours.rows)), "bop_models": float(len(db.models)),
            "bop_model_build_s": build_s, "bop_frames_world_pose_set_aside": float(sum(p is None for p in pose_of.values()))}  # fmt: skip
@@ -280,13 +304,13 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
 
 def _with_lookalikes(db: ModelDatabase, cfg: RecognitionConfig, distances_m: tuple[float, ...], lookalikes: tuple[ObjectSpec, ...],
                      frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
-                     diameter: dict[str, float]) -> Tally:  # fmt: skip
+                     diameter: dict[str, float], pictures: Path | None = None) -> Tally:  # fmt: skip
     """The frames recognised with the look-alikes' models added to ``db`` (their views at
     ``distances_m``), each with the world pose the main pass gave it (``pose_of``)."""
     wider = ModelDatabase(db.descriptor, dict(db.models))
     for o in lookalikes:
         wider.add(model_from_mesh(o.id, object_mesh(o).paint_uniform_color(o.color), cfg.descriptor, distances_m=distances_m))
-    return _recognised(Recognizer(wider, cfg), frames, pose_of, db, diameter, "with look-alikes")
+    return _recognised(Recognizer(wider, cfg), frames, pose_of, db, diameter, "with look-alikes", pictures=pictures)
 
 
 def _baseline(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
@@ -316,7 +340,8 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
         cfg = load_config(args.cell_config).recognition if args.cell_config else RecognitionConfig()
         cfg = cfg.model_copy(update={"free_with_pose": not args.standing})
         dataset = BopDataset.open(args.dataset, args.split)
-        return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg, world_z_up=args.world_z_up)
+        return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg,
+                       world_z_up=args.world_z_up, pictures=args.pictures)
     # The simulated frames carry the cameras' poses in the cell, so the cell's workspace crops them,
     # as in the running cell; PCL's real frames have none and are recognised in the camera frame.
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
@@ -324,7 +349,8 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         dataset = BopDataset.open(write_default(Path(tmp) / "demo", layouts, lying))
         out = measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
-                      world_z_up=True, lookalikes=() if quick else LOOKALIKES, depth_only=not quick)  # the cell's world, written here
+                      world_z_up=True, lookalikes=() if quick else LOOKALIKES, depth_only=not quick,
+                      pictures=args.pictures)  # the cell's world, written here
         if not quick:
             (Path(tmp) / "meshes").mkdir()
             other = BopDataset.open(write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes")))
@@ -345,6 +371,8 @@ def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--standing", action="store_true",
                         help="every object stands on its model's +z, as a cell's: in a frame with a world pose only "
                         "standing objects are looked for (default: also any way up and lying, as without a pose)")
+    parser.add_argument("--pictures", type=Path, help="write a picture of each frame a pass got wrong to this folder: "
+                        "what was found drawn over the frame, the annotated poses outlined in white")
     parser.add_argument("--distance", type=float, nargs="+", default=list(VIEW_DISTANCES_M),
                         help="virtual camera distances for the models' views, m (default: as cellsight model build)")
 

@@ -55,11 +55,12 @@ def write_snapshot(scenario: Scenario, out: Path, t_s: float) -> list[Path]:
 
 
 def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequence[Detection],
-                     database: ModelDatabase) -> np.ndarray:  # fmt: skip
+                     database: ModelDatabase, truth: Sequence[tuple[str, np.ndarray]] = ()) -> np.ndarray:  # fmt: skip
     """The scene as a picture (BGR): its colour, else its depth in false colour, with each detection's
     model points that the camera would see drawn in the object's colour (``OBJECT_COLOURS``), the
     outline they make, the object's axes (x red, y green, z blue; at its origin, when that lies on
-    the object) and its id and fitness.
+    the object) and its id and fitness; under them, in white, the outline of each annotated pose in
+    ``truth`` (object id, camera_T_object), for a dataset's frames.
 
     cloud: the camera-frame scene (H, W, 3) organised, drawn at its own resolution, or (N, 3),
     drawn as ``recognition.verify``'s virtual camera sees it; rgb: its points' colours (uint8,
@@ -86,36 +87,26 @@ def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequ
         out = np.ascontiguousarray(colour[..., ::-1])
     else:
         out = depth_colormap(np.nan_to_num(z * 1000.0).astype(np.uint16))
+    for object_id, T in truth:
+        if (shown := _silhouette(database, object_id, T, K, z)) is not None:
+            cv2.drawContours(out, shown[2], -1, (255, 255, 255), 1)
     ids = sorted(database.models)
     labels: list[tuple[str, int, int]] = []  # text, left, top of the silhouette
     for det in detections:
         model = database.models[det.object_id]
         bgr = OBJECT_COLOURS[ids.index(det.object_id) % len(OBJECT_COLOURS)]
         T = det.camera_T_object
-        facing = facing_camera(model.points, model.normals, T)[0]
-        p = model.points[facing] @ T[:3, :3].T + T[:3, 3]
-        u, v, ok = project(p, K, (H, W))
-        u, v, p = u[ok], v[ok], p[ok]
-        measured = z[v, u]
-        seen = ~(p[:, 2] > measured + HIDDEN_M)  # no depth there, or not behind it
-        if not seen.any():
+        if (shown := _silhouette(database, det.object_id, T, K, z)) is None:
             continue
-        mask = np.zeros((H, W), np.uint8)
-        mask[v[seen], u[seen]] = 255
-        # Close the gaps between the model's points: one voxel apart, that many pixels at its depth.
-        gap = int(np.ceil(K[0, 0] * database.descriptor.voxel_m / float(np.median(p[seen, 2]))))
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * max(gap, 2) + 1,) * 2)
-        closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disc)
-        inside = closed > 0
+        (u, v), inside, contours = shown
         out[inside] = (0.65 * out[inside] + 0.35 * np.array(bgr)).astype(np.uint8)
-        contours, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(out, contours, -1, bgr, 1)
-        out[v[seen], u[seen]] = bgr
+        out[v, u] = bgr
         # A model from a captured cloud has its camera's frame: its origin is nowhere near it.
         if T[2, 3] > 0 and np.linalg.norm(model.centre) <= model.diameter_m:
             rvec, _ = cv2.Rodrigues(T[:3, :3])
             cv2.drawFrameAxes(out, K, np.zeros(5), rvec, T[:3, 3], 0.4 * model.diameter_m, 2)
-        labels.append((f"{det.object_id} {det.fitness:.2f}", int(u[seen].min()), int(v[seen].min())))
+        labels.append((f"{det.object_id} {det.fitness:.2f}", int(u.min()), int(v.min())))
     placed: list[tuple[int, int, int, int]] = []
     for text, x, top in labels:  # above the silhouette, raised past labels already there
         (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
@@ -127,3 +118,27 @@ def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequ
         cv2.rectangle(out, placed[-1][:2], placed[-1][2:], (0, 0, 0), -1)
         cv2.putText(out, text, (x + 1, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
     return out
+
+
+def _silhouette(database: ModelDatabase, object_id: str, camera_T_object: np.ndarray, K: np.ndarray,
+                z: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, Sequence[np.ndarray]] | None:  # fmt: skip
+    """Where a posed model shows in an image of depth z (H, W, m; NaN: none) seen through K: the
+    pixels (columns, rows) of its points that face the camera and are not behind the measured depth
+    by more than HIDDEN_M, the mask (H, W) they fill closed over the gaps between them (one voxel
+    apart: that many pixels at their depth), and its outline's contours; None where none shows."""
+    model = database.models[object_id]
+    R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
+    p = model.points[facing_camera(model.points, model.normals, camera_T_object)[0]] @ R.T + t
+    u, v, ok = project(p, K, z.shape)
+    u, v, p = u[ok], v[ok], p[ok]
+    seen = ~(p[:, 2] > z[v, u] + HIDDEN_M)  # no depth there, or not behind it
+    if not seen.any():
+        return None
+    u, v = u[seen], v[seen]
+    mask = np.zeros(z.shape, np.uint8)
+    mask[v, u] = 255
+    gap = int(np.ceil(K[0, 0] * database.descriptor.voxel_m / float(np.median(p[seen, 2]))))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * max(gap, 2) + 1,) * 2)
+    closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, disc)
+    contours, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    return (u, v), closed > 0, contours

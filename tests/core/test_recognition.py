@@ -1027,11 +1027,13 @@ def test_sides_alike_are_tried_once() -> None:
 def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(tmp_path: Path, milk: np.ndarray) -> None:
     """``cellsight recognize --picture`` on PCL's real milk scene: what it draws over the scene's colour
     covers the carton's true silhouette (the model was cut from the scene: its pose is the identity)
-    and little else (the label above it); a scene where nothing is found comes back as its colour
-    alone; a picture file of another kind is refused before recognition runs."""
+    and little else (the label above it); an annotated pose alone is outlined in white round it; a
+    scene where nothing is found comes back as its colour alone; a picture file of another kind is
+    refused before recognition runs."""
     from typer.testing import CliRunner
 
     from cellsight.cli import app
+    from cellsight.pictures import draw_recognition
 
     db = tmp_path / "db"
     assert CliRunner().invoke(app, ["model", "build", "--out", str(db), "--cloud", f"milk={PCL / 'milk.pcd'}"]).exit_code == 0
@@ -1051,6 +1053,11 @@ def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(t
     assert (drawn & truth).sum() >= 0.9 * truth.sum()
     label = 100 * 25  # the id and fitness on their box, px
     assert (drawn & ~near_truth).sum() <= label, (drawn & ~near_truth).sum()
+    outlined = draw_recognition(cloud, rgb, [], ModelDatabase.load(db), truth=[("milk", np.eye(4))])
+    changed = np.any(outlined != rgb[..., ::-1], axis=2)
+    assert np.all(outlined[changed] == 255) and changed.sum() > 300  # one white line round the carton
+    deep_inside = cv2.erode(truth.astype(np.uint8), np.ones((11, 11), np.uint8)) > 0
+    assert (changed & near_truth & ~deep_inside).sum() >= 0.95 * changed.sum()
     empty = tmp_path / "nothing.png"
     office = PCL / "office1.pcd"
     result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(office), "--picture", str(empty)])
