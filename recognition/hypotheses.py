@@ -137,10 +137,12 @@ class Target:
     surface: Surface
     image: ImageBounds | None = None  # model points landing outside it are not looked for
     coloured: bool = False  # the frame has colour (``SceneCloud.coloured``)
+    chroma: np.ndarray | None = None  # the points' rg-chromaticity (N, 2), NaN: none (``SceneCloud.chroma``)
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
-        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image, scene.coloured)
+        chroma = None if scene.chroma is None else scene.chroma[idx]
+        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image, scene.coloured, chroma)
 
     @property
     def index(self) -> PointIndex:
@@ -221,7 +223,7 @@ class Matcher:
             pieces = self._piece_centres(scene.points, rest)
             target = Target.of(scene, rest) if pieces else None
             for oid, centres in pieces.items():
-                if not self.tries(oid, stance):
+                if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target.chroma, oid)):
                     continue
                 model = self.db.models[oid]
                 # Where the rest shows the object's colour, a piece there is tried on its own: a small
@@ -243,7 +245,7 @@ class Matcher:
         desc, chosen, target = self._looks(scene, idx)
         matches = []
         for oid, (rows, rolls) in chosen.items():
-            if not self.tries(oid, stance):
+            if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target.chroma, oid)):
                 continue
             camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
                                            np.array(rolls))
@@ -335,7 +337,7 @@ class Matcher:
         screened = [res for res in passes if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up)]
         shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
         found = self._fine_fit(model, target, screened, up, from_rest, shared_fitness, from_prior)
-        if found is not None or not (target.coloured and model.colours is not None):
+        if found is not None or not self._shows_colour(target.chroma, model.object_id):
             return found
         # Nothing passed. Open3D's undamped steps run off a small curved patch: the start with the
         # most overlap they ran off from (fitness RAN_OFF under its share) is screened again with
@@ -434,6 +436,24 @@ class Matcher:
                 out[oid] = np.array(centres)
         return out
 
+    def _shows_colour(self, chroma: np.ndarray | None, object_id: str) -> bool:
+        """Whether any of the points with chromaticities ``chroma`` (N, 2; None: no colour) shows one
+        of the object's colours that no grey surface has (``palette``). Where none does, a hypothesis
+        that needs its colour to agree there (lying, or reached by damped steps; ``Detection.needs_colour``)
+        cannot pass verification: an agreeing pixel has such a colour, and the part's points sample
+        its pixels at every voxel."""
+        table = self._palettes.get(object_id)
+        if table is None or chroma is None:
+            return False
+        return bool(self._palette_points(chroma, table).any())
+
+    def _palette_points(self, chroma: np.ndarray, table: np.ndarray) -> np.ndarray:
+        """Mask (N,) of the chromaticities (N, 2) that lie in an object's ``palette`` ``table``."""
+        with np.errstate(invalid="ignore"):
+            vivid = np.all(np.isfinite(chroma), axis=1) & np.any(np.abs(chroma - 1 / 3) > self.config.colour_tolerance, axis=1)
+        cell = np.clip((np.nan_to_num(chroma) * PALETTE_CELLS).astype(np.int64), 0, PALETTE_CELLS - 1)
+        return vivid & table[cell[:, 0], cell[:, 1]]
+
     def _colour_seeds(self, scene: SceneCloud, idx: np.ndarray, object_id: str) -> list[np.ndarray]:
         """Centroids (3,) of the groups (clustered at the clustering distance, COLOUR_SEEDS largest,
         cluster_min_points or more) of the points ``idx`` whose chromaticity is one of the object's
@@ -441,12 +461,8 @@ class Matcher:
         table = self._palettes.get(object_id)
         if table is None or scene.chroma is None:
             return []
-        chroma = scene.chroma[idx]
         c = self.config
-        with np.errstate(invalid="ignore"):
-            vivid = np.all(np.isfinite(chroma), axis=1) & np.any(np.abs(chroma - 1 / 3) > c.colour_tolerance, axis=1)
-        cell = np.clip((np.nan_to_num(chroma) * PALETTE_CELLS).astype(np.int64), 0, PALETTE_CELLS - 1)
-        mine = idx[vivid & table[cell[:, 0], cell[:, 1]]]
+        mine = idx[self._palette_points(scene.chroma[idx], table)]
         if len(mine) < c.cluster_min_points:
             return []
         groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
