@@ -138,6 +138,7 @@ class Target:
     image: ImageBounds | None = None  # model points landing outside it are not looked for
     coloured: bool = False  # the frame has colour (``SceneCloud.coloured``)
     chroma: np.ndarray | None = None  # the points' rg-chromaticity (N, 2), NaN: none (``SceneCloud.chroma``)
+    shows: dict[str, bool] = field(default_factory=dict, compare=False)  # by object id (``Matcher._shows_colour``)
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
@@ -223,7 +224,7 @@ class Matcher:
             pieces = self._piece_centres(scene.points, rest)
             target = Target.of(scene, rest) if pieces else None
             for oid, centres in pieces.items():
-                if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target.chroma, oid)):
+                if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target, oid)):
                     continue
                 model = self.db.models[oid]
                 # Where the rest shows the object's colour, a piece there is tried on its own: a small
@@ -245,7 +246,7 @@ class Matcher:
         desc, chosen, target = self._looks(scene, idx)
         matches = []
         for oid, (rows, rolls) in chosen.items():
-            if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target.chroma, oid)):
+            if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target, oid)):
                 continue
             camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
                                            np.array(rolls))
@@ -337,7 +338,7 @@ class Matcher:
         screened = [res for res in passes if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up)]
         shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
         found = self._fine_fit(model, target, screened, up, from_rest, shared_fitness, from_prior)
-        if found is not None or not self._shows_colour(target.chroma, model.object_id):
+        if found is not None or not self._shows_colour(target, model.object_id):
             return found
         # Nothing passed. Open3D's undamped steps run off a small curved patch: the start with the
         # most overlap they ran off from (fitness RAN_OFF under its share) is screened again with
@@ -436,16 +437,17 @@ class Matcher:
                 out[oid] = np.array(centres)
         return out
 
-    def _shows_colour(self, chroma: np.ndarray | None, object_id: str) -> bool:
-        """Whether any of the points with chromaticities ``chroma`` (N, 2; None: no colour) shows one
-        of the object's colours that no grey surface has (``palette``). Where none does, a hypothesis
-        that needs its colour to agree there (lying, or reached by damped steps; ``Detection.needs_colour``)
-        cannot pass verification: an agreeing pixel has such a colour, and the part's points sample
-        its pixels at every voxel."""
-        table = self._palettes.get(object_id)
-        if table is None or chroma is None:
-            return False
-        return bool(self._palette_points(chroma, table).any())
+    def _shows_colour(self, target: Target, object_id: str) -> bool:
+        """Whether any of the target's points shows one of the object's colours that no grey surface
+        has (``palette``; never without colour). Where none does, a hypothesis that needs its colour
+        to agree there (lying, or reached by damped steps; ``Detection.needs_colour``) cannot pass
+        verification: an agreeing pixel has such a colour, and the part's points sample its pixels
+        at every voxel. Asked once per target and object: every stance asks it again."""
+        if object_id not in target.shows:
+            table = self._palettes.get(object_id)
+            shown = table is not None and target.chroma is not None and self._palette_points(target.chroma, table).any()
+            target.shows[object_id] = bool(shown)
+        return target.shows[object_id]
 
     def _palette_points(self, chroma: np.ndarray, table: np.ndarray) -> np.ndarray:
         """Mask (N,) of the chromaticities (N, 2) that lie in an object's ``palette`` ``table``."""
