@@ -125,6 +125,10 @@ class SceneCloud:
     #: Each part's descriptor, chosen views and target, by its point indices' bytes: every stance a
     #: frame is tried in matches the same parts (``Matcher._looks``).
     looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
+    #: ... and the pieces path's: each part's piece centres by object and its target, each part's
+    #: colour seeds by object (``Matcher._pieces``, ``Matcher._colour_seeds``).
+    pieces: dict[bytes, tuple[dict[str, np.ndarray], Target | None]] = field(default_factory=dict)
+    seeds: dict[tuple[bytes, str], list[np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -221,8 +225,7 @@ class Matcher:
             # What no match explained may hold objects that stand so close that they merged into one
             # cluster, hiding parts of each other: its descriptor is no object's. Each object is
             # stood on the support at pieces spread over the rest, and verification judges it.
-            pieces = self._piece_centres(scene.points, rest)
-            target = Target.of(scene, rest) if pieces else None
+            pieces, target = self._pieces(scene, rest)
             for oid, centres in pieces.items():
                 if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target, oid)):
                     continue
@@ -416,6 +419,15 @@ class Matcher:
                 out.append(idx)
         return out
 
+    def _pieces(self, scene: SceneCloud, idx: np.ndarray) -> tuple[dict[str, np.ndarray], Target | None]:
+        """A part's (``idx`` into the scene's points) piece centres by object (``_piece_centres``) and,
+        if it has any, its target; computed once a frame."""
+        key = idx.tobytes()
+        if key not in scene.pieces:
+            centres = self._piece_centres(scene.points, idx)
+            scene.pieces[key] = centres, Target.of(scene, idx) if centres else None
+        return scene.pieces[key]
+
     def _piece_centres(self, points: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
         """Per object, the centroids (K, 3) of pieces of the points ``idx`` into ``points`` (N, 3): the
         points within the object's radius of seeds spread over them (farthest-point sampling from
@@ -459,17 +471,21 @@ class Matcher:
     def _colour_seeds(self, scene: SceneCloud, idx: np.ndarray, object_id: str) -> list[np.ndarray]:
         """Centroids (3,) of the groups (clustered at the clustering distance, COLOUR_SEEDS largest,
         cluster_min_points or more) of the points ``idx`` whose chromaticity is one of the object's
-        that no grey surface has (``palette``); none without colour."""
-        table = self._palettes.get(object_id)
-        if table is None or scene.chroma is None:
-            return []
-        c = self.config
-        mine = idx[self._palette_points(scene.chroma[idx], table)]
-        if len(mine) < c.cluster_min_points:
-            return []
-        groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
-                                    scene.graph.subgraph(mine, c.cluster_tolerance_m))
-        return [scene.points[mine[g]].mean(axis=0) for g in groups[:COLOUR_SEEDS]]
+        that no grey surface has (``palette``); none without colour. Computed once a frame per part and object."""
+        key = idx.tobytes(), object_id
+        if key in scene.seeds:
+            return scene.seeds[key]
+        table, c = self._palettes.get(object_id), self.config
+        mine = idx[:0]
+        if table is not None and scene.chroma is not None:
+            mine = idx[self._palette_points(scene.chroma[idx], table)]
+        seeds = []
+        if len(mine) >= c.cluster_min_points:
+            groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
+                                        scene.graph.subgraph(mine, c.cluster_tolerance_m))
+            seeds = [scene.points[mine[g]].mean(axis=0) for g in groups[:COLOUR_SEEDS]]
+        scene.seeds[key] = seeds
+        return seeds
 
     def _overlap(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
         """Per start pose (S, 4, 4): the share (S,) of its facing model points (N, 3; ``facing`` (S, N))
