@@ -1034,6 +1034,7 @@ def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(t
 
     from cellsight.cli import app
     from cellsight.pictures import draw_recognition
+    from recognition.verify import VIRTUAL_K, VIRTUAL_SIZE
 
     db = tmp_path / "db"
     assert CliRunner().invoke(app, ["model", "build", "--out", str(db), "--cloud", f"milk={PCL / 'milk.pcd'}"]).exit_code == 0
@@ -1053,11 +1054,19 @@ def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(t
     assert (drawn & truth).sum() >= 0.9 * truth.sum()
     label = 100 * 25  # the id and fitness on their box, px
     assert (drawn & ~near_truth).sum() <= label, (drawn & ~near_truth).sum()
-    outlined = draw_recognition(cloud, rgb, [], ModelDatabase.load(db), truth=[("milk", np.eye(4))])
+    models = ModelDatabase.load(db)
+    outlined = draw_recognition(cloud, rgb, [], models, truth=[("milk", np.eye(4))])
     changed = np.any(outlined != rgb[..., ::-1], axis=2)
     assert np.all(outlined[changed] == 255) and changed.sum() > 300  # one white line round the carton
     deep_inside = cv2.erode(truth.astype(np.uint8), np.ones((11, 11), np.uint8)) > 0
     assert (changed & near_truth & ~deep_inside).sum() >= 0.95 * changed.sum()
+    # The same scene as a list of points: drawn as verification's virtual camera sees it.
+    points, colours = cloud.reshape(-1, 3), rgb.reshape(-1, 3)
+    listed = draw_recognition(points, colours, [], models, truth=[("milk", np.eye(4))])
+    drawn_on = np.argwhere(np.any(listed != draw_recognition(points, colours, [], models), axis=2))[:, ::-1]  # (u, v)
+    v_uv = np.round(milk @ VIRTUAL_K.T / milk[:, 2:]).astype(int)[:, :2]
+    assert listed.shape == (*VIRTUAL_SIZE, 3) and len(drawn_on) > 100
+    assert np.all((drawn_on >= v_uv.min(axis=0) - 8) & (drawn_on <= v_uv.max(axis=0) + 8))
     empty = tmp_path / "nothing.png"
     office = PCL / "office1.pcd"
     result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(office), "--picture", str(empty)])
