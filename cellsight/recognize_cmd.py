@@ -115,8 +115,8 @@ def read_registered_rgb(path: Path, depth_path: Path, shape: tuple[int, int]) ->
 
 def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, picture: Path | None = None,
                    **intrinsics) -> RecognizeResult:  # fmt: skip
-    """The database's objects in one scene file (``load_scene``'s ``intrinsics``); with ``picture``, a
-    PNG of the scene with them drawn (``cellsight.pictures.draw_recognition``) written there."""
+    """The database's objects in one scene file (``load_scene``'s ``intrinsics``); with ``picture``
+    (.png or .jpg), the scene with them drawn (``cellsight.pictures.draw_recognition``) written there."""
     if picture is not None and picture.suffix.lower() not in PICTURE_SUFFIXES:
         raise RunError(f"picture {picture}: give a file ending in {' or '.join(PICTURE_SUFFIXES)}")
     cloud, rgb = load_scene(scene, **intrinsics)

@@ -120,8 +120,9 @@ class SceneCloud:
     graph: PointGraph
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
     image: ImageBounds | None = None  # the image an organised cloud was measured in
-    coloured: bool = False  # the frame has colour: a screen with damped steps is tried (``Matcher.score``)
-    chroma: np.ndarray | None = None  # each point's rg-chromaticity (N, 2), NaN: none (``Matcher._colour_seeds``)
+    #: Each point's rg-chromaticity (N, 2), NaN: none; None: the frame has no colour (``Matcher._colour_seeds``,
+    #: ``Matcher._shows_colour``).
+    chroma: np.ndarray | None = None
     #: Each part's descriptor, chosen views and target, by its point indices' bytes: every stance a
     #: frame is tried in matches the same parts (``Matcher._looks``).
     looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
@@ -140,14 +141,13 @@ class Target:
     points: np.ndarray
     surface: Surface
     image: ImageBounds | None = None  # model points landing outside it are not looked for
-    coloured: bool = False  # the frame has colour (``SceneCloud.coloured``)
     chroma: np.ndarray | None = None  # the points' rg-chromaticity (N, 2), NaN: none (``SceneCloud.chroma``)
     shows: dict[str, bool] = field(default_factory=dict, compare=False)  # by object id (``Matcher._shows_colour``)
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
         chroma = None if scene.chroma is None else scene.chroma[idx]
-        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image, scene.coloured, chroma)
+        return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image, chroma)
 
     @property
     def index(self) -> PointIndex:

@@ -128,8 +128,9 @@ class Recognizer:
             return []
         c = self.config
         coloured = view.chroma is not None if view is not None else rgb is not None
-        scene.coloured = coloured
-        if coloured:  # the view is built now: the pieces path seeds objects where their colour shows
+        # The view is built now: objects are seeded where their colour shows, and fits that need it to
+        # agree are made only where it does.
+        if coloured:
             view = view or DepthView.of(cloud, rgb)
             u, v, ok = project(scene.points, view.K, view.z.shape)
             scene.chroma = np.where(ok[:, None], view.chroma[v, u], np.nan)
