@@ -85,8 +85,9 @@ def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequ
             colour[v[ok][order], u[ok][order]] = np.asarray(rgb, np.uint8).reshape(-1, 3)[ok][order]
     if colour is not None:
         out = np.ascontiguousarray(colour[..., ::-1])
-    else:
-        out = depth_colormap(np.nan_to_num(z * 1000.0).astype(np.uint16))
+    else:  # the colours spread over the scene's own depths, not a sensor's whole range
+        far_mm = 1000.0 * float(np.nanpercentile(z, 99)) if np.isfinite(z).any() else 4500.0
+        out = depth_colormap(np.nan_to_num(z * 1000.0).astype(np.uint16), max_mm=1.05 * far_mm)
     for object_id, T in truth:
         if (shown := _silhouette(database, object_id, T, K, z)) is not None:
             cv2.drawContours(out, shown[2], -1, (255, 255, 255), 1)
