@@ -123,12 +123,13 @@ class SceneCloud:
     #: Each point's rg-chromaticity (N, 2), NaN: none; None: the frame has no colour (``Matcher._colour_seeds``,
     #: ``Matcher._shows_colour``).
     chroma: np.ndarray | None = None
-    #: Each part's descriptor, chosen views and target, by its point indices' bytes: every stance a
-    #: frame is tried in matches the same parts (``Matcher._looks``).
+    #: Each part's target, descriptor and chosen views, by its point indices' bytes: every stance a
+    #: frame is tried in matches the same parts (``Matcher._target``, ``Matcher._looks``) ...
+    targets: dict[bytes, Target] = field(default_factory=dict)
     looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
-    #: ... and the pieces path's: each part's piece centres by object and its target, each part's
-    #: colour seeds by object (``Matcher._pieces``, ``Matcher._colour_seeds``).
-    pieces: dict[bytes, tuple[dict[str, np.ndarray], Target | None]] = field(default_factory=dict)
+    #: ... and the pieces path's: each part's piece centres by object, its colour seeds by object
+    #: (``Matcher._piece_centres``, ``Matcher._colour_seeds``).
+    pieces: dict[bytes, dict[str, np.ndarray]] = field(default_factory=dict)
     seeds: dict[tuple[bytes, str], list[np.ndarray]] = field(default_factory=dict)
 
 
@@ -225,7 +226,8 @@ class Matcher:
             # What no match explained may hold objects that stand so close that they merged into one
             # cluster, hiding parts of each other: its descriptor is no object's. Each object is
             # stood on the support at pieces spread over the rest, and verification judges it.
-            pieces, target = self._pieces(scene, rest)
+            pieces = self._piece_centres(scene, rest)
+            target = self._target(scene, rest) if pieces else None
             for oid, centres in pieces.items():
                 if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target, oid)):
                     continue
@@ -281,7 +283,7 @@ class Matcher:
             for roll in rolls_of[row]:
                 rows.append(int(row))
                 rolls.append(roll)
-        scene.looks[key] = desc, chosen, Target.of(scene, idx)
+        scene.looks[key] = desc, chosen, self._target(scene, idx)
         return scene.looks[key]
 
     def score(
@@ -419,21 +421,24 @@ class Matcher:
                 out.append(idx)
         return out
 
-    def _pieces(self, scene: SceneCloud, idx: np.ndarray) -> tuple[dict[str, np.ndarray], Target | None]:
-        """A part's (``idx`` into the scene's points) piece centres by object (``_piece_centres``) and,
-        if it has any, its target; computed once a frame."""
+    def _target(self, scene: SceneCloud, idx: np.ndarray) -> Target:
+        """A part's (``idx`` into the scene's points) target; built once a frame, for the matching and
+        the pieces path alike (a cluster no match explained is both)."""
         key = idx.tobytes()
-        if key not in scene.pieces:
-            centres = self._piece_centres(scene.points, idx)
-            scene.pieces[key] = centres, Target.of(scene, idx) if centres else None
-        return scene.pieces[key]
+        if key not in scene.targets:
+            scene.targets[key] = Target.of(scene, idx)
+        return scene.targets[key]
 
-    def _piece_centres(self, points: np.ndarray, idx: np.ndarray) -> dict[str, np.ndarray]:
-        """Per object, the centroids (K, 3) of pieces of the points ``idx`` into ``points`` (N, 3): the
+    def _piece_centres(self, scene: SceneCloud, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Per object, the centroids (K, 3) of pieces of the points ``idx`` into the scene's: the
         points within the object's radius of seeds spread over them (farthest-point sampling from
-        the one nearest their centroid, at most MAX_SEEDS, half a radius apart at least)."""
+        the one nearest their centroid, at most MAX_SEEDS, half a radius apart at least). Computed
+        once a frame per part."""
+        key = idx.tobytes()
+        if key in scene.pieces:
+            return scene.pieces[key]
         out: dict[str, np.ndarray] = {}
-        pts = points[idx]
+        pts = scene.points[idx]
         for oid, mdl in self.db.models.items():
             if len(idx) < max(self.config.cluster_min_points, PIECE_SHARE * len(mdl.points)):
                 continue
@@ -447,6 +452,7 @@ class Matcher:
             centres = [p.mean(axis=0) for p in pieces if len(p) >= self.config.cluster_min_points]
             if centres:
                 out[oid] = np.array(centres)
+        scene.pieces[key] = out
         return out
 
     def _shows_colour(self, target: Target, object_id: str) -> bool:
