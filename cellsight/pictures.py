@@ -17,7 +17,7 @@ from drivers.sim.scenario import Scenario
 from recognition.align import facing_camera
 from recognition.hypotheses import Detection
 from recognition.models import ModelDatabase
-from recognition.verify import VIRTUAL_K, VIRTUAL_SIZE, fit_intrinsics, project
+from recognition.verify import VIRTUAL_K, fit_intrinsics, project, virtual_image
 
 #: Each object's colour in a recognition picture (BGR), by its place among the database's ids: none
 #: of them the pure red, green or blue of the axes.
@@ -73,16 +73,12 @@ def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequ
         z = np.where(np.isfinite(pts[..., 2]) & (pts[..., 2] > 0), pts[..., 2], np.nan)
         colour = None if rgb is None else np.asarray(rgb, np.uint8).reshape(H, W, 3)
     else:
-        (H, W), K = VIRTUAL_SIZE, VIRTUAL_K
-        flat = pts.reshape(-1, 3)
-        u, v, ok = project(flat, K, (H, W))
-        order = np.argsort(-flat[ok, 2])  # nearest last: it wins its pixel
-        z = np.full((H, W), np.nan)
-        z[v[ok][order], u[ok][order]] = flat[ok, 2][order]
+        K = VIRTUAL_K
+        z, nearest = virtual_image(pts)
         colour = None
         if rgb is not None:
-            colour = np.zeros((H, W, 3), np.uint8)
-            colour[v[ok][order], u[ok][order]] = np.asarray(rgb, np.uint8).reshape(-1, 3)[ok][order]
+            colour = np.zeros((*z.shape, 3), np.uint8)
+            colour[nearest >= 0] = np.asarray(rgb, np.uint8).reshape(-1, 3)[nearest[nearest >= 0]]
     if colour is not None:
         out = np.ascontiguousarray(colour[..., ::-1])
     else:  # the colours spread over the scene's own depths, not a sensor's whole range

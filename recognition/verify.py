@@ -125,22 +125,13 @@ class DepthView:
             if colour is not None:  # the grid's pixels only, before converting a frame's worth of them
                 colour = colour[::2, ::2].astype(np.float32) / 255.0
         else:
-            H, W = VIRTUAL_SIZE
             K = VIRTUAL_K
-            pts = pts.astype(np.float64)
-            finite = np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
-            pts = pts[finite]
-            u, v, ok = project(pts, K, (H, W))
-            z = np.full(H * W, np.inf)
-            np.minimum.at(z, v[ok] * W + u[ok], pts[ok, 2])
+            z, nearest = virtual_image(pts)
             if colour is not None:  # each pixel's colour is its nearest point's
-                flat = (v * W + u)[ok]
-                nearest = np.flatnonzero(ok)[pts[ok, 2] == z[flat]]
-                grid_colour = np.full((H * W, 3), np.nan, np.float32)
-                grid_colour[(v * W + u)[nearest]] = colour[finite][nearest].astype(np.float32) / 255.0
-                colour = grid_colour.reshape(H, W, 3)
-            z = z.reshape(H, W)
-            z[np.isinf(z)] = np.nan
+                grid_colour = np.full((*z.shape, 3), np.nan, np.float32)
+                shown = nearest >= 0
+                grid_colour[shown] = colour.reshape(-1, 3)[nearest[shown]].astype(np.float32) / 255.0
+                colour = grid_colour
         chroma = None if colour is None else chromaticity(colour)
         return cls(_filter3(z, nearest=True), _filter3(z, nearest=False), K, z, chroma)
 
@@ -498,6 +489,23 @@ def project(p: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.nda
         v = np.floor(K[1, 1] * p[:, 1] / z + K[1, 2] + 0.5)
         ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     return np.where(ok, u, 0).astype(np.int64), np.where(ok, v, 0).astype(np.int64), ok
+
+
+def virtual_image(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A list of camera-frame points (N, 3) as ``VIRTUAL_K`` sees it: per pixel the nearest point's
+    depth (H, W, m; NaN: no point) and that point's row in ``points`` (H, W; -1: none)."""
+    H, W = VIRTUAL_SIZE
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    finite = np.flatnonzero(np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0))
+    u, v, ok = project(pts[finite], VIRTUAL_K, (H, W))
+    rows, pixel, depth = finite[ok], (v * W + u)[ok], pts[finite[ok], 2]
+    z = np.full(H * W, np.inf)
+    np.minimum.at(z, pixel, depth)
+    nearest = np.full(H * W, -1, np.int64)
+    on_top = depth == z[pixel]
+    nearest[pixel[on_top]] = rows[on_top]
+    z[np.isinf(z)] = np.nan
+    return z.reshape(H, W), nearest.reshape(H, W)
 
 
 def fit_intrinsics(grid: np.ndarray, step: int = 4) -> np.ndarray:
