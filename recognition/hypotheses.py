@@ -197,19 +197,18 @@ class Matcher:
         return explained_by(self.indexes[object_id], camera_T_object, points, self.config.icp_distance_m)
 
     def candidates(
-        self, scene: SceneCloud, clusters: list[np.ndarray], first_fragment: int, used: np.ndarray, stance: Stance,
-        parts: Iterator[int],
+        self, scene: SceneCloud, clusters: list[np.ndarray], first_fragment: int, stance: Stance, parts: Iterator[int],
     ) -> list[Candidate]:
-        """Every candidate for the clusters (indices into the scene's
-        points; from ``first_fragment`` on, fragments: the pieces path only) that no prior has
-        ``used``, with objects standing as ``stance`` says; parts numbered by ``parts``."""
+        """Every candidate for the clusters (indices into the scene's points; from ``first_fragment``
+        on, fragments: the pieces path only), with objects standing as ``stance`` says; parts numbered
+        by ``parts``."""
         c, up, support = self.config, stance.up, stance.support
         out: list[Candidate] = []
         for k, idx in enumerate(clusters):
             rest = idx
             # Objects that touch share a cluster: a confident match that explains only part of it is
             # kept, its points are explained away, and the rest is matched again.
-            for _ in range(0 if used[k] or k >= first_fragment else MAX_OBJECTS_PER_CLUSTER):
+            for _ in range(0 if k >= first_fragment else MAX_OBJECTS_PER_CLUSTER):
                 matches = self.match_cluster(scene, rest, stance)
                 if not matches:
                     break
@@ -221,13 +220,13 @@ class Matcher:
                 rest = rest[~explained]
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
-            if support is None or up is None or used[k]:
+            if support is None or up is None:
                 continue
             # What no match explained may hold objects that stand so close that they merged into one
             # cluster, hiding parts of each other: its descriptor is no object's. Each object is
             # stood on the support at pieces spread over the rest, and verification judges it.
             pieces = self._piece_centres(scene, rest)
-            target = self._target(scene, rest) if pieces else None
+            target = self.target(scene, rest) if pieces else None
             for oid, centres in pieces.items():
                 if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target, oid)):
                     continue
@@ -283,7 +282,7 @@ class Matcher:
             for roll in rolls_of[row]:
                 rows.append(int(row))
                 rolls.append(roll)
-        scene.looks[key] = desc, chosen, self._target(scene, idx)
+        scene.looks[key] = desc, chosen, self.target(scene, idx)
         return scene.looks[key]
 
     def score(
@@ -421,9 +420,9 @@ class Matcher:
                 out.append(idx)
         return out
 
-    def _target(self, scene: SceneCloud, idx: np.ndarray) -> Target:
-        """A part's (``idx`` into the scene's points) target; built once a frame, for the matching and
-        the pieces path alike (a cluster no match explained is both)."""
+    def target(self, scene: SceneCloud, idx: np.ndarray) -> Target:
+        """A part's (``idx`` into the scene's points) target; built once a frame, for the matching, the
+        pieces path and a prior's check alike (a cluster no match explained is both of the first)."""
         key = idx.tobytes()
         if key not in scene.targets:
             scene.targets[key] = Target.of(scene, idx)

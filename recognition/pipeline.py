@@ -24,7 +24,7 @@ from recognition.align import ImageBounds
 from recognition.cloud import estimate_normals, radius_neighbours, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.errors import ModelError
-from recognition.hypotheses import RESTS, Candidate, Detection, Matcher, SceneCloud, Stance, Target
+from recognition.hypotheses import RESTS, Candidate, Detection, Matcher, SceneCloud, Stance
 from recognition.models import ModelDatabase
 from recognition.resolve import Resolver
 from recognition.segment import PointGraph, euclidean_clusters, remove_planes, split_oversized
@@ -143,10 +143,11 @@ class Recognizer:
         if any(s.support is not None for s in stances):
             clusters += self.matcher.fragments(merged, clusters, shed, len(scene.points))
         # Candidates: a part is a cluster, or what is left of one once a touching object is
-        # explained away, or a prior's own hint.
+        # explained away, or a prior's own hint. A prior only adds one: its cluster is matched as
+        # any other (a hint may be wrong, and its cluster may hold other objects), and the joint
+        # resolution chooses.
         parts = itertools.count()
         candidates: list[Candidate] = []
-        used = np.zeros(len(clusters), dtype=bool)
         for prior in priors:
             model = self.db.models.get(prior.object_id)
             if model is None:
@@ -154,13 +155,12 @@ class Recognizer:
             k = _cluster_near(scene.points, clusters, prior.camera_T_object[:3, 3], model.diameter_m)
             if k is None:
                 continue
-            match = self.matcher.score(model, Target.of(scene, clusters[k]), [prior.camera_T_object], stances[0].up,
+            match = self.matcher.score(model, self.matcher.target(scene, clusters[k]), [prior.camera_T_object], stances[0].up,
                                        from_prior=True)
             if match is not None:
-                used[k] = match[0].coverage >= c.min_coverage
                 candidates.append(Candidate(next(parts), None, match[0], stances[0]))
         for stance in stances:
-            candidates += self.matcher.candidates(scene, clusters, first_fragment, used, stance, parts)
+            candidates += self.matcher.candidates(scene, clusters, first_fragment, stance, parts)
         # The frame's depth view is built only when a candidate is there to be judged against it.
         view = (view or DepthView.of(cloud, rgb)) if c.verify and candidates else None
         return self.resolver.resolve(candidates, view, scene, clusters)
