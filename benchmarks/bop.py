@@ -1,7 +1,9 @@
 """Recognition on annotated frames in the BOP format: ADD-S recall and false detections, with point-pair voting in the same run.
 
 ``--dataset DIR`` measures any dataset in the format public pose datasets ship in (BOP: LM-O,
-YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (mm; meshes rendered
+YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (``--models``: the
+folder, by default the first of ``models``, ``models_cad``, ``models_reconst``, ``models_eval``
+it has; mm; meshes rendered
 from 42 viewpoints at each ``--distance``, point models by hidden-point removal, their colours where the
 files carry them, vertex colours or texture) and every frame of ``--split`` (the challenge's target
 images where the dataset lists them; ``--frames N`` keeps N spread over them) goes through
@@ -71,7 +73,7 @@ import numpy as np  # noqa: E402
 from rich.progress import track  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
-from cellsight.bop import BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
+from cellsight.bop import MODEL_FOLDERS, BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
 from cellsight.pictures import draw_recognition  # noqa: E402
@@ -339,7 +341,7 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     if args.dataset is not None:
         cfg = load_config(args.cell_config).recognition if args.cell_config else RecognitionConfig()
         cfg = cfg.model_copy(update={"free_with_pose": not args.standing})
-        dataset = BopDataset.open(args.dataset, args.split)
+        dataset = BopDataset.open(args.dataset, args.split, args.models)
         return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg,
                        world_z_up=args.world_z_up, pictures=args.pictures)
     # The simulated frames carry the cameras' poses in the cell, so the cell's workspace crops them,
@@ -362,6 +364,8 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
 def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", type=Path, help="a BOP dataset folder (models/, SPLIT/NNNNNN/...); default: one written from the simulator and PCL's real frames")
     parser.add_argument("--split", default="test", help="the dataset's split folder (test, val, test_primesense, ...)")
+    parser.add_argument("--models", help="the dataset's model folder (default: the first of "
+                        f"{', '.join(MODEL_FOLDERS)} it has; T-LESS: models_cad or models_reconst)")
     parser.add_argument("--frames", type=int, help="at most this many frames, spread over the split (--quick: 10 of a given dataset)")
     parser.add_argument("--cell-config", type=Path, help="cell config TOML whose [recognition] is used (default: the defaults; "
                         "its workspace crops frames whose scene_camera.json gives the camera's world pose)")

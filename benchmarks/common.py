@@ -18,6 +18,8 @@ from typing import Callable, Iterator
 from rich.console import Console
 from rich.table import Table
 
+from cellsight.errors import CellsightError
+
 #: PCL's real clouds in the shared data beside the repository (../shared/data/pcl).
 PCL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
 
@@ -80,7 +82,10 @@ def main(name: str, description: str, run: Callable[[bool], dict[str, float]], e
         extra_args(parser)
     args = parser.parse_args()
     t0 = time.perf_counter()
-    figures = run(args.quick) if extra_args is None else run(args.quick, args)
+    try:
+        figures = run(args.quick) if extra_args is None else run(args.quick, args)
+    except CellsightError as exc:  # a dataset or config given on the command line is wrong: say what, no traceback
+        parser.exit(2, f"{parser.prog}: {exc}\n")
     elapsed = time.perf_counter() - t0
     table = Table(title=f"benchmarks.{name}{' --quick' if args.quick else ''} ({elapsed:.0f} s)")
     table.add_column("figure")

@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 
 #: The images BOP's challenges evaluate on, where a dataset names them (test split only).
 TARGETS_FILE = "test_targets_bop19.json"
+#: Where a dataset keeps its models, the first present taken when none is named: most ship
+#: ``models/``; T-LESS ships ``models_cad/`` and ``models_reconst/``; every one ``models_eval/``.
+MODEL_FOLDERS = ("models", "models_cad", "models_reconst", "models_eval")
 #: A recognition is right when its ADD-S (mean distance to the closest model point) is below this share of the diameter.
 ADDS_SHARE = 0.1
 
@@ -102,16 +105,26 @@ class BopDataset:
     frames: list[BopFrame]
 
     @classmethod
-    def open(cls, root: str | Path, split: str = "test", models_dir: str = "models") -> "BopDataset":
-        """The dataset at ``root``: every model of ``models_dir``, the frames of every scene folder of
-        ``split``. A DatasetError names the file and field that are missing or malformed."""
+    def open(cls, root: str | Path, split: str = "test", models_dir: str | None = None) -> "BopDataset":
+        """The dataset at ``root``: every model of ``models_dir`` (None: the first of MODEL_FOLDERS
+        it has), the frames of every scene folder of ``split``. A DatasetError names the file and
+        field that are missing or malformed."""
         root = Path(root)
         if not root.is_dir():
             raise DatasetError(f"{root}: no such dataset folder")
+        folders = sorted(p.name for p in root.iterdir() if p.is_dir())
+        if models_dir is None:
+            models_dir = next((m for m in MODEL_FOLDERS if m in folders), None)
+            if models_dir is None:
+                raise DatasetError(f"{root} has none of the model folders {', '.join(MODEL_FOLDERS)} "
+                                   f"(folders: {', '.join(folders) or 'none'}); name the one to use")
+            log.info("%s: models from %s/", root, models_dir)
+        elif models_dir not in folders:
+            raise DatasetError(f"{root} has no model folder {models_dir!r} (folders: {', '.join(folders) or 'none'})")
         models = _models(root / models_dir)
         split_dir = root / split
         if not split_dir.is_dir():
-            have = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name != models_dir)
+            have = [f for f in folders if f not in MODEL_FOLDERS and f != models_dir]
             raise DatasetError(f"{root} has no split {split!r} (folders: {', '.join(have) or 'none'})")
         targets = _targets(root / TARGETS_FILE) if split.startswith("test") else None
         frames: list[BopFrame] = []

@@ -154,6 +154,39 @@ def test_a_malformed_dataset_is_refused_naming_what_is_wrong(tmp_path: Path, dam
         BopDataset.open(root)
 
 
+def test_the_models_are_read_from_the_first_model_folder_a_dataset_has_or_the_one_named(tmp_path: Path) -> None:
+    """T-LESS ships its models as ``models_cad/`` and ``models_reconst/``, every BOP dataset also
+    ``models_eval/``: the first present is taken (``MODEL_FOLDERS``) unless one is named, and a
+    dataset with none, or without the one named, is refused with the folders it has."""
+    root = _minimal(tmp_path)
+    (root / "models").rename(root / "models_cad")
+    (root / "models_eval").mkdir()
+    for f in (root / "models_cad").iterdir():
+        (root / "models_eval" / f.name).write_bytes(f.read_bytes())
+    assert BopDataset.open(root).models["obj_000001"].path.parent.name == "models_cad"
+    assert BopDataset.open(root, models_dir="models_eval").models["obj_000001"].path.parent.name == "models_eval"
+    with pytest.raises(DatasetError, match="no model folder 'models_x' \\(folders: models_cad, models_eval, test\\)"):
+        BopDataset.open(root, models_dir="models_x")
+    (root / "models_cad").rename(root / "meshes")
+    (root / "models_eval").rename(root / "eval")
+    with pytest.raises(DatasetError, match="none of the model folders .* \\(folders: eval, meshes, test\\)"):
+        BopDataset.open(root)
+
+
+def test_the_benchmark_names_what_is_wrong_with_a_dataset_and_exits_2(tmp_path: Path) -> None:
+    """``python -m benchmarks.bop --dataset DIR`` on a folder that is no dataset: the reason on
+    stderr and exit code 2, not a traceback."""
+    import subprocess
+    import sys
+
+    root = _minimal(tmp_path)
+    (root / "models").rename(root / "meshes")
+    run = subprocess.run([sys.executable, "-m", "benchmarks.bop", "--dataset", str(root)], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[2], timeout=120)  # fmt: skip
+    assert run.returncode == 2, run.stderr
+    assert "none of the model folders" in run.stderr and "Traceback" not in run.stderr
+
+
 def test_recognize_standing_finds_what_stands_on_the_table_in_a_dataset_frame(demo_dataset, tmp_path: Path) -> None:
     """`cellsight model build --mesh ID=PLY --scale 0.001` from the dataset's models, then `cellsight
     recognize` on cam1's depth and colour PNGs with its intrinsics, no pose: every object is found
