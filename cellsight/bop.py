@@ -32,8 +32,9 @@ from schemas.geometry import invert_pose
 
 log = logging.getLogger(__name__)
 
-#: The images BOP's challenges evaluate on, where a dataset names them (test split only).
-TARGETS_FILE = "test_targets_bop19.json"
+#: The images BOP's challenges evaluate on, where a dataset names them (test split only): the
+#: 2019 list of the classic datasets, else the 2024 one of the newer (HOPEv2, HANDAL, ...).
+TARGETS_FILES = ("test_targets_bop19.json", "test_targets_bop24.json")
 #: Where a dataset keeps its models, the first present taken when none is named: most ship
 #: ``models/``; T-LESS ships ``models_cad/`` and ``models_reconst/``; every one ``models_eval/``.
 MODEL_FOLDERS = ("models", "models_cad", "models_reconst", "models_eval")
@@ -126,7 +127,8 @@ class BopDataset:
         if not split_dir.is_dir():
             have = [f for f in folders if f not in MODEL_FOLDERS and f != models_dir]
             raise DatasetError(f"{root} has no split {split!r} (folders: {', '.join(have) or 'none'})")
-        targets = _targets(root / TARGETS_FILE) if split.startswith("test") else None
+        listed = next((root / f for f in TARGETS_FILES if (root / f).is_file()), None)
+        targets = _targets(listed) if split.startswith("test") and listed is not None else None
         frames: list[BopFrame] = []
         for scene_dir in sorted(p for p in split_dir.iterdir() if p.is_dir() and p.name.isdigit()):
             frames += _scene_frames(scene_dir, models, targets)
@@ -171,10 +173,8 @@ def _models(models_dir: Path) -> dict[str, BopModel]:
     return models
 
 
-def _targets(path: Path) -> set[tuple[int, int]] | None:
-    """(scene_id, im_id) of the challenge's target images, or None if the dataset lists none."""
-    if not path.is_file():
-        return None
+def _targets(path: Path) -> set[tuple[int, int]]:
+    """(scene_id, im_id) of the challenge's target images, as the file at ``path`` lists them."""
     rows = _read_json(path)
     try:
         return {(int(r["scene_id"]), int(r["im_id"])) for r in rows}

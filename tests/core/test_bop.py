@@ -173,6 +173,25 @@ def test_the_models_are_read_from_the_first_model_folder_a_dataset_has_or_the_on
         BopDataset.open(root)
 
 
+@pytest.mark.parametrize("listing", ["test_targets_bop19.json", "test_targets_bop24.json"])
+def test_only_the_images_a_dataset_lists_as_targets_are_read(tmp_path: Path, listing: str) -> None:
+    """BOP's challenges evaluate on the images a targets file lists (2019's for the classic datasets,
+    2024's for the newer): where one is there, only those frames are read; without it, all."""
+    w = BopWriter(tmp_path / "ds")
+    w.add_model(1, np.random.default_rng(0).uniform(-0.05, 0.05, (500, 3)))
+    K = np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]])
+    for image_id in (0, 1, 2):
+        w.add_frame(1, image_id, np.full((48, 64), 1.0), K, [(1, make_pose(np.eye(3), (0, 0, 1)), None)])
+    root = w.close()
+    assert [f.image_id for f in BopDataset.open(root).frames] == [0, 1, 2]
+    (root / listing).write_text(json.dumps([{"scene_id": 1, "im_id": 2, "obj_id": 1, "inst_count": 1}]))
+    assert [f.image_id for f in BopDataset.open(root).frames] == [2]
+    assert [f.image_id for f in BopDataset.open(root, split="test").frames] == [2]
+    (root / listing).write_text(json.dumps([{"scene": 1}]))
+    with pytest.raises(DatasetError, match=f"{listing}: expected a list of objects with scene_id and im_id"):
+        BopDataset.open(root)
+
+
 def test_the_benchmark_names_what_is_wrong_with_a_dataset_and_exits_2(tmp_path: Path) -> None:
     """``python -m benchmarks.bop --dataset DIR`` on a folder that is no dataset: the reason on
     stderr and exit code 2, not a traceback."""
