@@ -155,8 +155,8 @@ class Recognizer:
             k = _cluster_near(scene.points, clusters, prior.camera_T_object[:3, 3], model.diameter_m)
             if k is None:
                 continue
-            match = self.matcher.score(model, self.matcher.target(scene, clusters[k]), [prior.camera_T_object], stances[0].up,
-                                       from_prior=True)
+            target = self.matcher.target(scene, clusters[k])
+            match = self.matcher.score(model, target, [prior.camera_T_object], stances[0].up, from_prior=True)
             if match is not None:
                 candidates.append(Candidate(next(parts), None, match[0], stances[0]))
         for stance in stances:
