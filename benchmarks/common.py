@@ -20,6 +20,17 @@ from rich.table import Table
 
 from cellsight.errors import CellsightError
 
+def demo_cell_text(duration_s: float) -> str:
+    """The demo cell's scenario file, running ``duration_s`` (s) instead of its 30: a simulated camera
+    stops at its scenario's end, and a benchmark's cell may run longer."""
+    from drivers.sim.scenario import DEMO_CELL
+
+    text = DEMO_CELL.read_text()
+    if text.count("duration_s = 30.0") != 1:
+        raise ValueError(f"{DEMO_CELL} no longer says duration_s = 30.0 once: update demo_cell_text")
+    return text.replace("duration_s = 30.0", f"duration_s = {duration_s:.1f}")
+
+
 #: PCL's real clouds in the shared data beside the repository (../shared/data/pcl).
 PCL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import main
-from drivers.sim.scenario import DEMO_CELL, load_scenario
+from benchmarks.common import demo_cell_text, main
+from drivers.sim.scenario import load_scenario
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
@@ -33,7 +33,7 @@ EXTRA = [("cam5", (0.0, -1.45, 2.0), (0.0, 0.5, 0.7)), ("cam6", (1.45, 0.0, 2.0)
 
 def scenario_toml(path: Path) -> None:
     """The demo cell, static (motions removed, 1 h long), plus four cameras, as a scenario file."""
-    text = DEMO_CELL.read_text().replace("duration_s = 30.0", "duration_s = 3600.0")
+    text = demo_cell_text(3600.0)
     text = "\n".join(line for line in text.splitlines() if not line.startswith("motion = [{ kind"))
     for cid, pos, look in EXTRA:
         text += f'\n[[cameras]]\nid = "{cid}"\npose = {{ position = {list(pos)}, look_at = {list(look)} }}\n'

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import main
-from drivers.sim.scenario import DEMO_CELL, load_scenario
+from benchmarks.common import demo_cell_text, main
+from drivers.sim.scenario import load_scenario
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
@@ -103,8 +103,7 @@ class Watch:
 
 def scenario_toml(path: Path, duration_s: float) -> None:
     """The demo cell, running long enough for the soak (its camera motions happen in the warm-up)."""
-    text = DEMO_CELL.read_text().replace("duration_s = 30.0", f"duration_s = {duration_s + 120:.0f}.0")
-    path.write_text(text)
+    path.write_text(demo_cell_text(duration_s + 120))
     load_scenario(path)
 
 
