@@ -120,17 +120,14 @@ class SceneCloud:
     graph: PointGraph
     planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
     image: ImageBounds | None = None  # the image an organised cloud was measured in
-    #: Each point's rg-chromaticity (N, 2), NaN: none; None: the frame has no colour (``Matcher._colour_seeds``,
-    #: ``Matcher._shows_colour``).
+    #: Each point's rg-chromaticity (N, 2), NaN: none; None: the frame has no colour (``Matcher._palette_mask``).
     chroma: np.ndarray | None = None
     #: Each part's target, descriptor and chosen views, by its point indices' bytes: every stance a
-    #: frame is tried in matches the same parts (``Matcher._target``, ``Matcher._looks``) ...
+    #: frame is tried in matches the same parts (``Matcher.target``, ``Matcher._looks``) ...
     targets: dict[bytes, Target] = field(default_factory=dict)
     looks: dict[bytes, tuple[ClusterDescription, dict, Target]] = field(default_factory=dict)
-    #: ... and the pieces path's: each part's piece centres by object, its colour seeds by object
-    #: (``Matcher._piece_centres``, ``Matcher._colour_seeds``).
+    #: ... and the pieces path's piece centres by object (``Matcher._piece_centres``).
     pieces: dict[bytes, dict[str, np.ndarray]] = field(default_factory=dict)
-    seeds: dict[tuple[bytes, str], list[np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -143,7 +140,10 @@ class Target:
     surface: Surface
     image: ImageBounds | None = None  # model points landing outside it are not looked for
     chroma: np.ndarray | None = None  # the points' rg-chromaticity (N, 2), NaN: none (``SceneCloud.chroma``)
-    shows: dict[str, bool] = field(default_factory=dict, compare=False)  # by object id (``Matcher._shows_colour``)
+    #: By object id: which points show one of its colours no grey surface has (``Matcher._palette_mask``)
+    #: and the colour seeds among them (``Matcher._colour_seeds``), worked out once a frame.
+    palette_masks: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+    seeds: dict[str, list[np.ndarray]] = field(default_factory=dict, compare=False)
 
     @classmethod
     def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
@@ -459,38 +459,39 @@ class Matcher:
         has (``palette``; never without colour). Where none does, a hypothesis that needs its colour
         to agree there (lying, or reached by damped steps; ``Detection.needs_colour``) cannot pass
         verification: an agreeing pixel has such a colour, and the part's points sample its pixels
-        at every voxel. Asked once per target and object: every stance asks it again."""
-        if object_id not in target.shows:
-            table = self._palettes.get(object_id)
-            shown = table is not None and target.chroma is not None and self._palette_points(target.chroma, table).any()
-            target.shows[object_id] = bool(shown)
-        return target.shows[object_id]
+        at every voxel."""
+        return bool(self._palette_mask(target, object_id).any())
 
-    def _palette_points(self, chroma: np.ndarray, table: np.ndarray) -> np.ndarray:
-        """Mask (N,) of the chromaticities (N, 2) that lie in an object's ``palette`` ``table``."""
-        with np.errstate(invalid="ignore"):
-            vivid = np.all(np.isfinite(chroma), axis=1) & np.any(np.abs(chroma - 1 / 3) > self.config.colour_tolerance, axis=1)
-        cell = np.clip((np.nan_to_num(chroma) * PALETTE_CELLS).astype(np.int64), 0, PALETTE_CELLS - 1)
-        return vivid & table[cell[:, 0], cell[:, 1]]
+    def _palette_mask(self, target: Target, object_id: str) -> np.ndarray:
+        """Mask (N,) of the target's points whose chromaticity lies in the object's ``palette`` (all
+        False without colour); once per target and object: every stance asks it again."""
+        if object_id not in target.palette_masks:
+            table, chroma = self._palettes.get(object_id), target.chroma
+            if table is None or chroma is None:
+                mask = np.zeros(len(target.points), dtype=bool)
+            else:
+                with np.errstate(invalid="ignore"):
+                    vivid = np.all(np.isfinite(chroma), axis=1) & np.any(np.abs(chroma - 1 / 3) > self.config.colour_tolerance, axis=1)
+                cell = np.clip((np.nan_to_num(chroma) * PALETTE_CELLS).astype(np.int64), 0, PALETTE_CELLS - 1)
+                mask = vivid & table[cell[:, 0], cell[:, 1]]
+            target.palette_masks[object_id] = mask
+        return target.palette_masks[object_id]
 
     def _colour_seeds(self, scene: SceneCloud, idx: np.ndarray, object_id: str) -> list[np.ndarray]:
         """Centroids (3,) of the groups (clustered at the clustering distance, COLOUR_SEEDS largest,
         cluster_min_points or more) of the points ``idx`` whose chromaticity is one of the object's
-        that no grey surface has (``palette``); none without colour. Computed once a frame per part and object."""
-        key = idx.tobytes(), object_id
-        if key in scene.seeds:
-            return scene.seeds[key]
-        table, c = self._palettes.get(object_id), self.config
-        mine = idx[:0]
-        if table is not None and scene.chroma is not None:
-            mine = idx[self._palette_points(scene.chroma[idx], table)]
-        seeds = []
-        if len(mine) >= c.cluster_min_points:
-            groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
-                                        scene.graph.subgraph(mine, c.cluster_tolerance_m))
-            seeds = [scene.points[mine[g]].mean(axis=0) for g in groups[:COLOUR_SEEDS]]
-        scene.seeds[key] = seeds
-        return seeds
+        that no grey surface has (``_palette_mask``); none without colour. Once a frame per part and object."""
+        target = self.target(scene, idx)
+        if object_id not in target.seeds:
+            c = self.config
+            mine = idx[self._palette_mask(target, object_id)]
+            seeds = []
+            if len(mine) >= c.cluster_min_points:
+                groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
+                                            scene.graph.subgraph(mine, c.cluster_tolerance_m))
+                seeds = [scene.points[mine[g]].mean(axis=0) for g in groups[:COLOUR_SEEDS]]
+            target.seeds[object_id] = seeds
+        return target.seeds[object_id]
 
     def _overlap(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
         """Per start pose (S, 4, 4): the share (S,) of its facing model points (N, 3; ``facing`` (S, N))
