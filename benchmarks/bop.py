@@ -1,12 +1,12 @@
 """Recognition on annotated frames in the BOP format: ADD-S recall and false detections, with point-pair voting in the same run.
 
 ``--dataset DIR`` measures any dataset in the format public pose datasets ship in (BOP: LM-O,
-YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (``--models``: the
-folder, by default the first of ``models``, ``models_cad``, ``models_reconst``, ``models_eval``
-it has; mm; meshes rendered
-from 42 viewpoints at each ``--distance``, point models by hidden-point removal, their colours where the
-files carry them, vertex colours or texture) and every frame of ``--split`` (the challenge's target
-images where the dataset lists them; ``--frames N`` keeps N spread over them) goes through
+YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (``--models``: their
+folder, by default the first of ``models``, ``models_cad``, ``models_reconst``, ``models_eval`` it
+has; mm; meshes rendered from 42 viewpoints at each ``--distance``, point models by hidden-point
+removal, their colours where the files carry them, vertex colours or texture) and every frame of
+``--split`` (the challenge's target images where the dataset lists them; ``--frames N`` keeps N
+spread over them) goes through
 ``Recognizer.recognize`` as ``cellsight recognize`` runs it: camera frame, no workspace box, colour
 judged where the frame has it. A world pose in ``scene_camera.json`` is used only where its z is up
 (a plane the frame shows is level in it; ``--world-z-up`` takes every one): a dataset's world may

@@ -20,10 +20,11 @@ from rich.table import Table
 
 from cellsight.errors import CellsightError
 
+
 def demo_cell_text(duration_s: float) -> str:
     """The demo cell's scenario file, running ``duration_s`` (s) instead of its 30: a simulated camera
     stops at its scenario's end, and a benchmark's cell may run longer."""
-    from drivers.sim.scenario import DEMO_CELL
+    from drivers.sim.scenario import DEMO_CELL  # not at the top: numpy must start after a benchmark pins itself
 
     text = DEMO_CELL.read_text()
     if text.count("duration_s = 30.0") != 1:

@@ -120,8 +120,9 @@ def cross_host(seconds: float, settle_s: float) -> dict[str, float]:
         tmp_path = Path(tmp)
         (tmp_path / "base.toml").write_text(f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\nshared_memory = false\n')
         # The edge camera must outlive the three windows: the demo scenario ends at 30 s.
-        (tmp_path / "scenario.toml").write_text(demo_cell_text(settle_s + 3 * seconds + 60))
-        cfg = cell_config_of(load_scenario(tmp_path / "scenario.toml"), tmp_path / "scenario.toml", load_config(tmp_path / "base.toml"))
+        scenario = tmp_path / "scenario.toml"
+        scenario.write_text(demo_cell_text(settle_s + 3 * seconds + 60))
+        cfg = cell_config_of(load_scenario(scenario), scenario, load_config(tmp_path / "base.toml"))
         (tmp_path / "cell.toml").write_text(cfg.to_toml())
         edge_cfg = cfg.model_copy(update={
             "cell": cfg.cell.model_copy(update={"role": "edge", "upstream": [endpoint]}),

@@ -4,6 +4,8 @@ millimetres, scored, and refused with a clear error when malformed."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -195,9 +197,6 @@ def test_only_the_images_a_dataset_lists_as_targets_are_read(tmp_path: Path, lis
 def test_the_benchmark_names_what_is_wrong_with_a_dataset_and_exits_2(tmp_path: Path) -> None:
     """``python -m benchmarks.bop --dataset DIR`` on a folder that is no dataset: the reason on
     stderr and exit code 2, not a traceback."""
-    import subprocess
-    import sys
-
     root = _minimal(tmp_path)
     (root / "models").rename(root / "meshes")
     run = subprocess.run([sys.executable, "-m", "benchmarks.bop", "--dataset", str(root)], capture_output=True, text=True,
