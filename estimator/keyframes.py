@@ -93,16 +93,16 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tu
     return best, [rows[i] for i, _ in chosen], [k for _, k in chosen]
 
 
-def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] | None:
+def consensus(implied: np.ndarray, agree_m: float = AGREE_M) -> tuple[np.ndarray, list[tuple[int, int]]] | None:
     """The pose most witnesses agree on, from each witness's two IPPE branches (K, 2, 4, 4), and
-    (witness, branch) of those that agree with it (within ``AGREE_RAD`` and ``AGREE_M``); None
+    (witness, branch) of those that agree with it (within ``AGREE_RAD`` and ``agree_m``); None
     unless two witnesses agree."""
     flat = implied.reshape(-1, 4, 4)
     # (2K, 2K): does candidate pose c lie near witness branch j? All pairs at once: a camera on an arm
     # places a frame almost every tick, with K up to 32.
     R = flat[:, :3, :3]
     close = rotations_within(R[:, None], R[None, :], AGREE_RAD) & (
-        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < AGREE_M)
+        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < agree_m)
     votes = close.reshape(len(flat), -1, 2).any(axis=2).sum(axis=1)  # witnesses with a branch near each candidate
     b = int(np.argmax(votes))  # the first of the most agreed
     if votes[b] < 2:
@@ -111,7 +111,7 @@ def consensus(implied: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]] |
     gap = rotation_angles(implied[:, :, :3, :3], best[:3, :3])  # (K, 2)
     k = np.argmin(gap, axis=1)
     rows = np.arange(len(implied))
-    ok = (gap[rows, k] < AGREE_RAD) & (np.linalg.norm(implied[rows, k, :3, 3] - best[:3, 3], axis=1) < AGREE_M)
+    ok = (gap[rows, k] < AGREE_RAD) & (np.linalg.norm(implied[rows, k, :3, 3] - best[:3, 3], axis=1) < agree_m)
     chosen = [(int(i), int(k[i])) for i in np.flatnonzero(ok)]
     return best, chosen
 
