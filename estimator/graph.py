@@ -42,14 +42,14 @@ from estimator.config import EstimatorConfig
 from estimator.estimate import BestView, CameraEstimate, CameraState, Estimate, PoseEstimate, through_camera
 from estimator.history import History, HistoryFactor, carried
 from estimator.init import CameraKey, place
-from estimator.keyframes import LiveKeyframes, MovingFrame, consensus
+from estimator.keyframes import LiveKeyframes, MovingFrame, place_frame
 from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors, instant_gain
 from estimator.motion import MOVE_CHI2, RigidScreen, any_frame_moved, frame_moved
 from estimator.observation import Observation, ObservationRows, observations_of
 from estimator.pairs import YOUNG_PAIR, Pair, factors_current, fold_rows, pair_means
 from estimator.resect import resect
 from estimator.symbols import camera_symbol, marker_symbol
-from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, covariance_in_frame, invert_pose, invert_poses, mahalanobis_sq, rotation_angles
+from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, mahalanobis_sq
 
 log = logging.getLogger(__name__)
 
@@ -223,8 +223,9 @@ class Estimator:
                 static.append(obs)
         track.markers_seen = len(track.latest)
         if not self._camera_is_still(track, static):
-            if self.live_keyframes is not None and track.moving and self.live_keyframes.due(camera_id, stamp_ns):
-                self.live_keyframes.hold(moving_frame(camera_id, stamp_ns, static, track.segment))
+            if self.live_keyframes is not None and track.moving and self.live_keyframes.due(camera_id, stamp_ns) and len(static) >= 2:
+                frame = moving_frame(camera_id, stamp_ns, static, track.segment)
+                self.live_keyframes.hold(replace(frame, placed=place_frame(frame, self._mapped(frame.ids), self.rotation_floor_rad)))
             return False
         seg = (camera_id, track.segment)
         for obs in static:
@@ -827,31 +828,22 @@ class Estimator:
         return {k: cache[k] for k in keys}
 
     def _track_pose(self, track: CameraTrack) -> np.ndarray | None:
-        """Pose of a moving camera from its newest frame against the mapped markers (not in the graph).
-
-        A resection over full marker poses (``resect``: each marker's implied camera pose weighted by
-        its covariance), not a fit of marker centres: markers along a line or a shallow arc (a ring's,
-        seen from inside) leave the centres free to turn about it, metres off at the camera; the
-        markers' own rotations hold that turn. Each marker takes the IPPE branch whose implied camera
-        rotation is nearer the one most markers imply: one frame's positions are too loose (~0.1 m
-        at the camera a marker) to judge branches by, its flips' rotations off by their flip angle.
-        The map's covariance is left out: one frame's noise outweighs it, and a moving camera's
-        pose is published without one.
-        """
-        mapped = [o for k, o in track.latest.items() if marker_symbol(k) in self.in_graph]
-        if not mapped:
+        """Pose of a moving camera from its newest frame against the mapped markers (not in the
+        graph), placed as a moving frame is (``place_frame``: full marker poses, not a fit of their
+        centres, which markers along a line or a shallow arc, a ring's seen from inside, leave free
+        to turn about it, metres off at the camera); one marker, or none agreeing: all of them."""
+        frame = moving_frame(track.camera_id, track.last_stamp_ns, [o for k, o in track.latest.items() if marker_symbol(k) in self.in_graph], 0)
+        if not len(frame.ids):
             return None
-        world = np.stack([self._pose(marker_symbol(o.marker_id)) for o in mapped])
-        poses = np.stack([o.camera_T_marker for o in mapped])
-        covs = np.stack([o.covariance for o in mapped])
-        others = np.stack([o.camera_T_marker if o.alternative is None else o.alternative for o in mapped])
-        implied = world[:, None] @ invert_poses(np.stack([poses, others], axis=1))  # (K, 2, 4, 4)
-        agreed = consensus(implied, agree_m=math.inf)
-        if agreed is not None:
-            flipped = np.argmin(rotation_angles(implied[..., :3, :3], agreed[0][:3, :3]), axis=1) == 1
-            covs[flipped] = covariance_in_frame(covs[flipped], poses[flipped, :3, :3], others[flipped, :3, :3])
-            poses[flipped] = others[flipped]
-        return resect(world, np.zeros_like(covs), poses, covs, self.config.huber_k)[0]
+        world = self._mapped(frame.ids)
+        placed = place_frame(frame, world, self.rotation_floor_rad)
+        if placed is not None:
+            return placed[0]
+        return resect(np.stack(list(world.values())), np.zeros_like(frame.covariances), frame.poses, frame.covariances, self.config.huber_k)[0]
+
+    def _mapped(self, ids: np.ndarray) -> dict[int, np.ndarray]:
+        """world_T_marker of those of ``ids`` in the graph."""
+        return {int(mk): self._pose(marker_symbol(int(mk))) for mk in ids if marker_symbol(int(mk)) in self.in_graph}
 
     def _object_markers(self, cams: dict[str, CameraEstimate]) -> dict[int, PoseEstimate]:
         """Newest pose of each object marker, through the camera that sees it best."""

@@ -16,14 +16,16 @@ tilt leaves 3-4).
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
 
-Online (``LiveKeyframes``) the daemon holds a moving camera's frames (the same gap) until
-it is still again and its new segment has entered the graph, or until they are ``lag_s`` old for a
-camera that keeps moving; then they join by the same rules, against the current estimates, and
-the newest ``max_live`` stay in the graph.
+Online (``LiveKeyframes``) the daemon holds a moving camera's frames (the same gap), each placed
+against the map as it is held, until the camera is still again and its new segment has entered
+the graph, or until they are ``lag_s`` old for a camera that keeps moving; then they join by the
+same rules, and the newest ``max_live`` stay in the graph. Placed as they come, a move's first
+``min_frames``, which enter in one update, are not all placed in it.
 """
 
 from __future__ import annotations
 
+import math
 from collections import Counter, deque
 from dataclasses import dataclass
 
@@ -31,11 +33,13 @@ import gtsam
 import numpy as np
 
 from estimator.config import KeyframeConfig
+from estimator.resect import implied_d2, resect
 from estimator.symbols import keyframe_symbol, marker_symbol
 from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_poses, rotation_angles, rotations_within
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
 AGREE_M = 0.05  # and this distance
+GATE_CHI2 = 22.46  # chi-square, 6 dof, 1 in 1,000: a marker of a placed frame outside its own covariance of the pose
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,7 @@ class MovingFrame:
     alternatives: np.ndarray
     covariances: np.ndarray
     move: int = 0  # the segment the camera left: frames of one move share it
+    placed: tuple[np.ndarray, list[int], list[int]] | None = None  # online: ``place_frame`` when held (see ``LiveKeyframes``)
 
 
 class MovingFrames:
@@ -74,23 +79,48 @@ class MovingFrames:
             self.gap_ns *= 2
 
 
-def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray]) -> tuple[np.ndarray, list[int], list[int]] | None:
+def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotation_floor_rad: float = 0.0) -> tuple[np.ndarray, list[int], list[int]] | None:
     """world_T_camera of a frame from the solved markers it sees, and the rows and branches (0: the
     pose the front-end chose, 1: its alternative) that agree with it; None unless two markers agree.
 
-    Each observation's two IPPE branches each imply a camera pose through its marker; the implied
-    pose most others agree with is the frame's, and each marker keeps the branch nearer to it.
+    Each observation's two IPPE branches each imply a camera pose through its marker. Branches are
+    judged by rotation: a flip's implied rotation is off by its flip angle, while one frame's
+    implied positions scatter by the lever arm (a marker's 1 deg is 5 cm at a camera 3 m away) and
+    cannot judge it. Each marker whose branch agrees in rotation with the most takes it; the pose is
+    resected over them (``resect``), the markers outside their own covariance of it (chi-square,
+    6 dof, ``GATE_CHI2``; the view's rotation floor added, as in their factors) are left out, and
+    it is resected over the rest.
     """
     rows = [j for j, mk in enumerate(frame.ids.tolist()) if mk in world_T_marker]
     if len(rows) < 2:
         return None
     world = np.stack([world_T_marker[int(frame.ids[j])] for j in rows])
     implied = world[:, None] @ invert_poses(np.stack([frame.poses[rows], frame.alternatives[rows]], axis=1))  # (K, 2, 4, 4)
-    agreed = consensus(implied)
+    agreed = consensus(implied, agree_m=math.inf)
     if agreed is None:
         return None
-    best, chosen = agreed
-    return best, [rows[i] for i, _ in chosen], [k for _, k in chosen]
+    idx, branches = [i for i, _ in agreed[1]], [k for _, k in agreed[1]]
+    poses, covs = chosen_branches(frame, [rows[i] for i in idx], branches, rotation_floor_rad)
+    T = resect(world[idx], np.zeros_like(covs), poses, covs)[0]
+    inside = implied_d2(T, world[idx], poses, covs) < GATE_CHI2
+    if inside.sum() < 2:
+        return None
+    if not inside.all():
+        idx, branches = [i for i, ok in zip(idx, inside) if ok], [k for k, ok in zip(branches, inside) if ok]
+        T = resect(world[idx], np.zeros_like(covs[inside]), poses[inside], covs[inside])[0]
+    return T, [rows[i] for i in idx], branches
+
+
+def chosen_branches(frame: MovingFrame, rows: list[int], branches: list[int], rotation_floor_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """camera_T_marker (K, 4, 4) and covariance (K, 6, 6; ROS order, marker frame, the rotation
+    floor added) of ``rows`` on their ``branches``: the other branch's covariance turned into its
+    frame (the front-end gave it in the chosen pose's)."""
+    poses, covs = frame.poses[rows].copy(), frame.covariances[rows].copy()
+    other = np.array(branches, dtype=bool)
+    covs[other] = covariance_in_frame(covs[other], poses[other, :3, :3], frame.alternatives[rows][other, :3, :3])
+    poses[other] = frame.alternatives[rows][other]
+    covs[:, 3:, 3:] += np.eye(3) * rotation_floor_rad**2
+    return poses, covs
 
 
 def consensus(implied: np.ndarray, agree_m: float = AGREE_M) -> tuple[np.ndarray, list[tuple[int, int]]] | None:
@@ -139,7 +169,7 @@ def add_keyframes(
     placed = []
     last: dict[str, np.ndarray] = {}
     for i, frame in enumerate(frames):
-        p = place_frame(frame, world_T_marker)
+        p = frame.placed or place_frame(frame, world_T_marker, rotation_floor_rad)
         if p is None:
             continue
         seen = segment_poses.get(frame.camera_id, []) + ([last[frame.camera_id]] if frame.camera_id in last else [])
@@ -154,11 +184,8 @@ def add_keyframes(
             continue
         key = keyframe_symbol(first_index + i)
         values.insert(key, gtsam.Pose3(world_T_camera))
-        for j, k in zip(kept, branches):
-            T, cov = frame.poses[j], frame.covariances[j].copy()
-            if k == 1:  # the other branch: its covariance was given in the chosen pose's frame
-                T, cov = frame.alternatives[j], covariance_in_frame(cov, frame.poses[j, :3, :3], frame.alternatives[j, :3, :3])
-            cov[3:, 3:] += np.eye(3) * rotation_floor_rad**2
+        poses, covs = chosen_branches(frame, kept, branches, rotation_floor_rad)
+        for j, T, cov in zip(kept, poses, covs):
             noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
             graph.add(gtsam.BetweenFactorPose3(key, marker_symbol(int(frame.ids[j])), gtsam.Pose3(T), noise))
         added.append((key, frame, len(kept)))

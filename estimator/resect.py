@@ -31,6 +31,18 @@ def adjoints(T: np.ndarray) -> np.ndarray:
     return A
 
 
+def implied_d2(world_T_camera: np.ndarray, world_T_markers: np.ndarray, camera_T_markers: np.ndarray, pair_covs: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distances (N,) of each marker's implied camera pose M_i Z_i^-1 from
+    ``world_T_camera`` (4, 4), under the observation's own covariance (``pair_covs`` (N, 6, 6), ROS
+    order, marker frame) taken to the camera as ``resect`` does; the map taken as exact."""
+    Z = np.asarray(camera_T_markers, np.float64)
+    Ad = adjoints(Z)
+    S = Ad @ np.asarray(pair_covs, np.float64)[np.ix_(range(len(Z)), ROS_TO_GTSAM, ROS_TO_GTSAM)] @ np.swapaxes(Ad, 1, 2)
+    camera = gtsam.Pose3(world_T_camera)
+    r = np.array([gtsam.Pose3.Logmap(camera.between(gtsam.Pose3(c))) for c in np.asarray(world_T_markers, np.float64) @ np.linalg.inv(Z)])
+    return np.einsum("ni,ni->n", r, np.linalg.solve(S + 1e-12 * np.eye(6), r[..., None])[..., 0])
+
+
 def resect(
     world_T_markers: np.ndarray, marker_covs: np.ndarray, camera_T_markers: np.ndarray, pair_covs: np.ndarray, huber_k: float = 1.345
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -297,7 +297,8 @@ def test_a_reader_that_cannot_lock_memory_still_gets_frames(client_transport: Tr
 
 @pytest.mark.slow
 def test_a_publisher_that_cannot_lock_memory_sends_plain_bytes(client_transport: TransportConfig) -> None:
-    """It used to die creating its pool (``ZError``: out of memory); a driver must start as a plain user."""
+    """Creating its shared-memory pool fails without locked memory (``ZError``: out of memory); a
+    driver must still start as a plain user, sending plain bytes."""
     got: list[int] = []
     with Bus(client_transport, CELL) as bus:
         probe = bus.session.declare_subscriber(keys.depth(CELL, "cam1"), lambda s: got.append(len(s.payload)))

@@ -411,10 +411,10 @@ def test_object_marker_covariance_carries_the_camera_through_the_lever_arm() -> 
 
 
 def test_a_camera_bumped_within_its_first_frames_is_still_caught() -> None:
-    """Pairs younger than five observations used to be no witness of a move, so a camera bumped
-    in its first frames (a slow camera under load: ~1 frame/s) folded the moved frames into its
-    first segment. A young pair's mean is uncertain by its observations' covariance over n, which
-    the test now adds; the bumped camera gets a new segment at its new pose."""
+    """A camera bumped in its first frames (a slow camera under load: ~1 frame/s) has pairs of a
+    few observations; they must still witness the move, or the moved frames fold into the first
+    segment. A young pair's mean is uncertain by its observations' covariance over n, which the
+    test adds; the bumped camera gets a new segment at its new pose."""
     bump = CameraMotion(kind="bump", start_s=0.1, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))
     markers = [wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")]
     s = Scenario(markers=markers, cameras=[camera("a", 0.0, 0.3, [bump]), camera("b", 0.6, 0.3)])
