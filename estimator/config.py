@@ -32,6 +32,12 @@ class KeyframeConfig(BaseModel):
         "(measured: see docs/performance.md, online_keyframes_over_without_max and estimator_scale --arm)",
     )
     max_live: int = Field(default=60, ge=1, description="online: the newest this many moving frames stay in the graph, older ones leave it")
+    max_markers_online: int = Field(
+        default=0, ge=0,
+        description="online: a moving frame's factors go to at most this many of its markers, the best-determined "
+        "(smallest position covariance; 0: all). A latency knob for cells whose cameras each see dozens of markers, at a "
+        "cost in accuracy (docs/design.md)",
+    )
     lag_s: float = Field(
         default=2.0, ge=0,
         description="online: a camera still moving enters its held frames once they are this old, min_frames at a time (a "

@@ -158,7 +158,7 @@ def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) 
 def add_keyframes(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame], world_T_marker: dict[int, np.ndarray],
     segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float, robust: gtsam.noiseModel.mEstimator.Base, config: KeyframeConfig,
-    first_index: int = 0,
+    first_index: int = 0, max_markers: int = 0,
 ) -> list[tuple[int, MovingFrame, int]]:
     """Add each frame that ``place_frame`` can place and that is a new view (not its camera's
     segments' ``segment_poses`` nor the frame kept before it) to ``graph`` and ``values`` (in
@@ -185,6 +185,9 @@ def add_keyframes(
         key = keyframe_symbol(first_index + i)
         values.insert(key, gtsam.Pose3(world_T_camera))
         poses, covs = chosen_branches(frame, kept, branches, rotation_floor_rad)
+        if 0 < max_markers < len(kept):
+            best = np.sort(np.argsort(np.trace(covs[:, :3, :3], axis1=1, axis2=2))[:max_markers])
+            kept, poses, covs = [kept[b] for b in best], poses[best], covs[best]
         for j, T, cov in zip(kept, poses, covs):
             noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
             graph.add(gtsam.BetweenFactorPose3(key, marker_symbol(int(frame.ids[j])), gtsam.Pose3(T), noise))
@@ -247,7 +250,7 @@ class LiveKeyframes:
             config = self.config.model_copy(update={"min_frames": 1}) if known else self.config
             start = graph.size()
             added = add_keyframes(graph, values, group, world_T_marker, segment_poses, rotation_floor_rad, robust, config,
-                                  first_index=self.next_index)  # fmt: skip
+                                  first_index=self.next_index, max_markers=self.config.max_markers_online)  # fmt: skip
             self.next_index += len(group)
             if added:
                 self._move_entered[cid] = (move, (entered if entered_move == move else 0) + len(added))

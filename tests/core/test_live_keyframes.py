@@ -99,3 +99,24 @@ def test_a_camera_that_never_stops_enters_its_frames_after_the_lag() -> None:
     assert entered[0.0] == 0
     # 8 s at one frame per 0.1 s (3 cm apart: new views), the last second still held: ~70
     assert entered[1.0] >= 60, entered
+
+
+def test_a_moving_frames_factors_online_are_capped() -> None:
+    """``max_markers_online``: a frame of a's pan holds factors to at most that many of its markers
+    (at 64 cameras a frame's 32 doubled update p99); with 2 of the wall's 4, the pan's frames still
+    enter where a was."""
+    cell = Cell(Estimator(config(keyframes=KeyframeConfig(online=True, max_markers_online=2))), seed=4)
+    cell.run(2.0)
+    truth = pan(cell, 0.3, 0.7)
+    est = cell.est
+    assert est.counters.keyframes >= KeyframeConfig().min_frames
+    values = est.isam.calculateEstimate()
+    factors = est.isam.getFactorsUnsafe()
+    for kf in est.live_keyframes.live:
+        assert len(kf.factors) == 2, f"frame at {kf.stamp_ns} ns has {len(kf.factors)} factors"
+        markers = {gtsam.Symbol(k).index() for f in kf.factors for k in factors.at(f.slot).keys() if k != kf.key}
+        assert len(markers) == 2, f"frame at {kf.stamp_ns} ns: factors to {markers}"
+        T = values.atPose3(kf.key).matrix()
+        d = T[:3, :3].T @ (T[:3, 3] - truth[kf.stamp_ns][:3, 3])
+        cov = est.isam.marginalCovariance(kf.key)[3:, 3:]
+        assert d @ np.linalg.solve(cov, d) <= 16.27, f"frame at {kf.stamp_ns} ns is {1e3 * d} mm off"  # 3 dof, 99.9 %
