@@ -78,7 +78,8 @@ def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequ
         colour = None
         if rgb is not None:
             colour = np.zeros((*z.shape, 3), np.uint8)
-            colour[nearest >= 0] = np.asarray(rgb, np.uint8).reshape(-1, 3)[nearest[nearest >= 0]]
+            seen = nearest >= 0
+            colour[seen] = np.asarray(rgb, np.uint8).reshape(-1, 3)[nearest[seen]]
     if colour is not None:
         out = np.ascontiguousarray(colour[..., ::-1])
     else:  # the colours spread over the scene's own depths, not a sensor's whole range
