@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, TypeVar
 
 import cv2
 import numpy as np
@@ -10,6 +11,8 @@ import open3d as o3d
 
 from recognition.cloud import Neighbours, radius_neighbours
 from recognition.errors import CloudError
+
+T = TypeVar("T")
 
 #: RANSAC hypotheses are scored on at most this many points (a seeded random sample): a plane that
 #: holds a tenth of the scene holds a tenth of the sample, and a frame's table has ~10k voxels.
@@ -53,7 +56,7 @@ def remove_planes(
             break
         sample = rest if len(rest) <= PLANE_SAMPLE else np.sort(rng.choice(rest, PLANE_SAMPLE, replace=False))
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[sample]))
-        plane, inliers = pcd.segment_plane(distance_m, ransac_n=3, num_iterations=200)
+        plane, inliers = one_thread(lambda: pcd.segment_plane(distance_m, ransac_n=3, num_iterations=200))
         a, b, c, d = plane
         if d < 0:  # orient the normal towards the camera: the origin has positive signed distance
             a, b, c, d = -a, -b, -c, -d
@@ -67,6 +70,18 @@ def remove_planes(
         keep[rest[(signed < band[rest]) & (dominant | (signed > -band[rest]))]] = False
         planes.append((a, b, c, d))
     return keep, np.array(planes, dtype=np.float64).reshape(-1, 4)
+
+
+def one_thread(call: Callable[[], T]) -> T:
+    """``call()`` with Open3D on one thread. Its ``segment_plane`` runs its hypotheses on threads
+    drawing from one generator: on two cores the seeded plane differed from run to run, and with it
+    what a marginal frame gave."""
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        return call()
+    finally:
+        o3d.utility.set_max_threads(threads)
 
 
 def patch_extent(points: np.ndarray, normal: np.ndarray, cell_m: float = 0.02) -> float:
