@@ -110,6 +110,7 @@ def test_a_moving_frame_is_placed_by_the_markers_that_agree() -> None:
     one = _moving_frame(s, wTc, flipped=set())
     assert place_frame(MovingFrame("b", 1, one.ids[:1], one.poses[:1], one.alternatives[:1], one.covariances[:1]), wTm) is None
 
+
 def test_a_moving_frame_at_range_keeps_every_marker_its_noise_allows() -> None:
     """Eight wall markers 3 m away, single noisy frames (the front-end's covariance model, a fifth
     flipped): one marker's rotation noise puts the camera it implies 5-15 cm off, so agreement on
