@@ -74,8 +74,9 @@ def remove_planes(
 
 def one_thread(call: Callable[[], T]) -> T:
     """``call()`` with Open3D on one thread. Its ``segment_plane`` runs its hypotheses on threads
-    drawing from one generator: on two cores the seeded plane differed from run to run, and with it
-    what a marginal frame gave."""
+    (``OMP_NUM_THREADS`` does not reach them): seeded, it still gave another plane now and then on
+    two cores with the other one busy (2 planes in 20 runs on a demo frame's points), and with it
+    another answer for a marginal frame."""
     threads = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(1)
     try:
