@@ -18,7 +18,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from schemas.geometry import ROS_TO_GTSAM, cov_gtsam_to_ros, skew
+from schemas.geometry import ROS_TO_GTSAM, cov_gtsam_to_ros, mahalanobis_sq, skew
 
 ITERATIONS = 3
 
@@ -31,16 +31,21 @@ def adjoints(T: np.ndarray) -> np.ndarray:
     return A
 
 
+def at_camera(camera_T_markers: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """Covariances (N, 6, 6; ROS order, marker frame) of observations ``camera_T_markers`` (N, 4, 4)
+    taken to the camera pose each implies: Ad(Z) Sigma Ad(Z)^T, gtsam order (rotation first)."""
+    Ad = adjoints(np.asarray(camera_T_markers, np.float64))
+    return Ad @ np.asarray(covs, np.float64)[np.ix_(range(len(Ad)), ROS_TO_GTSAM, ROS_TO_GTSAM)] @ np.swapaxes(Ad, 1, 2)
+
+
 def implied_d2(world_T_camera: np.ndarray, world_T_markers: np.ndarray, camera_T_markers: np.ndarray, pair_covs: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distances (N,) of each marker's implied camera pose M_i Z_i^-1 from
     ``world_T_camera`` (4, 4), under the observation's own covariance (``pair_covs`` (N, 6, 6), ROS
     order, marker frame) taken to the camera as ``resect`` does; the map taken as exact."""
-    Z = np.asarray(camera_T_markers, np.float64)
-    Ad = adjoints(Z)
-    S = Ad @ np.asarray(pair_covs, np.float64)[np.ix_(range(len(Z)), ROS_TO_GTSAM, ROS_TO_GTSAM)] @ np.swapaxes(Ad, 1, 2)
     camera = gtsam.Pose3(world_T_camera)
-    r = np.array([gtsam.Pose3.Logmap(camera.between(gtsam.Pose3(c))) for c in np.asarray(world_T_markers, np.float64) @ np.linalg.inv(Z)])
-    return np.einsum("ni,ni->n", r, np.linalg.solve(S + 1e-12 * np.eye(6), r[..., None])[..., 0])
+    implied = np.asarray(world_T_markers, np.float64) @ np.linalg.inv(np.asarray(camera_T_markers, np.float64))
+    r = np.array([gtsam.Pose3.Logmap(camera.between(gtsam.Pose3(c))) for c in implied])
+    return mahalanobis_sq(r, at_camera(camera_T_markers, pair_covs) + 1e-12 * np.eye(6))
 
 
 def resect(
@@ -54,10 +59,7 @@ def resect(
     """
     Z = np.asarray(camera_T_markers, np.float64)
     C = np.asarray(world_T_markers, np.float64) @ np.linalg.inv(Z)  # each marker's camera pose
-    Ad = adjoints(Z)
-    to_gtsam = np.ix_(range(len(Z)), ROS_TO_GTSAM, ROS_TO_GTSAM)
-    S_obs = Ad @ np.asarray(pair_covs, np.float64)[to_gtsam] @ np.swapaxes(Ad, 1, 2)
-    S_map = Ad @ np.asarray(marker_covs, np.float64)[to_gtsam] @ np.swapaxes(Ad, 1, 2)
+    S_obs, S_map = at_camera(Z, pair_covs), at_camera(Z, marker_covs)
     info = np.linalg.inv(S_obs + S_map + 1e-12 * np.eye(6))
     poses = [gtsam.Pose3(c) for c in C]
     # Start from the best-determined marker's camera pose: the mean of rotations could be a flip's.
