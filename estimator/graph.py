@@ -223,7 +223,7 @@ class Estimator:
                 static.append(obs)
         track.markers_seen = len(track.latest)
         if not self._camera_is_still(track, static):
-            if self.live_keyframes is not None and track.moving and self.live_keyframes.due(camera_id, stamp_ns) and len(static) >= 2:
+            if self.live_keyframes is not None and track.moving and self.live_keyframes.due(camera_id, stamp_ns):
                 frame = moving_frame(camera_id, stamp_ns, static, track.segment)
                 self.live_keyframes.hold(replace(frame, placed=place_frame(frame, self._mapped(frame.ids), self.rotation_floor_rad)))
             return False
@@ -598,8 +598,7 @@ class Estimator:
                 del live.pending[cid]
             else:
                 continue
-            seen = {int(mk) for f in frames for mk in f.ids if marker_symbol(int(mk)) in self.in_graph}
-            world_T_marker = {mk: self._pose(marker_symbol(mk)) for mk in seen}
+            world_T_marker = self._mapped(np.unique(np.concatenate([f.ids for f in frames])))
             own = ([camera_symbol(current)] if placed else []) + (
                 [self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else [])
             owners, entered = live.enter(graph, values, list(frames), world_T_marker, {cid: [self._pose(k) for k in own]},
