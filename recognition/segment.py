@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, TypeVar
 
 import cv2
 import numpy as np
@@ -11,8 +10,6 @@ import open3d as o3d
 
 from recognition.cloud import Neighbours, radius_neighbours
 from recognition.errors import CloudError
-
-T = TypeVar("T")
 
 #: RANSAC hypotheses are scored on at most this many points (a seeded random sample): a plane that
 #: holds a tenth of the scene holds a tenth of the sample, and a frame's table has ~10k voxels.
@@ -55,8 +52,7 @@ def remove_planes(
         if len(rest) < max(3, min(min_fraction, STRUCTURE_SHARE) * len(pts)):
             break
         sample = rest if len(rest) <= PLANE_SAMPLE else np.sort(rng.choice(rest, PLANE_SAMPLE, replace=False))
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[sample]))
-        plane, inliers = one_thread(lambda: pcd.segment_plane(distance_m, ransac_n=3, num_iterations=200))
+        plane, inliers = ransac_plane(pts[sample], distance_m)
         a, b, c, d = plane
         if d < 0:  # orient the normal towards the camera: the origin has positive signed distance
             a, b, c, d = -a, -b, -c, -d
@@ -72,17 +68,19 @@ def remove_planes(
     return keep, np.array(planes, dtype=np.float64).reshape(-1, 4)
 
 
-def one_thread(call: Callable[[], T]) -> T:
-    """``call()`` with Open3D on one thread. Its ``segment_plane`` runs its hypotheses on threads
-    (``OMP_NUM_THREADS`` does not reach them): seeded, it still gave another plane now and then on
-    two cores with the other one busy (2 planes in 20 runs on a demo frame's points), and with it
-    another answer for a marginal frame."""
+def ransac_plane(points: np.ndarray, distance_m: float) -> tuple[np.ndarray, list[int]]:
+    """Open3D's RANSAC plane (a, b, c, d) of points (N, 3) and its inliers, on one thread. Its
+    ``segment_plane`` runs its hypotheses on threads (``OMP_NUM_THREADS`` does not reach them):
+    seeded, it still gave another plane now and then on two cores with the other one busy (2 planes
+    in 20 runs on a demo frame's points), and with it another answer for a marginal frame."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     threads = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(1)
     try:
-        return call()
+        plane, inliers = pcd.segment_plane(distance_m, ransac_n=3, num_iterations=200)
     finally:
         o3d.utility.set_max_threads(threads)
+    return np.asarray(plane), inliers
 
 
 def patch_extent(points: np.ndarray, normal: np.ndarray, cell_m: float = 0.02) -> float:
