@@ -123,6 +123,13 @@ class RecognitionConfig(BaseModel):
         "(fitted onto part of a larger surface; simulated true detections: max 0.12; a milk carton on a person in PCL's "
         "five_people.pcd: 0.26)",
     )
+    max_flush: float = Field(
+        default=0.5, ge=0, le=1,
+        description="verification: largest share of the measured outline flush with the model's edge beside it (no "
+        "depth step; where the object meets its support aside): the model drawn on a surface that goes on, which the "
+        "clutter test misses where the model's edge curves away (a can's side; simulated true detections: max 0.18 of "
+        "1,073; a can and a tote on people's backs in PCL's five_people.pcd: 0.80, 0.81)",
+    )
     min_outline_seen: float = Field(
         default=0.6, ge=0, le=1,
         description="verification: share of the outline with measured depth; below it nothing shows the object ends "

@@ -65,11 +65,12 @@ REFIT_FITNESS = 0.6
 @dataclass
 class Evidence:
     """What a frame's hypotheses are judged against: its depth view, the planes removed from it
-    (rows a, b, c, d, camera frame), each view pixel's cluster (``cluster_labels``) and the pixels
-    the objects taken so far explain."""
+    (rows a, b, c, d, camera frame), the level one objects stand on (None: not known), each view
+    pixel's cluster (``cluster_labels``) and the pixels the objects taken so far explain."""
 
     view: DepthView
     planes: np.ndarray
+    support: np.ndarray | None
     labels: np.ndarray
     pixels: Explained = field(default_factory=Explained)
     vouched: set[str] = field(default_factory=set)  # objects taken whose colour vouches for them (``COLOUR_VOUCHES``)
@@ -87,7 +88,8 @@ class Resolver:
                 clusters: Sequence[np.ndarray]) -> list[Detection]:
         """The detections the frame holds, by object id: of ``candidates`` fitted in ``scene`` (its
         ``clusters`` as indices into its points), those verified against ``view`` (None: not verified)."""
-        evidence = None if view is None else Evidence(view, scene.planes, cluster_labels(view, scene.points, clusters))
+        support = next((cand.stance.support for cand in candidates if cand.stance.support is not None), None)
+        evidence = None if view is None else Evidence(view, scene.planes, support, cluster_labels(view, scene.points, clusters))
         found = self._take(candidates, evidence)
         # Two rules judge a match by the rest of its cluster's shape; an object its colour vouches
         # for is past them: in clutter that rest is what stands beside it or on it.
@@ -133,6 +135,7 @@ class Resolver:
                         taken.add(cand.part)  # which object it is cannot be told: nothing is reported from it
                         continue
                     cand, v = won
+                    log.debug("%s taken: %s", cand.detection.object_id, described(v, self._support(v, evidence)))
                     evidence.pixels.admit(v)
                     if self._coloured(v, COLOUR_VOUCHES):
                         evidence.vouched.add(cand.detection.object_id)
@@ -194,7 +197,7 @@ class Resolver:
                 log.debug("%s found upside down: reported upright, which the frame holds as well",
                           cand.detection.object_id)
                 return upright, v
-        v = self._verdict(evidence.view, cand.detection, evidence.planes)
+        v = self._verdict(cand.detection, evidence)
         if self._accepts(cand.detection, cand.stance, v, evidence):
             return cand, v
         if (again := self._refitted(cand, v, evidence)) is not None:
@@ -258,7 +261,7 @@ class Resolver:
 
     def _verified(self, det: Detection, stance: Stance, evidence: Evidence) -> Verdict | None:
         """The hypothesis's verdict if verification accepts it, else None."""
-        v = self._verdict(evidence.view, det, evidence.planes)
+        v = self._verdict(det, evidence)
         return v if self._accepts(det, stance, v, evidence) else None
 
     def _accepts(self, det: Detection, stance: Stance, v: Verdict, evidence: Evidence) -> bool:
@@ -274,12 +277,7 @@ class Resolver:
             return False
         seen = self._support(v, evidence)
         if not (self._placed(v, seen) and self._plausible(v) and pixels.admits(v)):
-            log.debug("%s rejected by verification: visible fitness %.2f, support %.2f (%d of %d visible "
-                      "pixels, %d seen through), facing %.2f (%d pixels seen from behind), clutter %.2f, outline seen "
-                      "%.2f (of %d pixels), inside a support %.3f, colour %.2f (of %d pixels), shape error %.1f sigma",
-                      det.object_id, v.fitness, seen, v.inliers, v.visible, v.violations, v.facing_share, v.backfacing,
-                      v.clutter, v.outline_seen, v.outline, v.penetration, v.colour_agreement, v.colour_judged,
-                      v.shape_error)  # fmt: skip
+            log.debug("%s rejected by verification: %s", det.object_id, described(v, seen))
             return False
         return True
 
@@ -309,7 +307,7 @@ class Resolver:
         inside a support, its colour and its surface's shape."""
         c = self.config
         return (v.facing_share >= c.min_facing_share and v.clutter <= c.max_clutter
-                and v.outline_seen >= c.min_outline_seen and v.penetration <= c.max_penetration
+                and v.outline_seen >= c.min_outline_seen and v.flush <= c.max_flush and v.penetration <= c.max_penetration
                 and v.colour_agreement >= c.min_colour_agreement and v.shape_error <= c.max_shape_error)  # fmt: skip
 
     def _alone(self, cand: Candidate, found: Iterable[Candidate]) -> bool:
@@ -336,12 +334,12 @@ class Resolver:
                   det.object_id, above)
         return True
 
-    def _verdict(self, view: DepthView, det: Detection, planes: np.ndarray) -> Verdict:
-        """A hypothesis judged against the frame's depth and the supports removed from it
-        (``recognition.verify``)."""
+    def _verdict(self, det: Detection, evidence: Evidence) -> Verdict:
+        """A hypothesis judged against the frame's depth, the planes removed from it and the support
+        objects stand on (``recognition.verify``)."""
         model, c = self.db.models[det.object_id], self.config
-        return verdict(view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2, planes,
-                       model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m)  # fmt: skip
+        return verdict(evidence.view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2,
+                       evidence.planes, model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m, evidence.support)  # fmt: skip
 
     def _floats(self, cand: Candidate, below: Iterable[Detection]) -> bool:
         """Whether a candidate with a support to rest on rests neither on it nor on a detection in
@@ -396,3 +394,12 @@ class Resolver:
         along = points - np.outer(points @ n, n)
         centre = along.mean(axis=0)
         return centre, float(np.linalg.norm(along - centre, axis=1).max())
+
+
+def described(v: Verdict, support: float) -> str:
+    """A verdict's figures, as verification's log lines give them (support: ``Resolver._support``)."""
+    return (f"visible fitness {v.fitness:.2f}, support {support:.2f} ({v.inliers} of {v.visible} visible pixels, "
+            f"{v.violations} seen through), facing {v.facing_share:.2f} ({v.backfacing} pixels seen from behind), clutter "
+            f"{v.clutter:.2f}, outline seen {v.outline_seen:.2f} (of {v.outline} pixels), flush {v.flush:.2f}, inside a support "
+            f"{v.penetration:.3f}, colour {v.colour_agreement:.2f} (of {v.colour_judged} pixels; {v.colour_distinct_agreeing} "
+            f"of {v.colour_distinct} where grey would differ), shape error {v.shape_error:.1f} sigma")  # fmt: skip

@@ -42,7 +42,10 @@ A ring pixel where the measured surface continues the model's own (it lies on th
 the nearest model point, within the tolerance, normals within ``SAME_SURFACE_DEG``) says the model
 was fitted onto part of a larger surface: Aldoma et al.'s clutter term. ``clutter`` is the share of the
 measured ring that continues; ``outline_seen`` the share of the ring measured at all (where most of
-the outline has no depth, nothing says the object ends there).
+the outline has no depth, nothing says the object ends there). Where the model's edge curves away
+(a can's side) its tangent plane runs along the line of sight and nothing continues it: ``flush``
+is the share of the measured ring at the depth of the model point beside it, the support the
+object stands on left out, where the sensor sees no step at all.
 
 A hypothesis is kept when these reach their thresholds (``recognition.config``, measured in
 ``benchmarks.recognition``); among kept ones a scene pixel explains at most one object
@@ -148,6 +151,7 @@ class Verdict:
     outline: int = 0  # ring pixels around the silhouette, inside the image
     outline_measured: int = 0  # ... with a depth
     outline_continuing: int = 0  # ... where the model's surface goes on
+    outline_flush: int = 0  # ... at the depth of the model's edge beside it, off the support: no step there
     inside_support: int = 0  # visible pixels hidden by a support plane the model point lies behind
     hidden: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat indices of the occluded pixels
     colour_judged: int = 0  # inlier pixels where both scene and model have a chromaticity
@@ -197,6 +201,12 @@ class Verdict:
         return self.colour_distinct_agreeing / self.colour_distinct
 
     @property
+    def flush(self) -> float:
+        """Share of the measured outline flush with the model's edge beside it (no depth step), where
+        no support is: the model drawn on a surface that goes on, whatever its shape."""
+        return self.outline_flush / max(self.outline_measured, 1)
+
+    @property
     def outline_seen(self) -> float:
         """Share of the outline with measured depth (1 when the silhouette has no ring in the image)."""
         return self.outline_measured / self.outline if self.outline else 1.0
@@ -204,7 +214,8 @@ class Verdict:
 
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
             tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None,
-            chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1, spacing_m: float = 0.01) -> Verdict:  # fmt: skip
+            chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1, spacing_m: float = 0.01,
+            support: np.ndarray | None = None) -> Verdict:  # fmt: skip
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
     camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
 
@@ -217,7 +228,8 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     the range in r and in g. spacing_m: the model points' spacing (m; their voxel), which sets how
     far apart they land in the image and so how much of the silhouette is gaps between them.
     noise_per_m2 is three depth-noise sigmas at 1 m (they grow with z^2): the inliers' residual
-    spread (``residual_spread``) is judged in them."""
+    spread (``residual_spread``) is judged in them. support (4,): the plane the object stands on (a,
+    b, c, d; unit normal), where its outline meets a surface with no step (``Verdict.flush``)."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
     p = points @ R.T + t
     n = normals @ R.T
@@ -248,7 +260,7 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     if planes is not None and len(planes) and occluded.any():
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
     gap_px = view.K[0, 0] * spacing_m / float(np.median(z)) if len(z) else 0.0
-    outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2, gap_px)
+    outline = _outline(view, u[seen], v[seen], p[seen], n[keep][seen], tolerance_m, noise_per_m2, gap_px, support)
     judged = agreeing = distinct = distinct_agreeing = 0
     if chroma_range is not None and view.chroma is not None:
         scene = view.chroma.reshape(-1, 2)[flat[inlier]]
@@ -379,18 +391,20 @@ def _filled(pixels: np.ndarray, W: int, gap_px: float) -> np.ndarray:
 
 
 def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance_m: float,
-             noise_per_m2: float, gap_px: float = 0.0) -> tuple[int, int, int]:  # fmt: skip
-    """(ring pixels, measured, continuing) around the silhouette of the seen model points p (M, 3,
-    camera frame) with outward normals n, at pixels (u, v): a ring pixel continues when the measured
-    surface there lies on the tangent plane of the nearest model point (within the tolerance, normals
-    within ``SAME_SURFACE_DEG``): the model's surface would go on past its own outline.
+             noise_per_m2: float, gap_px: float = 0.0, support: np.ndarray | None = None) -> tuple[int, int, int, int]:  # fmt: skip
+    """(ring pixels, measured, continuing, flush) around the silhouette of the seen model points p
+    (M, 3, camera frame) with outward normals n, at pixels (u, v): a ring pixel continues when the
+    measured surface there lies on the tangent plane of the nearest model point (within the
+    tolerance, normals within ``SAME_SURFACE_DEG``): the model's surface would go on past its own
+    outline; it is flush when its depth is within the tolerance of that point's and it is not on
+    ``support`` (a, b, c, d; unit normal), the plane the object stands on.
 
     gap_px: how far apart neighbouring model points land (px). Up close they land further apart
     than ``OUTLINE_PX[0]``: the silhouette is closed over such gaps (diagonal ones too) and the
     ring starts half a gap out, else ring pixels fall between the model's own points, on its own
     surface, and read as the surface continuing."""
     if len(u) == 0:
-        return 0, 0, 0
+        return 0, 0, 0, 0
     H, W = view.z.shape
     inner = max(OUTLINE_PX[0], int(np.ceil(gap_px / 2)))
     outer = inner + OUTLINE_PX[1] - OUTLINE_PX[0]
@@ -405,11 +419,13 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
     ring = (cv2.dilate(silhouette, _disc(outer)) > 0) & ~(cv2.dilate(silhouette, _disc(inner)) > 0)
     rv, ru = np.nonzero(ring)
     if len(rv) == 0:
-        return 0, 0, 0
+        return 0, 0, 0, 0
     plane_n = np.zeros(box + (3,))
     plane_d = np.zeros(box)
     plane_n[v - v0, u - u0] = n
     plane_d[v - v0, u - u0] = np.einsum("ij,ij->i", n, p)
+    edge_z = np.zeros(box)
+    edge_z[v - v0, u - u0] = p[:, 2]
     _, label = cv2.distanceTransformWithLabels(source, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
     order = np.flatnonzero(source.reshape(-1) == 0)  # label k is the k-th source pixel in scan order
     nearest = order[label[rv, ru] - 1]
@@ -421,7 +437,11 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
         measured = np.isfinite(z)
         same_plane = np.abs(z - z_plane) <= tolerance_m + noise_per_m2 * z**2
         same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
-    return len(rv), int(measured.sum()), int((measured & same_plane & same_normal).sum())
+        tol = tolerance_m + noise_per_m2 * z**2
+        flush = measured & (np.abs(z - edge_z.reshape(-1)[nearest]) <= tol)
+        if support is not None:  # where an object stands on its support, no step is expected
+            flush &= np.abs(_rays(view.K, gu, gv) * z[:, None] @ support[:3] + support[3]) > tol
+    return len(rv), int(measured.sum()), int((measured & same_plane & same_normal).sum()), int(flush.sum())
 
 
 class Explained:

@@ -246,6 +246,28 @@ def rendered(points: np.ndarray, camera_T_object: np.ndarray, background_m: floa
     return depth_to_cloud(np.round(z * 1000).astype(np.uint16), K)
 
 
+def test_a_can_drawn_on_a_wall_at_range_has_no_step_around_it() -> None:
+    """Half a can's side (3.3 cm radius) against a wall 2.3 m away, where the tolerance (3.8 cm)
+    is more than its radius: every visible point fits the wall (fitness and support 1), and its
+    sides curve away from the camera, so only at its ends does the wall continue the model's tangent
+    plane (clutter passes it). Its outline is flush with the wall all round. Rendered 30 cm in front of the
+    wall, the sensor sees the step. Ring pixels on the support an object stands on are no evidence
+    either way: with the wall given as the support, nothing is flush."""
+    points, normals = half_can(0.004, radius_m=0.033, height_m=0.12)
+    dense, _ = half_can(0.001, radius_m=0.033, height_m=0.12)
+    on_wall = make_pose(t=[0.0, 0.0, 2.3 + 0.033])  # its nearest line on the wall
+    view = DepthView.of(wall(2.3))
+    drawn = verdict(view, points, normals, on_wall, TOL, NOISE)
+    cfg = RecognitionConfig()
+    assert drawn.visible > 50 and drawn.fitness == 1.0 and drawn.support == 1.0 and drawn.clutter < cfg.max_clutter
+    assert drawn.flush > 0.95 > cfg.max_flush
+    in_front = make_pose(t=[0.0, 0.0, 2.0 + 0.033])
+    alone = verdict(DepthView.of(rendered(dense, in_front, background_m=2.3)), points, normals, in_front, TOL, NOISE)
+    assert alone.fitness > 0.9 and alone.outline_seen == 1.0 and alone.flush < 0.05
+    wall_plane = np.array([0.0, 0.0, -1.0, 2.3])  # z = 2.3 m, the normal towards the camera
+    assert verdict(view, points, normals, on_wall, TOL, NOISE, support=wall_plane).flush == 0.0
+
+
 @pytest.mark.parametrize("turn_deg", [150.0, 180.0])
 def test_a_captured_view_seen_from_behind_is_not_judged_on_its_rim(turn_deg: float) -> None:
     """A captured view is an open surface (half a can's side, as one camera sees it). Turned about
