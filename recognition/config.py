@@ -162,8 +162,9 @@ class RecognitionConfig(BaseModel):
     max_float_m: float = Field(
         default=0.02, ge=0,
         description="objects rest on a level support or on another object found under them: a detection whose lowest "
-        "point is more than this above both is rejected; applies once the camera's world pose is known (0: off; "
-        "simulated false detections: totes fitted over a crate's top, 3-4 cm up)",
+        "point is more than this above both is rejected; applies once the camera's world pose is known, or without it on "
+        "the level plane a frame shows (0: off; simulated false detections: totes fitted over a crate's top, 3-4 cm up; "
+        "a milk carton fitted to a leg in PCL's five_people.pcd, the floor removed)",
     )
     min_fitness_shared: float = Field(
         default=0.8, ge=0, le=1, description="fitness that accepts a match covering only part of a cluster (touching objects)"

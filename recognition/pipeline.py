@@ -175,7 +175,8 @@ class Recognizer:
         stands on it, with ``stand_on_level`` objects are tried both free and standing on it, and
         with ``rest_on_sides`` lying on it on each of four sides, when the frame has colour (up to
         three times the poses tried: on depth alone they fitted boxes and cans to PCL's real rooms;
-        an object is tried on one of sides alike, ``Matcher.tries``).
+        an object is tried on one of sides alike, ``Matcher.tries``). Free or not, an object rests on
+        the support where there is one (``Resolver.rests``).
         """
         c = self.config
         if world_T_camera is not None:
@@ -192,8 +193,9 @@ class Recognizer:
         else:
             return [Stance(None, None)]
         lying = [Stance(level, support, rest) for rest in RESTS] if c.rest_on_sides and coloured else []
-        # With a pose the support is known: a free object rests on it too (nothing hovers).
-        return [Stance(None, support if world_T_camera is not None else None), Stance(level, support), *lying]
+        # A free object rests on the support too (nothing hovers): without a pose the level plane
+        # stands in for it, else the piece of a leg or a chair a carton fits is taken for one.
+        return [Stance(None, support), Stance(level, support), *lying]
 
     def seen_through(self, view: DepthView, object_id: str, camera_T_object: np.ndarray) -> Verdict | None:
         """Another camera's judgement of a detection: the verdict of the object posed in that camera's
