@@ -89,6 +89,10 @@ class RecognitionConfig(BaseModel):
         "object (walls, a table seen across a room); with a workspace box (a localized camera) the first only"
     )
     min_plane_fraction: float = Field(default=0.1, gt=0, le=1, description="a dominant plane holds this share of the scene")
+    plane_seed: int = Field(
+        default=0, ge=0, description="seed of the plane RANSAC: its draw decides which planes a room's frame loses "
+        "(docs/design.md, 'A room in view')"
+    )
     cluster_tolerance_m: float = Field(default=0.035, gt=0, description="Euclidean clustering distance")
     cluster_min_points: int = Field(default=30, ge=3)
     cluster_max_points: int = Field(default=25000, ge=3)

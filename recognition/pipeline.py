@@ -99,7 +99,8 @@ class Recognizer:
         # for walls there costs ~8 ms a frame and finds none).
         cropped = world_T_camera is not None and c.workspace_min is not None
         off_planes, planes = remove_planes(pts, c.plane_distance_m, min(c.max_planes, 1) if cropped else c.max_planes,
-                                           c.min_plane_fraction, c.plane_noise_per_m2, min_extent_m=STRUCTURE_OBJECTS * self._largest)
+                                           c.min_plane_fraction, c.plane_noise_per_m2, c.plane_seed,
+                                           STRUCTURE_OBJECTS * self._largest)
         pts = pts[off_planes]
         if len(pts) == 0:
             return empty

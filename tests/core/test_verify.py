@@ -161,6 +161,26 @@ def test_real_scenes_without_the_objects_give_no_detection(recognizer: Recognize
     assert recognizer.recognize(cloud) == []
 
 
+@pytest.mark.parametrize(("seed", "colour"), [(2, True), (5, True), (5, False)])
+def test_people_are_no_objects_when_the_floor_under_them_is_removed(demo_models: dict, seed: int, colour: bool) -> None:
+    """PCL's five_people.pcd loses its floor or not by the plane RANSAC's draw: with these seeds
+    it goes (2 of the first 8), and the people come apart into pieces a can, a tote or the milk
+    carton fits (on backs, a leg). Those pieces hang in the air above the floor: without a pose
+    the level plane stands in for the support, and nothing is reported, with the frame's colour
+    and on depth alone (the can and the tote on backs show no depth step around them either,
+    ``Verdict.flush``). On depth alone seed 2 leaves a can on a shoe, on the floor: at 2.5 m the
+    sensor's noise is more than its radius, and depth cannot tell them apart."""
+    cfg = RecognitionConfig(plane_seed=seed)
+    db = ModelDatabase(cfg.descriptor, dict(demo_models))
+    db.add(model_from_cloud("milk", read_cloud(PCL / "milk.pcd"), cfg.descriptor))
+    recognizer = Recognizer(db, cfg)
+    cloud, rgb = read_coloured_cloud(PCL / "five_people.pcd", organised=True)
+    planes = recognizer.prepare(cloud).planes
+    normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    assert np.max(-normals[:, 1]) > np.cos(np.radians(20.0)), "the floor (normal along the image's up) was not removed"
+    assert recognizer.recognize(cloud, rgb=rgb if colour else None) == []
+
+
 @pytest.fixture(scope="module")
 def coloured_milk_recognizer(demo_models: dict) -> Recognizer:
     """The demo objects and PCL's milk carton with its colour (``milk_color.pcd``: mostly white, its
