@@ -435,9 +435,9 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
         z_plane = offset / np.einsum("ij,ij->i", normal, _rays(view.K, gu, gv))
         z = view.z[gv, gu]
         measured = np.isfinite(z)
-        same_plane = np.abs(z - z_plane) <= tolerance_m + noise_per_m2 * z**2
-        same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
         tol = tolerance_m + noise_per_m2 * z**2
+        same_plane = np.abs(z - z_plane) <= tol
+        same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
         flush = measured & (np.abs(z - edge_z.reshape(-1)[nearest]) <= tol)
         if support is not None:  # where an object stands on its support, no step is expected
             flush &= np.abs(_rays(view.K, gu, gv) * z[:, None] @ support[:3] + support[3]) > tol
