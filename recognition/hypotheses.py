@@ -97,12 +97,19 @@ class Detection:
 class Stance:
     """How objects stand in a frame: world up in the camera frame (3,) for the upright test (None:
     any way up), the level plane they rest on (a, b, c, d; unit normal towards the camera; None: no
-    rest test; the pieces path needs it and ``up``), and the side they rest on: ``rest`` (3, 3) turns the object's
-    frame so that the side's outward normal is -z (identity: standing on its base)."""
+    rest test; the pieces path needs it and ``up``: ``resting``), and the side they rest on: ``rest``
+    (3, 3) turns the object's frame so that the side's outward normal is -z (identity: standing on
+    its base)."""
 
     up: np.ndarray | None
     support: np.ndarray | None
     rest: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    @property
+    def resting(self) -> bool:
+        """Whether objects stand or lie on the support (an up and a support): a free fit with a
+        support is only rest-tested."""
+        return self.up is not None and self.support is not None
 
     @property
     def lying(self) -> bool:
@@ -220,7 +227,7 @@ class Matcher:
                 rest = rest[~explained]
                 if det.coverage >= c.min_coverage or len(rest) < c.cluster_min_points:
                     break
-            if support is None or up is None:
+            if not stance.resting:
                 continue
             # What no match explained may hold objects that stand so close that they merged into one
             # cluster, hiding parts of each other: its descriptor is no object's. Each object is

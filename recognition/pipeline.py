@@ -141,7 +141,7 @@ class Recognizer:
         clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
                                          MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
         first_fragment = len(clusters)  # clusters from here on are fragments: the pieces path only
-        if any(s.support is not None for s in stances):
+        if any(s.resting for s in stances):
             clusters += self.matcher.fragments(merged, clusters, shed, len(scene.points))
         # Candidates: a part is a cluster, or what is left of one once a touching object is
         # explained away, or a prior's own hint. A prior only adds one: its cluster is matched as

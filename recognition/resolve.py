@@ -151,7 +151,7 @@ class Resolver:
 
     def _ordered(self, candidates: Sequence[Candidate]) -> list[Candidate]:
         """Candidates best first (``rank``), a free one right after its resting twin (``TWIN_SHARE``)."""
-        resting = [cand for cand in candidates if cand.stance.support is not None and cand.stance.up is not None]
+        resting = [cand for cand in candidates if cand.stance.resting]
 
         def key(cand: Candidate) -> tuple[tuple[float, float], int]:
             twin = self._twin(cand, resting) if cand.stance.up is None else None

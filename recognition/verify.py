@@ -432,7 +432,8 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
     normal, offset = plane_n.reshape(-1, 3)[nearest], plane_d.reshape(-1)[nearest]
     gv, gu = rv + v0, ru + u0
     with np.errstate(divide="ignore", invalid="ignore"):  # a plane along the ray continues nowhere
-        z_plane = offset / np.einsum("ij,ij->i", normal, _rays(view.K, gu, gv))
+        rays = _rays(view.K, gu, gv)
+        z_plane = offset / np.einsum("ij,ij->i", normal, rays)
         z = view.z[gv, gu]
         measured = np.isfinite(z)
         tol = tolerance_m + noise_per_m2 * z**2
@@ -440,7 +441,7 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
         same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
         flush = measured & (np.abs(z - edge_z.reshape(-1)[nearest]) <= tol)
         if support is not None:  # where an object stands on its support, no step is expected
-            flush &= np.abs(_rays(view.K, gu, gv) * z[:, None] @ support[:3] + support[3]) > tol
+            flush &= np.abs(rays * z[:, None] @ support[:3] + support[3]) > tol
     return len(rv), int(measured.sum()), int((measured & same_plane & same_normal).sum()), int(flush.sum())
 
 
