@@ -831,14 +831,16 @@ class Estimator:
         graph), placed as a moving frame is (``place_frame``: full marker poses, not a fit of their
         centres, which markers along a line or a shallow arc, a ring's seen from inside, leave free
         to turn about it, metres off at the camera); one marker, or none agreeing: all of them."""
-        frame = moving_frame(track.camera_id, track.last_stamp_ns, [o for k, o in track.latest.items() if marker_symbol(k) in self.in_graph], 0)
+        mapped = [o for k, o in track.latest.items() if marker_symbol(k) in self.in_graph]
+        frame = moving_frame(track.camera_id, track.last_stamp_ns, mapped, 0)
         if not len(frame.ids):
             return None
         world = self._mapped(frame.ids)
         placed = place_frame(frame, world, self.rotation_floor_rad)
         if placed is not None:
             return placed[0]
-        return resect(np.stack(list(world.values())), np.zeros_like(frame.covariances), frame.poses, frame.covariances, self.config.huber_k)[0]
+        return resect(np.stack(list(world.values())), np.zeros_like(frame.covariances), frame.poses, frame.covariances,
+                      self.config.huber_k)[0]
 
     def _mapped(self, ids: np.ndarray) -> dict[int, np.ndarray]:
         """world_T_marker of those of ``ids`` in the graph."""
