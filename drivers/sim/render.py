@@ -9,6 +9,7 @@ noise model alone.
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -270,7 +271,8 @@ def kinect_depth(z: np.ndarray, cos: np.ndarray, info: CameraInfo, noise, rng: n
 
     Disparity d = f b / z gets Gaussian noise of ``sigma_z_at_1m * f b`` px (so sigma_z grows with
     z^2) and is quantised to ``disparity_step_px``; returns vanish outside the range, at grazing
-    incidence and next to depth jumps.
+    incidence and next to depth jumps (with ``flying_pixels``, there they lie at a random depth
+    between the nearest and farthest surface of their 3 x 3 neighbourhood instead).
     """
     h, w = info.height, info.width
     zz = z.reshape(h, w).astype(np.float64)
@@ -279,11 +281,6 @@ def kinect_depth(z: np.ndarray, cos: np.ndarray, info: CameraInfo, noise, rng: n
         return np.where(valid, np.round(zz * 1000.0), 0).astype(np.uint16)
     fb = info.K[0, 0] * noise.baseline_m
     zs = np.where(valid, zz, 1.0)
-    d = fb / zs + rng.normal(0.0, noise.sigma_z_at_1m_m * fb, size=zs.shape)
-    if noise.disparity_step_px > 0:
-        d = np.round(d / noise.disparity_step_px) * noise.disparity_step_px
-    zn = fb / np.maximum(d, 1e-6)
-    valid &= cos.reshape(h, w) >= noise.grazing_cos
     # Depth edges: the projector's pattern breaks up next to jumps (Kinect shadows and flying pixels).
     zf = np.where(np.isfinite(zz), zz, 1e3)
     jump = np.zeros_like(valid)
@@ -294,17 +291,46 @@ def kinect_depth(z: np.ndarray, cos: np.ndarray, info: CameraInfo, noise, rng: n
     jump[:, :-1] |= dx
     jump[1:, :] |= dy
     jump[:-1, :] |= dy
+    d = fb / zs + rng.normal(0.0, noise.sigma_z_at_1m_m * fb, size=zs.shape)
+    if noise.flying_pixels:
+        # A mixed return: somewhere on the line of sight between the surfaces either side of the jump.
+        near, far = _neighbourhood_range(np.where(valid, zz, np.nan))
+        mixed = jump & valid & np.isfinite(near)
+        share = rng.random(size=zs.shape)
+        d[mixed] += fb / (near + share * (far - near))[mixed] - fb / zs[mixed]
+        jump &= ~mixed
+    if noise.disparity_step_px > 0:
+        d = np.round(d / noise.disparity_step_px) * noise.disparity_step_px
+    zn = fb / np.maximum(d, 1e-6)
+    valid &= cos.reshape(h, w) >= noise.grazing_cos
     valid &= ~jump
     return np.where(valid, np.round(zn * 1000.0), 0).clip(0, 65535).astype(np.uint16)
 
 
+def _neighbourhood_range(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and largest finite depth (H, W) of each pixel's 3 x 3 neighbourhood in z (H, W;
+    NaN where nothing), NaN where it has none."""
+    pad = np.pad(z, 1, constant_values=np.nan)
+    h, w = z.shape
+    stack = np.stack([pad[i:i + h, j:j + w] for i in range(3) for j in range(3)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN neighbourhood gives NaN, as said
+        return np.nanmin(stack, axis=0), np.nanmax(stack, axis=0)
+
+
 def shade_rgb(color: np.ndarray, info: CameraInfo, noise, rng: np.random.Generator) -> np.ndarray:
-    """8-bit RGB from linear albedo x shading (H*W, 3): optical blur and sensor noise."""
+    """8-bit RGB from linear albedo x shading (H*W, 3): white balance, optical blur, sensor noise and
+    a registration shift against the depth (``NoiseSpec``)."""
     img = color.reshape(info.height, info.width, 3) * 255.0
+    if noise.enabled and tuple(noise.white_balance) != (1.0, 1.0, 1.0):
+        img = img * np.asarray(noise.white_balance, dtype=img.dtype)
     if noise.enabled and noise.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), noise.blur_sigma_px)
     if noise.enabled and noise.rgb_sigma > 0:
         img = img + rng.normal(0.0, noise.rgb_sigma, size=img.shape).astype(np.float32)
+    if noise.enabled and tuple(noise.rgb_shift_px) != (0, 0):
+        shift = np.float32([[1, 0, noise.rgb_shift_px[0]], [0, 1, noise.rgb_shift_px[1]]])
+        img = cv2.warpAffine(np.ascontiguousarray(img, dtype=np.float32), shift, (info.width, info.height), borderMode=cv2.BORDER_REPLICATE)
     return np.clip(img, 0, 255).astype(np.uint8)
 
 

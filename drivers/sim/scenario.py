@@ -196,6 +196,16 @@ class NoiseSpec(_Strict):
     max_range_m: float = Field(default=4.5, gt=0)
     grazing_cos: float = Field(default=0.12, ge=0, lt=1, description="drop depth where cos(incidence) is below")
     edge_jump_m: float = Field(default=0.04, gt=0, description="drop depth next to jumps larger than this x z")
+    flying_pixels: bool = Field(
+        default=False, description="next to those jumps return a depth between the near and the far surface (a mixed "
+        "pixel, as time-of-flight and some stereo sensors give) instead of none",
+    )
+    white_balance: Vec3 = Field(
+        default=(1.0, 1.0, 1.0), description="gain of each colour channel (r, g, b): a colour cast from the camera's white balance",
+    )
+    rgb_shift_px: tuple[int, int] = Field(
+        default=(0, 0), description="colour image shifted this many pixels (x, y) against the depth: a registration error",
+    )
     rgb_sigma: float = Field(default=2.0, ge=0, description="RGB noise, 8-bit levels")
     blur_sigma_px: float = Field(default=0.6, ge=0)
 

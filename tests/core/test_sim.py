@@ -83,6 +83,37 @@ def test_kinect_noise_grows_with_z_squared(z: float) -> None:
     assert 0.8 * total < err.std() < 1.25 * total
 
 
+def test_flying_pixels_lie_between_the_surfaces_of_a_jump() -> None:
+    """A step from 1.0 m to 2.0 m down the middle of the image: the Kinect returns nothing next to
+    it; with flying pixels those pixels return a depth between the two surfaces (within the noise
+    at 2 m), and every other pixel is the same."""
+    info = CameraInfo.kinect_v1()
+    z = np.where(np.arange(info.width) < info.width // 2, 1.0, 2.0)[None, :].repeat(info.height, axis=0).astype(np.float32)
+    kinect, flying = (kinect_depth(z.reshape(-1), np.ones(z.size), info, NoiseSpec(flying_pixels=f), np.random.default_rng(3))
+                      for f in (False, True))  # fmt: skip
+    edge = kinect == 0
+    assert edge[:, info.width // 2 - 1 : info.width // 2 + 1].all() and edge.sum() == 2 * info.height
+    assert np.array_equal(kinect[~edge], flying[~edge])
+    mixed = flying[edge].astype(float) / 1000
+    assert np.all(mixed > 1.0 - 0.01) and np.all(mixed < 2.0 + 0.03) and np.ptp(mixed) > 0.5
+
+
+def test_white_balance_and_registration_shift_the_colour() -> None:
+    """The same frame with a warm white balance and colour 3 px off: red up and blue down by their
+    gains, the image moved 3 px to the right, depth untouched."""
+    s = load_scenario()
+    warm = s.model_copy(update={"noise": s.noise.model_copy(update={"white_balance": (1.15, 1.0, 0.85), "rgb_shift_px": (3, 0)})})
+    a, b = (SimCell(x).render("cam1", 0.0, 0) for x in (s, warm))
+    assert np.array_equal(a.depth_mm, b.depth_mm)
+    inner = a.rgb[:, 40:-40].astype(float)
+    moved = b.rgb[:, 43:-37].astype(float)
+    unsaturated = np.all(inner < 200, axis=2)
+    gains = [np.median(moved[..., c][unsaturated] / np.maximum(inner[..., c][unsaturated], 1.0)) for c in range(3)]
+    assert np.allclose(gains, (1.15, 1.0, 0.85), atol=0.03)
+    green_off = [np.abs(b.rgb[:, 40 + dx : b.rgb.shape[1] - 40 + dx, 1].astype(float) - inner[..., 1]).mean() for dx in (0, 3)]
+    assert green_off[1] < 0.7 * green_off[0]  # aligned only 3 px to the right
+
+
 def test_true_marker_corners_project_onto_detections() -> None:
     """Ground truth and the renderer agree: true corners land on the detected ones (< 1.5 px)."""
     from drivers.config import MarkerConfig
