@@ -319,11 +319,14 @@ def _neighbourhood_range(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def shade_rgb(color: np.ndarray, info: CameraInfo, noise, rng: np.random.Generator) -> np.ndarray:
-    """8-bit RGB from linear albedo x shading (H*W, 3): white balance, optical blur, sensor noise and
-    a registration shift against the depth (``NoiseSpec``)."""
+    """8-bit RGB from linear albedo x shading (H*W, 3): white balance, saturation, optical blur, sensor
+    noise and a registration shift against the depth (``NoiseSpec``)."""
     img = color.reshape(info.height, info.width, 3) * 255.0
     if noise.enabled and tuple(noise.white_balance) != (1.0, 1.0, 1.0):
         img = img * np.asarray(noise.white_balance, dtype=img.dtype)
+    if noise.enabled and noise.saturation != 1.0:
+        grey = img.mean(axis=2, keepdims=True)  # each pixel's own grey: the same brightness, no hue
+        img = grey + noise.saturation * (img - grey)
     if noise.enabled and noise.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), noise.blur_sigma_px)
     if noise.enabled and noise.rgb_sigma > 0:

@@ -203,6 +203,9 @@ class NoiseSpec(_Strict):
     white_balance: Vec3 = Field(
         default=(1.0, 1.0, 1.0), description="gain of each colour channel (r, g, b): a colour cast from the camera's white balance",
     )
+    saturation: float = Field(
+        default=1.0, ge=0, description="colour saturation against the scene's (below 1: washed out, as many sensors' colour is)",
+    )
     rgb_shift_px: tuple[int, int] = Field(
         default=(0, 0), description="colour image shifted this many pixels (x, y) against the depth: a registration error",
     )

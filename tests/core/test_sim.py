@@ -114,6 +114,19 @@ def test_white_balance_and_registration_shift_the_colour() -> None:
     assert green_off[1] < 0.7 * green_off[0]  # aligned only 3 px to the right
 
 
+def test_saturation_pales_colour_towards_grey_and_keeps_its_hue() -> None:
+    """At saturation 0.5 each bright pixel's rg-chromaticity lies half as far from grey (1/3, 1/3),
+    in the same direction, within the 8-bit rounding and noise."""
+    s = load_scenario()
+    pale = s.model_copy(update={"noise": s.noise.model_copy(update={"saturation": 0.5, "rgb_sigma": 0.0})})
+    clean = s.model_copy(update={"noise": s.noise.model_copy(update={"rgb_sigma": 0.0})})
+    a, b = (SimCell(x).render("cam1", 0.0, 0).rgb.reshape(-1, 3).astype(float) for x in (clean, pale))
+    bright = (a.sum(axis=1) > 150) & (np.abs(a - a.mean(axis=1, keepdims=True)).max(axis=1) > 40)
+    chroma = [x[bright, :2] / x[bright].sum(axis=1, keepdims=True) - 1 / 3 for x in (a, b)]
+    assert bright.sum() > 1000
+    assert np.allclose(chroma[1], 0.5 * chroma[0], atol=0.01)
+
+
 def test_true_marker_corners_project_onto_detections() -> None:
     """Ground truth and the renderer agree: true corners land on the detected ones (< 1.5 px)."""
     from drivers.config import MarkerConfig
