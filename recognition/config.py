@@ -145,6 +145,13 @@ class RecognitionConfig(BaseModel):
         "is within this, in r and in g, of the colours the model has within 1 cm of the point there (the demo's red can "
         "against a grey box: 0.36 in r; sensor noise on the simulated objects: median 0.01)",
     )
+    colour_min_saturation: float = Field(
+        default=0.5, gt=0, le=1,
+        description="verification: a scene pixel also has the model's colour when it is the model's paled towards grey, "
+        "down to this share of its saturation (a sensor's colour response, a model textured by another camera), never so "
+        "far that grey would agree (1: off; the demo objects rendered at 0.7 of their saturation: 0.69 of them found "
+        "without it, all with it)",
+    )
     max_shape_error: float = Field(
         default=2.0, ge=0,
         description="verification: largest spread of the inliers' depth residual, its shift and tilt taken out, beyond "

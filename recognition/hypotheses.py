@@ -26,7 +26,7 @@ from recognition.config import RecognitionConfig
 from recognition.descriptor import ClusterDescription, describe
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters
-from recognition.verify import distinct_from_grey
+from recognition.verify import GREY, distinct_from_grey, palest
 from schemas.geometry import invert_pose, make_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -192,7 +192,7 @@ class Matcher:
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
         self._rests = {oid: distinct_rests(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)
                        for oid, mdl in database.models.items()}  # fmt: skip
-        self._palettes = {oid: palette(mdl.chroma_range, config.colour_tolerance)
+        self._palettes = {oid: palette(mdl.chroma_range, config.colour_tolerance, config.colour_min_saturation)
                           for oid, mdl in database.models.items() if mdl.colours is not None}  # fmt: skip
 
     def tries(self, object_id: str, stance: Stance) -> bool:
@@ -508,12 +508,16 @@ class Matcher:
         return hits / np.maximum(facing.sum(axis=1), 1)
 
 
-def palette(chroma_range: np.ndarray, tolerance: float) -> np.ndarray:
+def palette(chroma_range: np.ndarray, tolerance: float, min_saturation: float = 1.0) -> np.ndarray:
     """The object's colours a grey surface has not, as a lookup (PALETTE_CELLS, PALETTE_CELLS) over rg-
     chromaticity: every cell within ``tolerance`` of a model point's colours ([r_min, g_min, r_max,
-    g_max] (M, 4), ``verify.chroma_ranges``) where those are ``distinct_from_grey``."""
+    g_max] (M, 4), ``verify.chroma_ranges``) where those are ``distinct_from_grey``, and of them
+    paled as verification pales them (``verify.colour_agrees``: steps of 0.1 in k, each within a
+    tolerance of the next)."""
     rows = chroma_range[np.all(np.isfinite(chroma_range), axis=1)]
     rows = rows[distinct_from_grey(rows[:, :2], rows[:, 2:], tolerance)]
+    floor = np.clip(palest(rows[:, :2], rows[:, 2:], tolerance), min_saturation, 1.0)[:, None]
+    rows = np.concatenate([GREY + np.maximum(k, floor) * (rows - GREY) for k in np.arange(1.0, min_saturation - 0.1, -0.1)])
     lo = np.clip(np.floor((rows[:, :2] - tolerance) * PALETTE_CELLS), 0, PALETTE_CELLS - 1).astype(np.int64)
     hi = np.clip(np.floor((rows[:, 2:] + tolerance) * PALETTE_CELLS), 0, PALETTE_CELLS - 1).astype(np.int64)
     marks = np.zeros((PALETTE_CELLS + 1, PALETTE_CELLS + 1))  # each box as the corners of a 2-D running sum

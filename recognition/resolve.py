@@ -339,7 +339,8 @@ class Resolver:
         objects stand on (``recognition.verify``)."""
         model, c = self.db.models[det.object_id], self.config
         return verdict(evidence.view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2,
-                       evidence.planes, model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m, evidence.support)  # fmt: skip
+                       evidence.planes, model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m, evidence.support,
+                       c.colour_min_saturation)  # fmt: skip
 
     def _floats(self, cand: Candidate, below: Iterable[Detection]) -> bool:
         """Whether a candidate with a support to rest on rests neither on it nor on a detection in

@@ -90,6 +90,8 @@ MIN_COLOUR_PIXELS = 20
 SPREAD_FLOOR_M = 0.001
 #: Fewer inlier pixels than this say nothing about shape (``Verdict.shape_error`` is then 0).
 MIN_SHAPE_PIXELS = 20
+#: The rg-chromaticity of grey, white and black: r = g = b.
+GREY = 1.0 / 3.0
 #: A model point's colour is every colour of the model within this of it (m): poses are a few mm
 #: off, and on a printed surface that moves a pixel across an edge of the print.
 COLOUR_RADIUS_M = 0.01
@@ -215,7 +217,7 @@ class Verdict:
 def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
             tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None,
             chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1, spacing_m: float = 0.01,
-            support: np.ndarray | None = None) -> Verdict:  # fmt: skip
+            support: np.ndarray | None = None, min_saturation: float = 1.0) -> Verdict:  # fmt: skip
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
     camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
 
@@ -225,7 +227,8 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
 
     chroma_range (M, 4): each model point's colours (``chroma_ranges``), judged against the view's
     colour where both have one: agreeing when its chromaticity is within ``colour_tolerance`` of
-    the range in r and in g. spacing_m: the model points' spacing (m; their voxel), which sets how
+    the range in r and in g, the range paled towards grey down to ``min_saturation`` if need be
+    (``colour_agrees``). spacing_m: the model points' spacing (m; their voxel), which sets how
     far apart they land in the image and so how much of the silhouette is gaps between them.
     noise_per_m2 is three depth-noise sigmas at 1 m (they grow with z^2): the inliers' residual
     spread (``residual_spread``) is judged in them. support (4,): the plane the object stands on (a,
@@ -268,7 +271,7 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         both = np.all(np.isfinite(scene), axis=1) & np.all(np.isfinite(lo), axis=1)
         judged = int(both.sum())
         with np.errstate(invalid="ignore"):
-            agree = np.all((scene >= lo - colour_tolerance) & (scene <= hi + colour_tolerance), axis=1) & both
+            agree = colour_agrees(scene, lo, hi, colour_tolerance, min_saturation) & both
             distinct = distinct_from_grey(lo, hi, colour_tolerance) & both
             agreeing, distinct_agreeing, distinct = int(agree.sum()), int((agree & distinct).sum()), int(distinct.sum())
     shape_error = 0.0
@@ -330,11 +333,42 @@ def chroma_ranges(points: np.ndarray, colours: np.ndarray, radius_m: float = COL
     return np.concatenate([lo, hi], axis=1)
 
 
+def colour_agrees(scene: np.ndarray, lo: np.ndarray, hi: np.ndarray, tolerance: float, min_saturation: float = 1.0) -> np.ndarray:
+    """Mask (N,) of scene chromaticities (N, 2) within the tolerance, in r and in g, of the model's
+    colour range (lo, hi (N, 2)) as it is, or paled: moved towards grey (1/3, 1/3) to k times its
+    distance from it, k down to min_saturation, as far as the scene's own colour asks (its share of
+    the range's centre, from grey). A sensor's colours can be paler than a model's (its response, a
+    model textured by another camera); a hue cannot turn. Never paled so far that a near-grey
+    surface would agree (``palest``): colour stays a second opinion against the unsaturated
+    surfaces most of a room is."""
+    agree = np.all((scene >= lo - tolerance) & (scene <= hi + tolerance), axis=1)
+    if min_saturation >= 1.0:
+        return agree
+    centre = 0.5 * (lo + hi) - GREY
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k = np.einsum("ij,ij->i", scene - GREY, centre) / np.einsum("ij,ij->i", centre, centre)
+    k = np.clip(k, np.maximum(min_saturation, palest(lo, hi, tolerance)), 1.0)
+    pale = np.isfinite(k) & (k < 1.0)
+    lo_k, hi_k = GREY + k[:, None] * (lo - GREY), GREY + k[:, None] * (hi - GREY)
+    agree |= pale & np.all((scene >= lo_k - tolerance) & (scene <= hi_k + tolerance), axis=1)
+    return agree
+
+
+def palest(lo: np.ndarray, hi: np.ndarray, tolerance: float) -> np.ndarray:
+    """The least k (N,) to which colour ranges (lo, hi (N, 2), rg-chromaticity) may be paled
+    (moved towards grey to k times their distance from it) and still keep grey out by two
+    tolerances in r or in g, so that a scene colour agreeing with it is a tolerance from grey at
+    least (a white wall under warm light is not); inf where the range is that near grey already."""
+    margin = np.where(lo > GREY, lo - GREY, np.where(hi < GREY, GREY - hi, 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.min(np.where(margin > 0, 2.0 * tolerance / margin, np.inf), axis=1)
+
+
 def distinct_from_grey(lo: np.ndarray, hi: np.ndarray, tolerance: float) -> np.ndarray:
     """Mask (N,) of model colour ranges (rg-chromaticity, lo and hi (N, 2)) that a grey or white
     surface (chromaticity 1/3, 1/3) falls outside of by more than the tolerance: only there can the
     colour of an unsaturated surface, most of a room, disagree with the model's."""
-    return np.any((lo > 1 / 3 + tolerance) | (hi < 1 / 3 - tolerance), axis=1)
+    return np.any((lo > GREY + tolerance) | (hi < GREY - tolerance), axis=1)
 
 
 def chromaticity(rgb: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ from drivers.sim.render import object_mesh
 from drivers.sim.scenario import ObjectSpec
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
-from recognition.verify import DepthView, Explained, chroma_ranges, verdict
+from recognition.verify import GREY, DepthView, Explained, chroma_ranges, colour_agrees, verdict
 from schemas.geometry import make_pose, rpy_matrix
 from tests.conftest import SHARED_DATA
 
@@ -438,3 +438,23 @@ def test_on_depth_alone_no_object_is_tried_lying(recognizer: Recognizer, scene: 
     in these real rooms on depth alone (a crate and a tote in the office, a can by the laptop);
     without colour to judge them nothing is tried lying, and nothing is reported."""
     assert recognizer.recognize(read_cloud(PCL / scene, organised=True)) == []
+
+
+def test_a_paler_colour_agrees_but_never_grey_nor_another_hue() -> None:
+    """rg-chromaticities against a model colour (its range one point). The demo's red can seen at
+    0.6 of its saturation: 0.15 off in r, so it disagrees point by point, and agrees paled; grey, a
+    near-white under warm light and the can's red turned towards magenta never do (nor with the
+    tote's orange). The tote's orange lies too near grey to be paled (two tolerances): at 0.5 of
+    its saturation it agrees within the tolerance, at 0.4 it disagrees either way."""
+    chroma = lambda rgb: np.asarray(rgb[:2]) / sum(rgb)  # noqa: E731
+    red, orange = chroma((0.8, 0.2, 0.15)), chroma((0.85, 0.65, 0.15))
+    paled = lambda c, k: GREY + k * (c - GREY)  # noqa: E731
+    scenes = {"red at 0.6": paled(red, 0.6), "red at 0.2": paled(red, 0.2), "grey": np.array([GREY, GREY]),
+              "warm white": np.array([0.37, 0.33]), "red turned to magenta": np.array([0.45, 0.10])}
+    for model, expect in ((red, {"red at 0.6": (False, True)}), (orange, {})):
+        lo = hi = np.tile(model, (len(scenes), 1))
+        as_is, pale = (colour_agrees(np.array(list(scenes.values())), lo, hi, 0.1, k) for k in (1.0, 0.5))
+        got = {name: (bool(a), bool(b)) for name, a, b in zip(scenes, as_is, pale)}
+        assert got == {name: expect.get(name, (False, False)) for name in scenes}, got
+    tote = np.tile(orange, (2, 1))
+    assert colour_agrees(np.array([paled(orange, 0.5), paled(orange, 0.4)]), tote, tote, 0.1, 0.5).tolist() == [True, False]
