@@ -50,7 +50,9 @@ too, not the default's with ``--quick``). And a dataset of
 objects that are no box or cylinder (``drivers.sim.shapes``: a mug, a duck, a drill, a cone; 3 layouts from
 the cell and from close, not with ``--quick``): ``bop_shapes_...``. So the reader,
 the model build from files in millimetres and the scoring run on every change, and a held-back
-dataset is one flag away. ``--pictures OUT`` draws every frame a pass got wrong (a miss or a false
+dataset is one flag away. ``--rough-sensor`` renders the simulated frames by ``benchmarks.recognition``'s
+rougher sensor (flying pixels, light 15 % warmer or cooler, washed-out colour, colour 3 px off): the
+same figures, for a sensor less kind than the simulated Kinect. ``--pictures OUT`` draws every frame a pass got wrong (a miss or a false
 detection) into OUT, named by the pass, scene and image: what was found, and the annotated poses
 outlined in white.
 
@@ -66,7 +68,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, visibility_class, visible_share  # pins this process to one core first
+from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, rough, visibility_class, visible_share  # pins this process to one core first
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -75,6 +77,7 @@ from rich.progress import track  # noqa: E402
 from benchmarks.common import PCL_DATA, main  # noqa: E402
 from cellsight.bop import MODEL_FOLDERS, BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
+from cellsight.errors import ConfigError  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
 from cellsight.pictures import draw_recognition  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
@@ -135,12 +138,14 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
     return s.model_copy(update={"objects": objects})
 
 
-def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec] | None = None) -> Path:
+def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec] | None = None,
+                  rough_sensor: bool = False) -> Path:  # fmt: skip
     """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts from
     the cell's cameras, layouts+1..2 layouts from close, ``lying`` more after them with the objects
     on their side (every other one from close, without the cameras' poses), the real frames scene
     100. ``objects``: others than the demo cell's (without the real frames, and without the markers
-    the cell's objects carry)."""
+    the cell's objects carry). ``rough_sensor``: the simulated scenes rendered by
+    ``benchmarks.recognition``'s rougher sensor (``rough``)."""
     base = load_scenario()
     if objects is not None:
         base = base.model_copy(update={"objects": objects, "markers": [m for m in base.markers if m.object is None]})
@@ -157,6 +162,7 @@ def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec
         close = layouts < scene <= 2 * layouts or (scene > 2 * layouts and scene % 2 == 0)
         s = base.model_copy(update={"cameras": near}) if close else base
         s = random_layout(s, rng, tight=scene % 2 == 0) if scene <= 2 * layouts else lying_layout(s, rng)
+        s = rough(s, scene) if rough_sensor else s
         cell = SimCell(s)
         for image_id, cam in enumerate(s.cameras):
             frame = cell.render(cam.id, 0.0, scene)
@@ -338,6 +344,8 @@ def _class(visible: float | None) -> str | None:
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
+    if args.dataset is not None and args.rough_sensor:
+        raise ConfigError("--rough-sensor renders the simulated dataset; a --dataset's frames are as its sensor took them")
     if args.dataset is not None:
         cfg = load_config(args.cell_config).recognition if args.cell_config else RecognitionConfig()
         cfg = cfg.model_copy(update={"free_with_pose": not args.standing})
@@ -349,13 +357,13 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
     layouts, lying = (1, 1) if quick else (6, 6)
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = BopDataset.open(write_default(Path(tmp) / "demo", layouts, lying))
+        dataset = BopDataset.open(write_default(Path(tmp) / "demo", layouts, lying, rough_sensor=args.rough_sensor))
         out = measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
                       world_z_up=True, lookalikes=() if quick else LOOKALIKES, depth_only=not quick,
                       pictures=args.pictures)  # the cell's world, written here
         if not quick:
             (Path(tmp) / "meshes").mkdir()
-            other = BopDataset.open(write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes")))
+            other = BopDataset.open(write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes"), args.rough_sensor))
             out |= {name.replace("bop_", "bop_shapes_", 1): value for name, value in measure(other, None, tuple(args.distance), cfg, world_z_up=True).items()
                     if name in SHAPE_FIGURES}  # fmt: skip
         return out
@@ -375,6 +383,9 @@ def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--standing", action="store_true",
                         help="every object stands on its model's +z, as a cell's: in a frame with a world pose only "
                         "standing objects are looked for (default: also any way up and lying, as without a pose)")
+    parser.add_argument("--rough-sensor", action="store_true",
+                        help="render the simulated frames by benchmarks.recognition's rougher sensor (flying pixels, light 15 %% "
+                        "warmer or cooler, washed-out colour, colour 3 px off); not with --dataset")
     parser.add_argument("--pictures", type=Path, help="write a picture of each frame a pass got wrong to this folder: "
                         "what was found drawn over the frame, the annotated poses outlined in white")
     parser.add_argument("--distance", type=float, nargs="+", default=list(VIEW_DISTANCES_M),

@@ -368,6 +368,13 @@ ROUGH_SENSOR = {"flying_pixels": True, "saturation": 0.7, "rgb_shift_px": (3, 0)
 ROUGH_WHITE_BALANCE = ((1.15, 1.0, 0.85), (0.85, 1.0, 1.15))
 
 
+def rough(s: Scenario, layout: int) -> Scenario:
+    """The scenario as the rougher sensor renders it (``ROUGH_SENSOR``), with the white balance of
+    its layout's turn (``ROUGH_WHITE_BALANCE``)."""
+    update = ROUGH_SENSOR | {"white_balance": ROUGH_WHITE_BALANCE[layout % len(ROUGH_WHITE_BALANCE)]}
+    return s.model_copy(update={"noise": s.noise.model_copy(update=update)})
+
+
 def rough_sensor(rec: Recognizer, trials: int) -> dict[str, float]:
     """Recall and false detections on random layouts as the simulated Kinect renders them and as a
     rougher sensor does (``ROUGH_SENSOR``, ``ROUGH_WHITE_BALANCE``), the same layouts and cameras."""
@@ -379,9 +386,7 @@ def rough_sensor(rec: Recognizer, trials: int) -> dict[str, float]:
     frames = 0
     for trial in range(trials):
         s = random_layout(base, rng, tight=trial % 2 == 1)
-        white_balance = ROUGH_WHITE_BALANCE[trial % len(ROUGH_WHITE_BALANCE)]
-        rough = s.model_copy(update={"noise": s.noise.model_copy(update=ROUGH_SENSOR | {"white_balance": white_balance})})
-        cells = {"as_rendered": SimCell(s), "rough": SimCell(rough)}
+        cells = {"as_rendered": SimCell(s), "rough": SimCell(rough(s, trial))}
         truth = {o.id: o.world_T_object(0.0) for o in s.objects}
         for cam in s.cameras:
             classes = {o.id: cls for o in s.objects if (cls := visibility_class(visible_share(cells["as_rendered"], s, cam.id, o))) is not None}
