@@ -135,7 +135,8 @@ class Resolver:
                         taken.add(cand.part)  # which object it is cannot be told: nothing is reported from it
                         continue
                     cand, v = won
-                    log.debug("%s taken: %s", cand.detection.object_id, described(v, self._support(v, evidence)))
+                    if log.isEnabledFor(logging.DEBUG):  # the figures are formatted only for a reader
+                        log.debug("%s taken: %s", cand.detection.object_id, described(v, self._support(v, evidence)))
                     evidence.pixels.admit(v)
                     if self._coloured(v, COLOUR_VOUCHES):
                         evidence.vouched.add(cand.detection.object_id)
@@ -277,7 +278,8 @@ class Resolver:
             return False
         seen = self._support(v, evidence)
         if not (self._placed(v, seen) and self._plausible(v) and pixels.admits(v)):
-            log.debug("%s rejected by verification: %s", det.object_id, described(v, seen))
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s rejected by verification: %s", det.object_id, described(v, seen))
             return False
         return True
 
