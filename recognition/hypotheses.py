@@ -26,7 +26,7 @@ from recognition.config import RecognitionConfig
 from recognition.descriptor import ClusterDescription, describe
 from recognition.models import ModelDatabase, ObjectModel
 from recognition.segment import PointGraph, euclidean_clusters
-from recognition.verify import GREY, distinct_from_grey, palest
+from recognition.verify import distinct_from_grey, paled, palest
 from schemas.geometry import invert_pose, make_pose, rotation_angle, rotation_between
 
 log = logging.getLogger(__name__)
@@ -517,7 +517,8 @@ def palette(chroma_range: np.ndarray, tolerance: float, min_saturation: float = 
     rows = chroma_range[np.all(np.isfinite(chroma_range), axis=1)]
     rows = rows[distinct_from_grey(rows[:, :2], rows[:, 2:], tolerance)]
     floor = np.clip(palest(rows[:, :2], rows[:, 2:], tolerance), min_saturation, 1.0)[:, None]
-    rows = np.concatenate([GREY + np.maximum(k, floor) * (rows - GREY) for k in np.arange(1.0, min_saturation - 0.1, -0.1)])
+    steps = np.linspace(1.0, min_saturation, int(np.ceil(round((1.0 - min_saturation) / 0.1, 9))) + 1)
+    rows = np.concatenate([paled(rows, np.maximum(k, floor)) for k in steps])
     lo = np.clip(np.floor((rows[:, :2] - tolerance) * PALETTE_CELLS), 0, PALETTE_CELLS - 1).astype(np.int64)
     hi = np.clip(np.floor((rows[:, 2:] + tolerance) * PALETTE_CELLS), 0, PALETTE_CELLS - 1).astype(np.int64)
     marks = np.zeros((PALETTE_CELLS + 1, PALETTE_CELLS + 1))  # each box as the corners of a 2-D running sum

@@ -347,11 +347,15 @@ def colour_agrees(scene: np.ndarray, lo: np.ndarray, hi: np.ndarray, tolerance: 
     centre = 0.5 * (lo + hi) - GREY
     with np.errstate(invalid="ignore", divide="ignore"):
         k = np.einsum("ij,ij->i", scene - GREY, centre) / np.einsum("ij,ij->i", centre, centre)
-    k = np.clip(k, np.maximum(min_saturation, palest(lo, hi, tolerance)), 1.0)
-    pale = np.isfinite(k) & (k < 1.0)
-    lo_k, hi_k = GREY + k[:, None] * (lo - GREY), GREY + k[:, None] * (hi - GREY)
-    agree |= pale & np.all((scene >= lo_k - tolerance) & (scene <= hi_k + tolerance), axis=1)
+    k = np.clip(k, np.maximum(min_saturation, palest(lo, hi, tolerance)), 1.0)[:, None]
+    pale = np.isfinite(k[:, 0]) & (k[:, 0] < 1.0)
+    agree |= pale & np.all((scene >= paled(lo, k) - tolerance) & (scene <= paled(hi, k) + tolerance), axis=1)
     return agree
+
+
+def paled(chroma: np.ndarray, k: np.ndarray | float) -> np.ndarray:
+    """rg-chromaticities (..., 2) moved towards grey to k times their distance from it."""
+    return GREY + k * (chroma - GREY)
 
 
 def palest(lo: np.ndarray, hi: np.ndarray, tolerance: float) -> np.ndarray:
