@@ -185,8 +185,8 @@ class Matcher:
         self._smallest_model = min((len(mdl.points) for mdl in database.models.values()), default=0)
         # The fewest points a piece may hold for the pieces path to try the smallest object on it.
         self._smallest_piece = int(PIECE_SHARE * self._smallest_model)
-        self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
-        self._dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
+        self._sparse = {oid: thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
+        self._dense = {oid: thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
         #: Each whole model's point index, built once: which scene points a pose explains is asked
         #: of every accepted hypothesis, here and in the resolution.
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
@@ -310,7 +310,7 @@ class Matcher:
 
         up: world up in the camera frame (None: no upright test; nor for a model from a captured cloud,
         whose frame is its camera's, not the object's). turns: with ``up``, also try the start
-        that overlaps the target best turned about its upright axis (``_turned``). Accepted: fitness,
+        that overlaps the target best turned about its upright axis (``turned_about_z``). Accepted: fitness,
         coverage and RMSE within bounds; or, for a cluster several objects share, a fitness of at least
         min_fitness_shared (``fitness_to_verify``, when given) with enough explained points to be a
         cluster itself. rest (3, 3): the side the object rests on (``Stance``; None: its base), which
@@ -331,7 +331,7 @@ class Matcher:
         facings = facing_camera(sparse_points, sparse_normals, poses, target.image)
         if turns and up is not None:
             shares = self._overlap(sparse_points, facings, poses, target.index)
-            turned = _turned(poses[np.argmax(shares)] @ from_rest, centre) @ to_rest
+            turned = turned_about_z(poses[np.argmax(shares)] @ from_rest, centre) @ to_rest
             turned_facings = facing_camera(sparse_points, sparse_normals, turned, target.image)
             shares = np.r_[shares, self._overlap(sparse_points, turned_facings, turned, target.index)]
             poses, facings = np.concatenate([poses, turned]), np.concatenate([facings, turned_facings])
@@ -552,6 +552,16 @@ def distinct_rests(points: np.ndarray, tolerance_m: float) -> list[np.ndarray]:
     return [RESTS[k] for k in kept]
 
 
+def round_about_z(points: np.ndarray, tolerance_m: float) -> bool:
+    """Whether an object (model points (M, 3), object frame) looks the same turned about its z axis
+    through its centre by every YAW_STEP_DEG (a can; not a mug, whose handle moves): 99 % of its
+    points within tolerance_m of it, as sides alike are told (``distinct_rests``)."""
+    p = (points - points.mean(axis=0)).astype(np.float32)
+    index = PointIndex(p)
+    yaws = rot_z(np.radians(np.arange(YAW_STEP_DEG, 360.0, YAW_STEP_DEG)))
+    return all(np.sqrt(np.percentile(index.nearest(p @ Y.T.astype(np.float32))[1], 99)) <= tolerance_m for Y in yaws)
+
+
 def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndarray) -> np.ndarray:
     """Poses (K * S, 4, 4), camera frame, of an object standing upright on the support plane (a, b, c,
     d; unit normal towards the camera): its base's centre (the model's lowest points, object frame
@@ -577,7 +587,7 @@ def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndar
     return out.reshape(-1, 4, 4)
 
 
-def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
+def thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n of the model's points and normals, evenly through its (voxel-ordered) list."""
     keep = np.unique(np.linspace(0, len(model.points) - 1, min(n, len(model.points))).astype(np.int64))
     return model.points[keep], model.normals[keep]
@@ -593,7 +603,7 @@ def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and rotation_angle(a[:3, :3], b[:3, :3]) <= SAME_POSE_RAD)
 
 
-def _turned(camera_T_object: np.ndarray, centre: np.ndarray) -> np.ndarray:
+def turned_about_z(camera_T_object: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """The upright pose (4, 4) turned about the object's own z axis through its centre (object
     frame, m) by every YAW_STEP_DEG but 0: (S, 4, 4).
 

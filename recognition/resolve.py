@@ -27,9 +27,14 @@ import numpy as np
 from recognition.align import projective_icp
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
-from recognition.hypotheses import UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, stand_up
+from recognition.hypotheses import (
+    ALIKE_VOXELS, REFINE_POINTS, UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, round_about_z, stand_up,
+    thinned, turned_about_z,
+)
 from recognition.models import ModelDatabase
-from recognition.verify import MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, cluster_labels, hidden_apart, verdict
+from recognition.verify import (
+    MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, cluster_labels, hidden_apart, inliers_and_violations, verdict,
+)
 from schemas.geometry import invert_pose
 
 log = logging.getLogger(__name__)
@@ -74,6 +79,7 @@ class Evidence:
     labels: np.ndarray
     pixels: Explained = field(default_factory=Explained)
     vouched: set[str] = field(default_factory=set)  # objects taken whose colour vouches for them (``COLOUR_VOUCHES``)
+    turned: set[tuple[str, int]] = field(default_factory=set)  # (object, part) judged turned about up (``Resolver._turned``)
 
 
 class Resolver:
@@ -83,6 +89,10 @@ class Resolver:
         self.db = database
         self.config = config
         self._indexes = indexes  # each model's point index (``Matcher.indexes``)
+        # Objects standing on their base that turning about their upright axis changes (``_turned``),
+        # with the points and normals each turn is fitted with.
+        self._turnable = {oid: thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()
+                          if mdl.stands_on_z and not round_about_z(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)}
 
     def resolve(self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud,
                 clusters: Sequence[np.ndarray]) -> list[Detection]:
@@ -202,10 +212,44 @@ class Resolver:
         if self._accepts(cand.detection, cand.stance, v, evidence):
             return cand, v
         if (again := self._refitted(cand, v, evidence)) is not None:
-            if (v := self._verified(again.detection, cand.stance, evidence)) is not None:
+            if (v_again := self._verified(again.detection, cand.stance, evidence)) is not None:
                 log.debug("%s accepted refitted to the frame's depth", cand.detection.object_id)
-                return again, v
-        return None
+                return again, v_again
+        return self._turned(cand, v, evidence)
+
+    def _turned(self, cand: Candidate, v: Verdict, evidence: Evidence) -> tuple[Candidate, Verdict] | None:
+        """A standing candidate turned down for what the sensor saw through (its visible fitness at
+        least REFIT_FITNESS, under ``min_visible_fitness``), judged turned about its upright axis by
+        every YAW_STEP_DEG, each turn fitted to the frame's depth (``projective_icp``): a part the
+        frame does not show, a mug's handle behind its body, was put where the sensor sees past it,
+        and the shape it does show says nothing of the turn. The turn the sensor sees through least,
+        if verification accepts it; once per object and part, and not for a shape every turn leaves
+        alike (a can). As a refit (``_refitted``), a search on the measure verification judges: only
+        for a colour a grey surface would disagree with, and taken with its colour agreeing there."""
+        det, stance = cand.detection, cand.stance
+        if (stance.up is None or stance.lying or det.object_id not in self._turnable or v.violations == 0
+                or v.colour_distinct < MIN_COLOUR_PIXELS or not REFIT_FITNESS <= v.fitness < self.config.min_visible_fitness
+                or (det.object_id, cand.part) in evidence.turned):  # fmt: skip
+            return None
+        evidence.turned.add((det.object_id, cand.part))
+        (points, normals), c, view = self._turnable[det.object_id], self.config, evidence.view
+        fits = []  # (visible fitness, inliers, pose) of each turn, judged on the thinned model
+        for T in turned_about_z(det.camera_T_object, self.db.models[det.object_id].centre):
+            # The fit to the cluster that put the part there moved the rest off too: each turn is
+            # fitted to the frame's depth first (None: it lost the surface).
+            if (T := projective_icp(points, normals, view.z, view.K, T, c.icp_distance_m, c.plane_noise_per_m2)) is not None:
+                inliers, violations = inliers_and_violations(view, points, normals, T, c.icp_distance_m, c.plane_noise_per_m2)
+                fits.append((inliers / max(inliers + violations, 1), inliers, T))
+        if not fits:
+            return None
+        best = max(fits, key=lambda fit: fit[:2])[2]
+        turned = replace(cand, detection=replace(det, camera_T_object=best, needs_colour=True))
+        best_v = self._verdict(turned.detection, evidence)
+        if not self._accepts(turned.detection, stance, best_v, evidence):
+            return None
+        log.debug("%s accepted turned about its upright axis: it was seen through on %d pixels, turned on %d",
+                  det.object_id, v.violations, best_v.violations)  # fmt: skip
+        return turned, best_v
 
     def _refitted(self, cand: Candidate, v: Verdict, evidence: Evidence) -> Candidate | None:
         """A candidate rejected for where it is alone (its visible fitness, at least REFIT_FITNESS,

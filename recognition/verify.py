@@ -233,32 +233,14 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     noise_per_m2 is three depth-noise sigmas at 1 m (they grow with z^2): the inliers' residual
     spread (``residual_spread``) is judged in them. support (4,): the plane the object stands on (a,
     b, c, d; unit normal), where its outline meets a surface with no step (``Verdict.flush``)."""
-    R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
-    p = points @ R.T + t
-    n = normals @ R.T
-    front = np.einsum("ij,ij->i", n, p) < 0  # facing the camera at the origin
+    p, n, front, u, v, ok = _posed(view, points, normals, camera_T_object)
     H, W = view.near.shape
-    u, v, ok = project(p, view.K, (H, W))
     backfacing = _backfacing(p[ok], u[ok], v[ok], front[ok], W)
     keep = front & ok
     p, u, v = p[keep], u[keep], v[keep]
-    index = np.flatnonzero(keep)  # each kept point's row in the model
-    # The model hides itself: only points near its nearest one on a coarse cell are seen.
-    cell = _cells(u, v, W)
-    nearest = np.full(cell.max() + 1 if len(cell) else 0, np.inf)
-    np.minimum.at(nearest, cell, p[:, 2])
-    seen = p[:, 2] <= nearest[cell] + SELF_OCCLUSION_M
-    pix, zs, voter = (v * W + u)[seen], p[seen, 2], index[seen]
-    order = np.lexsort((zs, pix))  # one vote per pixel: its nearest point
-    pix, zs, voter = pix[order], zs[order], voter[order]
-    first = np.r_[True, pix[1:] != pix[:-1]] if len(pix) else np.zeros(0, bool)
-    flat, z, voter = pix[first], zs[first], voter[first]
-    near, far = view.near.reshape(-1)[flat], view.far.reshape(-1)[flat]
-    tol = tolerance_m + noise_per_m2 * z**2
-    measured = np.isfinite(near)
-    inlier = measured & (z >= near - tol) & (z <= far + tol)
-    violation = measured & (z < near - tol)
-    occluded = measured & (z > far + tol)
+    seen, flat, z, rows = _seen(p, u, v, W)
+    voter = np.flatnonzero(keep)[rows]  # each pixel's point's row in the model
+    tol, inlier, violation, occluded = _against(view, flat, z, tolerance_m, noise_per_m2)
     inside = 0
     if planes is not None and len(planes) and occluded.any():
         inside = _inside_support(view, flat[occluded], z[occluded], tol[occluded], planes, tolerance_m)
@@ -282,6 +264,58 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
     return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), _filled(flat[inlier], W, gap_px),
                    *outline, inside, flat[occluded], judged, agreeing, distinct, distinct_agreeing, shape_error,
                    backfacing)  # fmt: skip
+
+
+def inliers_and_violations(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray, tolerance_m: float,
+                            noise_per_m2: float) -> tuple[int, int]:  # fmt: skip
+    """``verdict``'s inliers and violations alone (its visible fitness is the one over both): a
+    cheap judgement of many poses, or of a pose where only that is asked."""
+    p, _, front, u, v, ok = _posed(view, points, normals, camera_T_object)
+    keep = front & ok
+    _, flat, z, _ = _seen(p[keep], u[keep], v[keep], view.near.shape[1])
+    _, inlier, violation, _ = _against(view, flat, z, tolerance_m, noise_per_m2)
+    return int(inlier.sum()), int(violation.sum())
+
+
+def _posed(view: DepthView, points: np.ndarray, normals: np.ndarray,
+           camera_T_object: np.ndarray) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """Model points and normals (M, 3) posed by camera_T_object (4, 4) into the camera frame, which
+    of them face the camera at the origin, their pixel columns and rows and which land in the view."""
+    R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
+    p, n = points @ R.T + t, normals @ R.T
+    front = np.einsum("ij,ij->i", n, p) < 0
+    u, v, ok = project(p, view.K, view.near.shape)
+    return p, n, front, u, v, ok
+
+
+def _seen(p: np.ndarray, u: np.ndarray, v: np.ndarray, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Of posed model points p (N, 3) facing the camera, at pixel columns u and rows v (N,) of an
+    image W wide: the mask of those the model's own nearer surface does not hide (only points near
+    its nearest one on a coarse cell are seen), and per pixel they land on its flat index, the
+    nearest one's depth (m) and its row in p: one vote per pixel."""
+    cell = _cells(u, v, W)
+    nearest = np.full(cell.max() + 1 if len(cell) else 0, np.inf)
+    np.minimum.at(nearest, cell, p[:, 2])
+    seen = p[:, 2] <= nearest[cell] + SELF_OCCLUSION_M
+    pix, zs, rows = (v * W + u)[seen], p[seen, 2], np.flatnonzero(seen)
+    order = np.lexsort((zs, pix))
+    pix, zs, rows = pix[order], zs[order], rows[order]
+    first = np.r_[True, pix[1:] != pix[:-1]] if len(pix) else np.zeros(0, bool)
+    return seen, pix[first], zs[first], rows[first]
+
+
+def _against(view: DepthView, flat: np.ndarray, z: np.ndarray, tolerance_m: float,
+             noise_per_m2: float) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """Model depths z (m) at flat pixel indices against the measured surface around them: each
+    one's tolerance (m) and the masks of inliers, violations (in front of it) and occluded ones
+    (behind it); a pixel with no depth is none of them."""
+    near, far = view.near.reshape(-1)[flat], view.far.reshape(-1)[flat]
+    tol = tolerance_m + noise_per_m2 * z**2
+    with np.errstate(invalid="ignore"):
+        inlier = (z >= near - tol) & (z <= far + tol)  # False where no depth (NaN)
+        violation = z < near - tol
+        occluded = z > far + tol
+    return tol, inlier, violation, occluded
 
 
 def _cells(u: np.ndarray, v: np.ndarray, W: int) -> np.ndarray:
