@@ -798,6 +798,20 @@ def test_a_free_fit_found_upside_down_is_reported_upright_when_the_frame_holds_i
     assert np.linalg.norm(can[:3, 3] - truth["can"][:3, 3]) < 0.02
 
 
+def test_a_can_looks_the_same_turned_about_its_axis_and_a_mug_or_a_box_does_not(demo_models: dict, tmp_path: Path) -> None:
+    """Which objects the resolution tries turned about their upright axis (``round_about_z``, at
+    the models' 1 cm voxel): the demo can and the cone are round; the mug (its handle), the tote
+    and the crate (a box turned by 30 deg) are not."""
+    from drivers.sim.render import object_mesh
+    from drivers.sim.shapes import shapes
+    from recognition.hypotheses import round_about_z
+
+    voxel = RecognitionConfig().descriptor.voxel_m
+    models = {oid: m.points for oid, m in demo_models.items()}
+    models |= {o.id: model_from_mesh(o.id, object_mesh(o), DescriptorConfig()).points for o in shapes(tmp_path) if o.id in ("mug", "cone")}
+    assert {oid for oid, points in models.items() if round_about_z(points, voxel)} == {"can", "cone"}
+
+
 def test_a_mug_whose_handle_the_frame_hides_is_taken_turned_to_hide_it(tmp_path: Path) -> None:
     """The mug (``drivers.sim.shapes``: a can and a ring handle) alone on the table 1 m from cam3, its
     handle behind its body. A standing candidate with the handle turned a quarter to the side, where
