@@ -6,7 +6,9 @@ each object is in the frame once and each part of the scene is one object: a can
 if verification accepts it, judged against the whole frame from the camera's viewpoint
 (``recognition.verify``; one lying on a side, or only damped steps reached, with its colour
 agreeing where a grey surface's would not; one refused for where it is alone is judged once more
-refitted to the frame's depth, so too), and no pixel it explains is already another object's; of
+refitted to the frame's depth, so too, and one refused for what the sensor saw through it turned
+about its upright axis, a hidden part brought out of view), and no pixel it explains is already
+another object's; of
 two objects accepted on the same pixels, one is taken only if it explains RIVAL_SHARE times as many, else neither; a free
 candidate found upside down is judged turned upright first, the same reading of a symmetric shape.
 Standing or lying, nothing hovers: a candidate must rest on the support or on an object taken
@@ -218,16 +220,17 @@ class Resolver:
         return self._turned(cand, v, evidence)
 
     def _turned(self, cand: Candidate, v: Verdict, evidence: Evidence) -> tuple[Candidate, Verdict] | None:
-        """A standing candidate turned down for what the sensor saw through (its visible fitness at
-        least REFIT_FITNESS, under ``min_visible_fitness``), judged turned about its upright axis by
-        every YAW_STEP_DEG, each turn fitted to the frame's depth (``projective_icp``): a part the
-        frame does not show, a mug's handle behind its body, was put where the sensor sees past it,
-        and the shape it does show says nothing of the turn. The turn the sensor sees through least,
-        if verification accepts it; once per object and part, and not for a shape every turn leaves
-        alike (a can). As a refit (``_refitted``), a search on the measure verification judges: only
-        for a colour a grey surface would disagree with, and taken with its colour agreeing there."""
+        """A candidate standing or free (not lying on a side) turned down for what the sensor saw
+        through (its visible fitness at least REFIT_FITNESS, under ``min_visible_fitness``), judged
+        turned about its own upright axis (the model's z) by every YAW_STEP_DEG, each turn fitted
+        to the frame's depth (``projective_icp``): a part the frame does not show, a mug's handle
+        behind its body, was put where the sensor sees past it, and the shape it does show says
+        nothing of the turn. The turn the sensor sees through least, if verification accepts it;
+        once per object and part, and not for a shape every turn leaves alike (a can). As a refit
+        (``_refitted``), a search on the measure verification judges: only for a colour a grey
+        surface would disagree with, and taken with its colour agreeing there."""
         det, stance = cand.detection, cand.stance
-        if (stance.up is None or stance.lying or det.object_id not in self._turnable or v.violations == 0
+        if (stance.lying or det.object_id not in self._turnable or v.violations == 0
                 or v.colour_distinct < MIN_COLOUR_PIXELS or not REFIT_FITNESS <= v.fitness < self.config.min_visible_fitness
                 or (det.object_id, cand.part) in evidence.turned):  # fmt: skip
             return None
