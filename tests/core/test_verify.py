@@ -19,7 +19,7 @@ from drivers.sim.render import object_mesh
 from drivers.sim.scenario import ObjectSpec
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
-from recognition.verify import GREY, DepthView, Explained, chroma_ranges, colour_agrees, verdict
+from recognition.verify import GREY, DepthView, Explained, chroma_ranges, colour_agrees, inliers_and_violations, verdict
 from schemas.geometry import make_pose, rpy_matrix
 from tests.conftest import SHARED_DATA
 
@@ -56,6 +56,21 @@ def test_on_the_surface_in_front_of_it_and_behind_it(organised: bool) -> None:
     # Turned away from the camera: nothing of it is visible.
     away = verdict(view, points, -normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
     assert away.visible == 0
+
+
+def test_the_cheap_count_is_the_verdicts_own() -> None:
+    """``inliers_and_violations`` (what the resolution screens many turned poses with) counts what
+    ``verdict`` counts: on the wall, 10 cm in front of it, and half on a step the wall makes."""
+    cloud = wall()
+    cloud[:, 320:] *= 1.2  # the right half 20 cm further
+    view = DepthView.of(cloud)
+    points, normals = patch()
+    for z in (1.0, 0.9, 1.2):
+        T = make_pose(t=[0.0, 0.0, z])
+        v = verdict(view, points, normals, T, TOL, NOISE)
+        assert inliers_and_violations(view, points, normals, T, TOL, NOISE) == (v.inliers, v.violations)
+    half = verdict(view, points, normals, make_pose(t=[0.0, 0.0, 1.0]), TOL, NOISE)
+    assert 0 < half.violations < half.visible and half.inliers > 0  # the patch straddles the step: both kinds
 
 
 def test_the_view_of_an_organised_cloud_recovers_its_intrinsics_at_half_resolution() -> None:
