@@ -185,8 +185,10 @@ class Matcher:
         self._smallest_model = min((len(mdl.points) for mdl in database.models.values()), default=0)
         # The fewest points a piece may hold for the pieces path to try the smallest object on it.
         self._smallest_piece = int(PIECE_SHARE * self._smallest_model)
-        self._sparse = {oid: thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
-        self._dense = {oid: thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
+        self._sparse = {oid: _thinned(mdl, SCREEN_POINTS) for oid, mdl in database.models.items()}
+        #: Each model's points and normals the fine ICP fits (REFINE_POINTS of them); the resolution's
+        #: turns about the upright axis are fitted with them too.
+        self.dense = {oid: _thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()}
         #: Each whole model's point index, built once: which scene points a pose explains is asked
         #: of every accepted hypothesis, here and in the resolution.
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
@@ -377,7 +379,7 @@ class Matcher:
         (shared_fitness: what a match on a cluster several objects share needs)."""
         c = self.config
         screened = sorted(screened, key=lambda r: (r.fitness, -r.rmse_m), reverse=True)
-        dense_points, dense_normals = self._dense[model.object_id]
+        dense_points, dense_normals = self.dense[model.object_id]
         best: IcpResult | None = None
         # A start that explains under min_fitness of the model even at twice the final distance is
         # not refined: no refined start from that low has passed in the benchmark's frames.
@@ -587,7 +589,7 @@ def standing_starts(model_points: np.ndarray, near: np.ndarray, support: np.ndar
     return out.reshape(-1, 4, 4)
 
 
-def thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _thinned(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n of the model's points and normals, evenly through its (voxel-ordered) list."""
     keep = np.unique(np.linspace(0, len(model.points) - 1, min(n, len(model.points))).astype(np.int64))
     return model.points[keep], model.normals[keep]

@@ -67,7 +67,7 @@ class Recognizer:
         self.config = config
         self._largest = max((mdl.diameter_m for mdl in database.models.values()), default=np.inf)
         self.matcher = Matcher(database, config)
-        self.resolver = Resolver(database, config, self.matcher.indexes)
+        self.resolver = Resolver(database, config, self.matcher.indexes, self.matcher.dense)
 
     def workspace_points(self, cloud: np.ndarray, world_T_camera: np.ndarray | None = None) -> np.ndarray:
         """The cloud's finite points within range, and within the workspace when the camera pose is

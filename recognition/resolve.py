@@ -30,8 +30,7 @@ from recognition.align import projective_icp
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
 from recognition.hypotheses import (
-    ALIKE_VOXELS, REFINE_POINTS, UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, round_about_z, stand_up,
-    thinned, turned_about_z,
+    ALIKE_VOXELS, UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, round_about_z, stand_up, turned_about_z,
 )
 from recognition.models import ModelDatabase
 from recognition.verify import (
@@ -87,13 +86,14 @@ class Evidence:
 class Resolver:
     """The joint resolution of candidates for a model database's objects."""
 
-    def __init__(self, database: ModelDatabase, config: RecognitionConfig, indexes: dict[str, PointIndex]) -> None:
+    def __init__(self, database: ModelDatabase, config: RecognitionConfig, indexes: dict[str, PointIndex],
+                 dense: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:  # fmt: skip
         self.db = database
         self.config = config
         self._indexes = indexes  # each model's point index (``Matcher.indexes``)
-        # Objects standing on their base that turning about their upright axis changes (``_turned``),
-        # with the points and normals each turn is fitted with.
-        self._turnable = {oid: thinned(mdl, REFINE_POINTS) for oid, mdl in database.models.items()
+        self._dense = dense  # each model's points and normals the fine ICP fits (``Matcher.dense``)
+        # Objects standing on their base that turning about their upright axis changes (``_turned``).
+        self._turnable = {oid for oid, mdl in database.models.items()
                           if mdl.stands_on_z and not round_about_z(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)}
 
     def resolve(self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud,
@@ -235,8 +235,8 @@ class Resolver:
                 or (det.object_id, cand.part) in evidence.turned):  # fmt: skip
             return None
         evidence.turned.add((det.object_id, cand.part))
-        (points, normals), c, view = self._turnable[det.object_id], self.config, evidence.view
-        fits = []  # (visible fitness, inliers, pose) of each turn, judged on the thinned model
+        (points, normals), c, view = self._dense[det.object_id], self.config, evidence.view
+        fits = []  # (visible fitness, inliers, pose) of each turn, judged on the fine ICP's points
         for T in turned_about_z(det.camera_T_object, self.db.models[det.object_id].centre):
             # The fit to the cluster that put the part there moved the rest off too: each turn is
             # fitted to the frame's depth first (None: it lost the surface).
