@@ -344,21 +344,32 @@ def clutter(rec: Recognizer, trials: int) -> dict[str, float]:
         cell = SimCell(s)
         truth = {o.id: o.world_T_object(0.0) for o in s.objects if o.id in shapes}
         for cam in s.cameras:
-            frame = cell.render(cam.id, 0.0, trial)
-            found = {d.object_id: frame.world_T_camera @ d.camera_T_object
-                     for d in rec.recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera,
-                                            rgb=frame.rgb)}  # fmt: skip
-            right = {oid for oid, T in found.items() if adds(shapes[oid], T, truth[oid]) < 0.1 * shapes[oid].diameter_m}
-            false += len(found) - len(right)
+            right, wrong = _judged_frame(rec, cell.render(cam.id, 0.0, trial), shapes, truth)
+            false += wrong
             frames += 1
             for o in s.objects:
                 if o.id in shapes and (cls := visibility_class(visible_share(cell, s, cam.id, o))) is not None:
                     rows.append((cls, o.id in right))
-    out = {"false_detections_per_frame_clutter": false / frames}
+    return {"false_detections_per_frame_clutter": false / frames, **_recall_by_class(rows, "clutter")}
+
+
+def _judged_frame(rec: Recognizer, frame: SimFrame, shapes: dict, truth: dict[str, np.ndarray]) -> tuple[set[str], int]:
+    """One frame recognised with its camera's pose and colour: the objects found within ADD-S 0.1 d
+    of their world pose in ``truth`` (object id -> (4, 4)), and how many were found away from it."""
+    found = {d.object_id: frame.world_T_camera @ d.camera_T_object
+             for d in rec.recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera,
+                                    rgb=frame.rgb)}  # fmt: skip
+    right = {oid for oid, T in found.items() if adds(shapes[oid], T, truth[oid]) < 0.1 * shapes[oid].diameter_m}
+    return right, len(found) - len(right)
+
+
+def _recall_by_class(rows: list[tuple[str, bool]], suffix: str) -> dict[str, float]:
+    """``adds_recall_{class}_{suffix}`` and ``views_{class}_{suffix}`` of scored views (class, found right)."""
+    out = {}
     for cls in ("unoccluded", "partly_occluded"):
         hits = [hit for c, hit in rows if c == cls]
-        out[f"adds_recall_{cls}_clutter"] = float(np.mean(hits)) if hits else float("nan")
-        out[f"views_{cls}_clutter"] = float(len(hits))
+        out[f"adds_recall_{cls}_{suffix}"] = float(np.mean(hits)) if hits else float("nan")
+        out[f"views_{cls}_{suffix}"] = float(len(hits))
     return out
 
 
@@ -392,20 +403,13 @@ def rough_sensor(rec: Recognizer, trials: int) -> dict[str, float]:
             classes = {o.id: cls for o in s.objects if (cls := visibility_class(visible_share(cells["as_rendered"], s, cam.id, o))) is not None}
             frames += 1
             for sensor, cell in cells.items():
-                frame = cell.render(cam.id, 0.0, trial)
-                found = {d.object_id: frame.world_T_camera @ d.camera_T_object
-                         for d in rec.recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera,
-                                                rgb=frame.rgb)}  # fmt: skip
-                right = {oid for oid, T in found.items() if adds(shapes[oid], T, truth[oid]) < 0.1 * shapes[oid].diameter_m}
-                false[sensor] += len(found) - len(right)
+                right, wrong = _judged_frame(rec, cell.render(cam.id, 0.0, trial), shapes, truth)
+                false[sensor] += wrong
                 rows[sensor] += [(cls, oid in right) for oid, cls in classes.items()]
     out = {}
     for sensor, hits in rows.items():
         out[f"false_detections_per_frame_{sensor}"] = false[sensor] / frames
-        for cls in ("unoccluded", "partly_occluded"):
-            sel = [hit for c, hit in hits if c == cls]
-            out[f"adds_recall_{cls}_{sensor}"] = float(np.mean(sel)) if sel else float("nan")
-            out[f"views_{cls}_{sensor}"] = float(len(sel))
+        out |= _recall_by_class(hits, sensor)
     return out
 
 
