@@ -45,11 +45,10 @@ import numpy as np
 
 from benchmarks.chain import chain_solve
 from benchmarks.common import main
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, perturb
+from cellsight.synthetic import NoiseSettings, ViewBiases, estimator_config, frame_observations
 from drivers.sim.scenario import BoxSpec, CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario, load_scenario
 from estimator.estimate import CameraState
 from estimator.graph import Estimator, camera_symbol, marker_symbol
-from estimator.observation import Observation
 from schemas.geometry import cov_ros_to_gtsam, invert_pose, pose_error, quat_from_matrix
 from schemas.spec import PoseSpec
 
@@ -232,29 +231,19 @@ def surveyed_off(s: Scenario, seed: int) -> Scenario:
 
 
 def biased_frames(s: Scenario, seconds: float, seed: int, max_fused: int, floor_rad: float) -> list[list]:
-    """As ``simulate``, with each (camera, marker) view's bias drawn from the factor model, again
-    whenever the view changed by ``NEW_VIEW_M`` or ``NEW_VIEW_DEG`` since (a camera or an object that
-    moved): one view, one bias."""
+    """As ``simulate``, with each (camera, marker) view's bias drawn from the factor model
+    (``cellsight.synthetic.ViewBiases``): one view, one bias."""
     rng = np.random.default_rng(seed)
-    bias: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}  # -> (camera_T_marker it was drawn at, bias)
+    biases = ViewBiases(max_fused, floor_rad, NEW_VIEW_M, NEW_VIEW_DEG)
     specs = {mk.id: mk for mk in s.markers}
     frames = []
     for k in range(int(seconds * RATE)):
         t, stamp = k / RATE, int(round(k / RATE * 1e9))
         frame = []
         for c in s.cameras:
-            obs = []
             camera_T_world = invert_pose(c.world_T_camera(t))
-            for o in frame_observations(s, c.id, t, stamp, rng, NOISE):
-                view = camera_T_world @ s.world_T_marker(specs[o.marker_id], t)
-                drawn = bias.get((c.id, o.marker_id))
-                if drawn is None or np.any(np.array(pose_error(drawn[0], view)) > (NEW_VIEW_M * 1e3, NEW_VIEW_DEG)):
-                    view_cov = o.covariance / max_fused
-                    view_cov[3:, 3:] += np.eye(3) * floor_rad**2
-                    drawn = bias[(c.id, o.marker_id)] = (view, perturb(np.eye(4), view_cov, rng))
-                B = drawn[1]
-                obs.append(Observation(o.camera_id, o.stamp_ns, o.marker_id, o.camera_T_marker @ B, o.covariance,
-                                       o.alternative @ B, o.ambiguous))  # fmt: skip
+            obs = [biases.apply(o, camera_T_world @ s.world_T_marker(specs[o.marker_id], t), rng)
+                   for o in frame_observations(s, c.id, t, stamp, rng, NOISE)]  # fmt: skip
             frame.append((c.id, stamp, obs))
         frames.append(frame)
     return frames

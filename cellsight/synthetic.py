@@ -20,7 +20,7 @@ from drivers.sim.scenario import Scenario, load_scenario
 from estimator.config import EstimatorConfig
 from estimator.observation import Observation
 from schemas.codec import CameraInfo
-from schemas.geometry import invert_pose, pose_retract
+from schemas.geometry import invert_pose, pose_retract, rotation_angle
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,32 @@ def frame_observations(
             cov = covariance_model(meas, side, info, noise.pixel_sigma, plane)
         out.append(Observation(camera_id, stamp_ns, mk.id, meas, cov, alt, False))
     return out
+
+
+class ViewBiases:
+    """A bias per view, as the estimator's factor model allows for: each (camera, marker) view's
+    observations are moved by one draw of the fused covariance (mean single-frame covariance /
+    ``max_fused``, plus ``floor_rad`` on each rotation axis), drawn again once the true
+    camera_T_marker moved ``new_view_m`` or turned ``new_view_deg`` since (a camera or an object
+    that moved: one view, one bias). Without it the synthetic frames carry noise alone, and the
+    static pairs, which average it away, fit far better than their covariances claim."""
+
+    def __init__(self, max_fused: int, floor_rad: float, new_view_m: float = 0.005, new_view_deg: float = 0.2) -> None:
+        self.max_fused, self.floor_rad = max_fused, floor_rad
+        self.new_view_m, self.new_view_rad = new_view_m, np.radians(new_view_deg)
+        self._drawn: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}  # -> (true view it was drawn at, bias)
+
+    def apply(self, o: Observation, view: np.ndarray, rng: np.random.Generator) -> Observation:
+        """``o`` with its view's bias, ``view`` the true camera_T_marker (4, 4)."""
+        drawn = self._drawn.get((o.camera_id, o.marker_id))
+        if drawn is None or np.linalg.norm(drawn[0][:3, 3] - view[:3, 3]) > self.new_view_m or \
+                rotation_angle(drawn[0][:3, :3], view[:3, :3]) > self.new_view_rad:
+            cov = o.covariance / self.max_fused
+            cov[3:, 3:] += np.eye(3) * self.floor_rad**2
+            drawn = self._drawn[(o.camera_id, o.marker_id)] = (view, perturb(np.eye(4), cov, rng))
+        B = drawn[1]
+        alt = None if o.alternative is None else o.alternative @ B
+        return Observation(o.camera_id, o.stamp_ns, o.marker_id, o.camera_T_marker @ B, o.covariance, alt, o.ambiguous)
 
 
 def estimator_config(scenario: Scenario, **overrides) -> EstimatorConfig:
