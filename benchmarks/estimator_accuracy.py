@@ -15,7 +15,9 @@ in this cell none does); ``chain_links_*``: the same in the weak corridor below 
 group) with a cart carrying an object marker past every camera, where they do. Moving frames
 (``keyframes_*``) the same where cam1 tilts and cam2 is bumped. These frames carry no per-view
 bias, so the static pairs are far better than their weights claim (``*_position_nees`` far under
-3) and extra single-frame evidence can only cost here. ``*_biased_*``: the same on frames whose every view carries a bias drawn from the
+3) and extra single-frame evidence can only cost here: the estimator sees it in how the pairs fit
+and leaves the frames out (``keyframes_refused_per_run``, ``keyframes_inflation_*``:
+``estimator.variance``). ``*_biased_*``: the same on frames whose every view carries a bias drawn from the
 factor model (``biased_frames``: a camera or object that moves shows new views, each with its own),
 the world the estimator's weights describe. There each option's worth is the position sigma iSAM2
 predicts with it over without (``*_sigma_over_plain``, the information it adds); the errors of a few
@@ -318,12 +320,13 @@ def option_paired(option: str, s: Scenario, seeds: list[int], seconds: float,
     one seed (``..._seed_max``: an RMS over seeds can hide a seed the option makes worse; a ratio of
     two sub-millimetre errors is large for a move well within the noise, so also the worst move
     away from the truth in one seed over the position sigma iSAM2 predicts without the option,
-    ``..._seed_cost_over_sigma_max``), how many instants or frames entered a run, and the mean
+    ``..._seed_cost_over_sigma_max``), how many instants or frames entered a run (and for frames,
+    how many were left out and the factor on their covariances, ``estimator.variance``), and the mean
     normalised squared position error of both (NEES: 3 when the predicted covariances are the
     errors' own). Figures named ``<prefix or option>_...``."""
     err: dict[str, dict[str, list[float]]] = {option: {c.id: [] for c in s.cameras}, "plain": {c.id: [] for c in s.cameras}}
     sigma: dict[str, dict[str, list[float]]] = {option: {c.id: [] for c in s.cameras}, "plain": {c.id: [] for c in s.cameras}}
-    entered, nees = [], []
+    entered, refused, inflation, nees = [], [], [], []
     for seed in seeds:
         frames = frames_of(s, seconds, seed)
         for name in (option, "plain"):
@@ -339,9 +342,14 @@ def option_paired(option: str, s: Scenario, seeds: list[int], seconds: float,
                 nees.append(float(d @ np.linalg.solve(P, d)))
             if name == option:
                 entered.append(getattr(est.counters, option))
+                refused.append(est.counters.keyframes_refused)
+                inflation.append(est.counters.keyframe_inflation)
     rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
     p = prefix or option
     out = {f"{p}_entered_per_run": float(np.mean(entered)), f"{p}_position_nees": float(np.mean(nees))}
+    if option == "keyframes":  # frames left out, and the factor on their covariances (``estimator.variance``)
+        out |= {f"{p}_refused_per_run": float(np.mean(refused)), f"{p}_inflation_max": float(np.max(inflation)),
+                f"{p}_inflation_min": float(np.min(inflation))}  # fmt: skip
     for c in s.cameras:
         out[f"{p}_{c.id}_pos_mm"] = rms(err[option][c.id])
         out[f"{p}_plain_{c.id}_pos_mm"] = rms(err["plain"][c.id])

@@ -57,6 +57,16 @@ class KeyframeConfig(BaseModel):
         description="a move's frames join only if at least this many are new views: a few single frames bring their noise "
         "and biases more than they inform (a camera caught at ~5 frames/s during a 2 s tilt leaves 3-4; at 30 Hz, ~20)",
     )
+    weigh_by_fit: bool = Field(
+        default=True,
+        description="scale a move's frames' covariances by how much better the static pairs fit than their covariances "
+        "claim, against how the frames fit theirs (a-posteriori variance factors, estimator/variance.py; never below 1)",
+    )
+    max_inflation: float = Field(
+        default=10.0, ge=1,
+        description="with weigh_by_fit, a move's frames are left out when their covariances would be scaled by more than "
+        "this: twenty frames then count for under two, less than a static pair's refresh gives, for twenty poses in the graph",
+    )
 
 
 class LinkConfig(BaseModel):

@@ -11,7 +11,10 @@ that share markers with the moving one (``benchmarks.offline_vs_online``).
 
 A move that leaves fewer than ``min_frames`` such frames adds none: a handful of single frames
 brings its noise and biases more than it informs (a camera caught at ~5 frames/s during a 2 s
-tilt leaves 3-4).
+tilt leaves 3-4). The frames that join are weighed against the static pairs by how each fits
+(``estimator.variance``): where the pairs fit far better than their covariances claim, the
+frames' covariances are scaled up by as much (``weigh_by_fit``), and past ``max_inflation`` the
+move's frames are left out: they would add next to nothing for a pose and factors each.
 
 Memory stays bounded: at most one frame per camera every ``min_gap_s``; past ``max_frames`` every
 other frame is dropped and the gap doubles, so the kept frames still cover the whole log.
@@ -35,11 +38,25 @@ import numpy as np
 from estimator.config import KeyframeConfig
 from estimator.resect import implied_d2, resect
 from estimator.symbols import keyframe_symbol, marker_symbol
+from estimator.variance import Fit, inflation
 from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, invert_poses, rotation_angles, rotations_within
 
 AGREE_RAD = np.radians(5.0)  # two markers' implied camera poses agree within this rotation
 AGREE_M = 0.05  # and this distance
 GATE_CHI2 = 22.46  # chi-square, 6 dof, 1 in 1,000: a marker of a placed frame outside its own covariance of the pose
+
+
+@dataclass(frozen=True)
+class Placement:
+    """A moving frame placed on the map: its ``world_T_camera`` (4, 4), the ``rows`` of the markers
+    that agree with it and their ``branches`` (0: the pose the front-end chose, 1: its alternative),
+    and how those markers fit it (``fit``: their squared Mahalanobis distances, 6 dof each less the
+    pose's 6)."""
+
+    world_T_camera: np.ndarray
+    rows: list[int]
+    branches: list[int]
+    fit: Fit
 
 
 @dataclass(frozen=True)
@@ -54,7 +71,7 @@ class MovingFrame:
     alternatives: np.ndarray
     covariances: np.ndarray
     move: int = 0  # the segment the camera left: frames of one move share it
-    placed: tuple[np.ndarray, list[int], list[int]] | None = None  # online: ``place_frame`` when held (see ``LiveKeyframes``)
+    placed: Placement | None = None  # online: ``place_frame`` when held (see ``LiveKeyframes``)
 
 
 class MovingFrames:
@@ -79,9 +96,9 @@ class MovingFrames:
             self.gap_ns *= 2
 
 
-def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotation_floor_rad: float = 0.0) -> tuple[np.ndarray, list[int], list[int]] | None:
-    """world_T_camera of a frame from the solved markers it sees, and the rows and branches (0: the
-    pose the front-end chose, 1: its alternative) that agree with it; None unless two markers agree.
+def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotation_floor_rad: float = 0.0) -> Placement | None:
+    """A frame's pose from the solved markers it sees, with the markers that agree with it (see
+    ``Placement``); None unless two markers agree.
 
     Each observation's two IPPE branches each imply a camera pose through its marker. Branches are
     judged by rotation: a flip's implied rotation is off by its flip angle, while one frame's
@@ -102,13 +119,16 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotat
     idx, branches = [i for i, _ in agreed[1]], [k for _, k in agreed[1]]
     poses, covs = chosen_branches(frame, [rows[i] for i in idx], branches, rotation_floor_rad)
     T = resect(world[idx], np.zeros_like(covs), poses, covs)[0]
-    inside = implied_d2(T, world[idx], poses, covs) < GATE_CHI2
+    d2 = implied_d2(T, world[idx], poses, covs)
+    inside = d2 < GATE_CHI2
     if inside.sum() < 2:
         return None
     if not inside.all():
         idx, branches = [i for i, ok in zip(idx, inside) if ok], [k for k, ok in zip(branches, inside) if ok]
-        T = resect(world[idx], np.zeros_like(covs[inside]), poses[inside], covs[inside])[0]
-    return T, [rows[i] for i in idx], branches
+        poses, covs = poses[inside], covs[inside]
+        T = resect(world[idx], np.zeros_like(covs), poses, covs)[0]
+        d2 = implied_d2(T, world[idx], poses, covs)
+    return Placement(T, [rows[i] for i in idx], branches, Fit(float(d2.sum()), 6 * (len(idx) - 1)))
 
 
 def chosen_branches(frame: MovingFrame, rows: list[int], branches: list[int], rotation_floor_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -155,17 +175,20 @@ def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) 
     return not bool(same.any())
 
 
-def add_keyframes(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame], world_T_marker: dict[int, np.ndarray],
-    segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float, robust: gtsam.noiseModel.mEstimator.Base, config: KeyframeConfig,
-    first_index: int = 0, max_markers: int = 0,
-) -> list[tuple[int, MovingFrame, int]]:
-    """Add each frame that ``place_frame`` can place and that is a new view (not its camera's
-    segments' ``segment_poses`` nor the frame kept before it) to ``graph`` and ``values`` (in
-    place): a pose ``k<i>`` and one robust factor per agreeing marker, its single-frame covariance
-    plus the view's rotation floor. A move with fewer than ``config.min_frames`` such frames adds
-    none. Keys count from ``first_index``. Returns (key, frame, markers used) of the frames added,
-    whose factors are the graph's last, in that order."""
+@dataclass(frozen=True)
+class Selected:
+    """A frame ``select_keyframes`` kept: its index in the frames it was given, and its placement."""
+
+    index: int
+    frame: MovingFrame
+    placement: Placement
+
+
+def select_keyframes(frames: list[MovingFrame], world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]],
+                     rotation_floor_rad: float, config: KeyframeConfig) -> list[Selected]:  # fmt: skip
+    """The frames that ``place_frame`` can place and that are new views (not their camera's
+    segments' ``segment_poses`` nor the frame kept before), of moves with at least
+    ``config.min_frames`` of them, in order."""
     placed = []
     last: dict[str, np.ndarray] = {}
     for i, frame in enumerate(frames):
@@ -173,22 +196,38 @@ def add_keyframes(
         if p is None:
             continue
         seen = segment_poses.get(frame.camera_id, []) + ([last[frame.camera_id]] if frame.camera_id in last else [])
-        if not _is_new_view(p[0], seen, config):
+        if not _is_new_view(p.world_T_camera, seen, config):
             continue
-        last[frame.camera_id] = p[0]
-        placed.append((i, frame, *p))
-    per_move = Counter((frame.camera_id, frame.move) for _, frame, *_ in placed)
+        last[frame.camera_id] = p.world_T_camera
+        placed.append(Selected(i, frame, p))
+    per_move = Counter((s.frame.camera_id, s.frame.move) for s in placed)
+    return [s for s in placed if per_move[(s.frame.camera_id, s.frame.move)] >= config.min_frames]
+
+
+def fit_of(selected: list[Selected]) -> Fit:
+    """How the selected frames' markers fit their placements, together."""
+    return sum((s.placement.fit for s in selected), Fit())
+
+
+def add_keyframes(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, selected: list[Selected], rotation_floor_rad: float,
+    robust: gtsam.noiseModel.mEstimator.Base, first_index: int = 0, max_markers: int = 0, covariance_scale: float = 1.0,
+) -> list[tuple[int, MovingFrame, int]]:
+    """Add each selected frame to ``graph`` and ``values`` (in place): a pose ``k<first_index +
+    index>`` and one robust factor per agreeing marker, its single-frame covariance plus the view's
+    rotation floor, times ``covariance_scale`` (``estimator.variance.inflation``). Returns (key, frame,
+    markers used) of the frames added, whose factors are the graph's last, in that order."""
     added = []
-    for i, frame, world_T_camera, kept, branches in placed:
-        if per_move[(frame.camera_id, frame.move)] < config.min_frames:
-            continue
-        key = keyframe_symbol(first_index + i)
-        values.insert(key, gtsam.Pose3(world_T_camera))
-        poses, covs = chosen_branches(frame, kept, branches, rotation_floor_rad)
+    for s in selected:
+        frame, p = s.frame, s.placement
+        key = keyframe_symbol(first_index + s.index)
+        values.insert(key, gtsam.Pose3(p.world_T_camera))
+        kept = p.rows
+        poses, covs = chosen_branches(frame, kept, p.branches, rotation_floor_rad)
         if 0 < max_markers < len(kept):
             best = np.sort(np.argsort(np.trace(covs[:, :3, :3], axis1=1, axis2=2))[:max_markers])
             kept, poses, covs = [kept[b] for b in best], poses[best], covs[best]
-        for j, T, cov in zip(kept, poses, covs):
+        for j, T, cov in zip(kept, poses, covs * covariance_scale):
             noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
             graph.add(gtsam.BetweenFactorPose3(key, marker_symbol(int(frame.ids[j])), gtsam.Pose3(T), noise))
         added.append((key, frame, len(kept)))
@@ -219,7 +258,9 @@ class LiveKeyframes:
         self.pending: dict[str, deque[MovingFrame]] = {}  # camera -> its newest frames while moving
         self.live: deque[LiveKeyframe] = deque()
         self.next_index = 0  # keys are never reused
-        self._move_entered: dict[str, tuple[int, int]] = {}  # camera -> (its latest move, frames of it entered)
+        self._move_entered: dict[str, tuple[int, int, Fit]] = {}  # camera -> (its latest move, frames of it entered, their fit)
+        self.inflation = 1.0  # the covariance factor of the frames weighed last (``estimator.variance.inflation``)
+        self.refused = 0  # frames left out for it (``max_inflation``)
 
     def due(self, camera_id: str, stamp_ns: int) -> bool:
         """Would a frame of this camera at ``stamp_ns`` be held (``min_gap_s`` since the last)?
@@ -235,25 +276,35 @@ class LiveKeyframes:
 
     def enter(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame],
               world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float,
-              robust: gtsam.noiseModel.mEstimator.Base) -> tuple[list[tuple[int, KeyframeFactor]], list[int]]:
+              robust: gtsam.noiseModel.mEstimator.Base, static: Fit) -> tuple[list[tuple[int, KeyframeFactor]], list[int]]:
         """``add_keyframes`` of one camera's ``frames`` (a finished move's, or the older ones of a
-        move still going on), move by move; returns (position in ``graph``, owner) of each new
-        factor, for its slot, and the new frames' keys. A move that already gave ``min_frames``
-        has shown it is one: its later frames join however few (a camera on an arm passes turning
-        points where few frames are new views)."""
+        move still going on), move by move, weighed against the static pairs' fit ``static`` by
+        the fit of all the move's frames so far (``weigh_by_fit``); returns (position in
+        ``graph``, owner) of each new factor, for its slot, and the new frames' keys. A move that
+        already gave ``min_frames`` has shown it is one: its later frames join however few (a
+        camera on an arm passes turning points where few frames are new views)."""
         slotted, keys = [], []
         for move in dict.fromkeys(f.move for f in frames):  # in order
             group = [f for f in frames if f.move == move]
             cid = group[0].camera_id
-            entered_move, entered = self._move_entered.get(cid, (-1, 0))
-            known = entered_move == move and entered >= self.config.min_frames
-            config = self.config.model_copy(update={"min_frames": 1}) if known else self.config
-            start = graph.size()
-            added = add_keyframes(graph, values, group, world_T_marker, segment_poses, rotation_floor_rad, robust, config,
-                                  first_index=self.next_index, max_markers=self.config.max_markers_online)  # fmt: skip
+            entered_move, entered, fit = self._move_entered.get(cid, (-1, 0, Fit()))
+            if entered_move != move:
+                entered, fit = 0, Fit()
+            config = self.config.model_copy(update={"min_frames": 1}) if entered >= self.config.min_frames else self.config
+            selected = select_keyframes(group, world_T_marker, segment_poses, rotation_floor_rad, config)
             self.next_index += len(group)
-            if added:
-                self._move_entered[cid] = (move, (entered if entered_move == move else 0) + len(added))
+            if not selected:
+                continue
+            fit = fit + fit_of(selected)
+            self.inflation = inflation(static, fit) if self.config.weigh_by_fit else 1.0
+            self._move_entered[cid] = (move, entered, fit)
+            if self.inflation > self.config.max_inflation:
+                self.refused += len(selected)
+                continue
+            start = graph.size()
+            added = add_keyframes(graph, values, selected, rotation_floor_rad, robust, first_index=self.next_index - len(group),
+                                  max_markers=self.config.max_markers_online, covariance_scale=self.inflation)  # fmt: skip
+            self._move_entered[cid] = (move, entered + len(added), fit)
             position = start
             for key, frame, n in added:
                 owners = [KeyframeFactor() for _ in range(n)]

@@ -25,7 +25,8 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.estimate import through_camera
 from estimator.graph import Estimator, camera_symbol, marker_symbol
-from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes
+from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes, fit_of, select_keyframes
+from estimator.variance import inflation
 from estimator.links import ObjectLinks, add_links, block_sightings
 from estimator.observation import ObservationRows
 from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam
@@ -200,13 +201,23 @@ def _add_moving_frames(
     segment_keys: dict[tuple[str, int], int], robust: gtsam.noiseModel.mEstimator.Base,
 ) -> list[tuple[int, MovingFrame, int]]:
     """``add_keyframes`` against the static solution ``values``: its markers place the frames, its
-    solved segments (``segment_keys``) are the views a frame must differ from."""
+    solved segments (``segment_keys``) are the views a frame must differ from, and how its pairs
+    fit weighs the frames (``weigh_by_fit``)."""
     markers = {m for (_, m) in est.pairs} | set(est.anchors)
     solved = {mk: values.atPose3(marker_symbol(mk)).matrix() for mk in markers if values.exists(marker_symbol(mk))}
     segment_poses: dict[str, list[np.ndarray]] = {}
     for (cam, _), key in segment_keys.items():
         segment_poses.setdefault(cam, []).append(values.atPose3(key).matrix())
-    return add_keyframes(graph, values, frames, solved, segment_poses, est.rotation_floor_rad, robust, est.config.keyframes)
+    config = est.config.keyframes
+    selected = select_keyframes(frames, solved, segment_poses, est.rotation_floor_rad, config)
+    factor = inflation(est.static_fit(values), fit_of(selected)) if config.weigh_by_fit and selected else 1.0
+    if factor > config.max_inflation:
+        log.info("%d moving frames left out: the static pairs fit %.3g times better than the frames against what each claims",
+                 len(selected), factor)  # fmt: skip
+        return []
+    if factor > 1.0:
+        log.info("%d moving frames enter with their covariances x %.3g: the static pairs fit better than they claim", len(selected), factor)
+    return add_keyframes(graph, values, selected, est.rotation_floor_rad, robust, covariance_scale=factor)
 
 
 def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames, segment_now: int) -> None:

@@ -12,6 +12,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from cellsight.synthetic import ViewBiases
 from estimator.config import AnchorConfig, EstimatorConfig
 from estimator.estimate import CameraState
 from estimator.graph import Estimator, marker_symbol
@@ -56,8 +57,9 @@ def frame(cid: str, stamp: int, world_T_camera: np.ndarray, seen: list[int], rng
 class Cell:
     """Cameras at fixed poses, one of which (``a``) can be moved; 30 Hz, an update every 3 frames."""
 
-    def __init__(self, est: Estimator, seed: int = 0) -> None:
+    def __init__(self, est: Estimator, seed: int = 0, biases: ViewBiases | None = None) -> None:
         self.est, self.rng, self.k = est, np.random.default_rng(seed), 0
+        self.biases = biases  # each view's bias on top of the frames' noise (none: noise alone)
         self.poses = {"a": cam_pose(0.3), "b": cam_pose(0.9)}
         self.seen = {"a": [0, 1, 2, 3], "b": [0, 1, 2, 3]}
 
@@ -65,7 +67,10 @@ class Cell:
         for _ in range(int(seconds * RATE)):
             stamp = self.k * 1_000_000_000 // RATE
             for cid, T in self.poses.items():
-                self.est.add_frame(cid, stamp, frame(cid, stamp, T, self.seen[cid], self.rng))
+                obs = frame(cid, stamp, T, self.seen[cid], self.rng)
+                if self.biases is not None:
+                    obs = [self.biases.apply(o, invert_pose(T) @ MARKERS[o.marker_id], self.rng) for o in obs]
+                self.est.add_frame(cid, stamp, obs)
             if self.k % 3 == 0:
                 self.est.update(stamp)
             self.k += 1

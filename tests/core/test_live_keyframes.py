@@ -4,7 +4,7 @@ The wall cell of ``test_bounded_history`` (anchor 0 and markers 1-3 on the wall 
 and b): camera a pans 0.4 m along the wall in a second and a half, then stands still. Known
 answers: the move's frames enter once a's new segment is in the graph, each where a was at its
 stamp (within the cell's noise); they tighten the markers a saw on the way; the graph keeps at
-most ``max_live`` of them however often a pans.
+most ``max_live`` of them however often a pans; they are weighed by how the static pairs fit.
 """
 
 from __future__ import annotations
@@ -12,10 +12,12 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from cellsight.synthetic import ViewBiases
 from estimator.config import KeyframeConfig
 from estimator.graph import Estimator, marker_symbol
-from schemas.geometry import make_pose, rpy_matrix
-from tests.core.test_bounded_history import RATE, Cell, cam_pose, config
+from schemas.geometry import cov_ros_to_gtsam, make_pose, rpy_matrix
+from tests.core.test_bounded_history import COV, RATE, Cell, cam_pose, config
+from tests.helpers import assert_pose_close
 
 PAN_S = 1.5
 
@@ -57,6 +59,51 @@ def test_a_pans_frames_enter_where_the_camera_was_and_tighten_the_markers() -> N
     ratio = {mk: np.trace(est.isam.marginalCovariance(marker_symbol(mk))[3:, 3:]) / np.trace(plain.isam.marginalCovariance(marker_symbol(mk))[3:, 3:])
              for mk in (1, 2, 3)}  # fmt: skip
     assert all(r < 0.95 for r in ratio.values()), ratio
+
+
+FLOOR_DEG = 0.5  # the pairs' allowance for a view's bias in the weighing test
+
+
+def _weighed_pan(biased: bool, max_inflation: float = 10.0, online: bool = True) -> Estimator:
+    """a pans in the wall cell whose pairs allow for a ``FLOOR_DEG`` bias per view; its views
+    carry such a bias (``ViewBiases``) or none."""
+    cfg = config(keyframes=KeyframeConfig(online=online, max_inflation=max_inflation)).model_copy(update={"view_rotation_sigma_deg": FLOOR_DEG})
+    est = Estimator(cfg)
+    cell = Cell(est, seed=0, biases=ViewBiases(cfg.max_fused, np.radians(FLOOR_DEG)) if biased else None)
+    cell.run(2.0)
+    pan(cell, 0.3, 0.7)
+    return est
+
+
+def test_a_moves_frames_are_weighed_by_how_the_static_pairs_fit() -> None:
+    """With views that carry the bias the pairs allow for, the pairs fit about as they claim and
+    the pan's frames enter at their own covariances. With views that carry none, the pairs fit
+    several times better than they claim (the frames as theirs claim): the frames enter with their
+    covariances scaled by the ratio (``estimator.variance``), or past ``max_inflation`` not at all,
+    and the estimate is then the one without moving frames."""
+    biased = _weighed_pan(biased=True)
+    fit = biased.static_fit()
+    assert 0.27 < fit.factor < 2.35, fit  # chi-square of 18 dof over 18: inside in 99.8 % of cells whose model fits
+    assert biased.counters.keyframe_inflation == 1.0 and biased.counters.keyframes >= KeyframeConfig().min_frames
+
+    clean = _weighed_pan(biased=False)
+    fit = clean.static_fit()
+    assert fit.factor < 0.3, fit
+    inflation = clean.counters.keyframe_inflation
+    assert inflation > 2.0 and clean.counters.keyframes >= KeyframeConfig().min_frames, (inflation, clean.counters)
+    own = cov_ros_to_gtsam(COV + np.diag([0.0] * 3 + [np.radians(FLOOR_DEG) ** 2] * 3))  # a frame's factor: its observation's + the floor
+    factors = clean.isam.getFactorsUnsafe()
+    for kf in clean.live_keyframes.live:
+        for f in kf.factors:
+            np.testing.assert_allclose(factors.at(f.slot).noiseModel().noise().covariance(), own * inflation, rtol=1e-9)
+
+    refused = _weighed_pan(biased=False, max_inflation=inflation / 2)
+    plain = _weighed_pan(biased=False, online=False)
+    assert refused.counters.keyframes == 0 and refused.counters.keyframes_refused >= KeyframeConfig().min_frames
+    got, want = refused.isam.calculateEstimate(), plain.isam.calculateEstimate()
+    assert got.size() == want.size()
+    for key in want.keys():
+        assert_pose_close(got.atPose3(key).matrix(), want.atPose3(key).matrix(), 1e-9, 1e-7, gtsam.DefaultKeyFormatter(key))
 
 
 def test_pans_leave_at_most_max_live_frames_in_the_graph() -> None:

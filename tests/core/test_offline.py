@@ -100,7 +100,7 @@ def test_a_moving_frame_is_placed_by_the_markers_that_agree() -> None:
     frame = _moving_frame(s, wTc, flipped={0, 2}, outlier=4)
     placed = place_frame(frame, wTm)
     assert placed is not None
-    pose, kept, branches = placed
+    pose, kept, branches = placed.world_T_camera, placed.rows, placed.branches
     assert_pose_close(pose, wTc, 1e-9, 1e-6)
     assert kept == [0, 1, 2, 3]
     for j, k in zip(kept, branches):
@@ -130,7 +130,7 @@ def test_a_moving_frame_at_range_keeps_every_marker_its_noise_allows() -> None:
                             np.stack([o.alternative for o in obs]), np.stack([o.covariance for o in obs]))  # fmt: skip
         placed = place_frame(frame, wTm)
         assert placed is not None, f"frame {i} not placed"
-        pose, rows, branches = placed
+        pose, rows, branches = placed.world_T_camera, placed.rows, placed.branches
         kept.append(len(rows) / len(obs))
         errors.append(np.linalg.norm(pose[:3, 3] - wTc[:3, 3]))
         for j, k in zip(rows, branches):
