@@ -803,6 +803,9 @@ def resolve_cmd(
     r = run.result
     typer.echo(f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers"
                + (f", {r.object_links} object-marker instants linking cameras" if r.object_links else ""))
+    if r.moving_frames_left_out:
+        typer.echo(f"  {r.moving_frames_left_out} moving frames left out: the still views fit {r.moving_frames_scale:.3g} times better "
+                   "than the moving ones, each against its covariances (keyframes.max_inflation)")
     for cam, c in run.figures.cameras.items():
         off, on = c.offline_vs_truth_mm_deg, c.online_vs_truth_mm_deg
         if off is not None:

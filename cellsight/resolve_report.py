@@ -50,6 +50,8 @@ class ResolveFigures:
     flagged_anchors: list[int]
     lm_iterations: int
     object_links: int  # instants at which an object marker linked two or more cameras
+    moving_frames_covariance_scale: float  # how the moving frames were weighed against the still views (``estimator.variance``)
+    moving_frames_left_out: int  # moving frames left out for it (``keyframes.max_inflation``)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2, default=float)
@@ -83,7 +85,8 @@ def run_resolve(
         object_markers=objects.summary(evidence), observations=result.observations, frames=result.frames,
         messages_read=report.messages, log_complete=report.stopped_early is None, stopped_early=report.stopped_early,
         unanchored=result.unanchored, flagged_anchors=result.flagged_anchors, lm_iterations=result.iterations,
-        object_links=result.object_links,
+        object_links=result.object_links, moving_frames_covariance_scale=result.moving_frames_scale,
+        moving_frames_left_out=result.moving_frames_left_out,
     )  # fmt: skip
     (out / "resolve.json").write_text(figures.to_json())
     plots(result, evidence, out)
@@ -237,12 +240,16 @@ def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
     ) if objects else ""
     truth_img = '<h2>Against ground truth</h2><img src="errors_vs_truth.png">' if any(c.offline_vs_truth_mm_deg for c in fig.cameras.values()) else ""
     warn = "" if fig.log_complete else f"<p class=warn>The log was not complete ({html.escape(str(fig.stopped_early))}); this covers what was readable.</p>"
+    scale = fig.moving_frames_covariance_scale
+    weighed = "" if scale == 1.0 else (
+        f" ({fig.moving_frames_left_out} moving frames left out" if fig.moving_frames_left_out else " (the moving frames weighed down"
+    ) + f": the still views fit {scale:.3g} times better than the moving ones, each against its covariances)"
     return f"""<!doctype html><html><head><meta charset=utf-8><title>cellsight resolve</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
 <h1>Offline re-solve</h1>{warn}
 <p>{fig.frames} frames, {fig.observations} marker observations, {len(result.segments)} camera segments, {len(result.markers)} markers;
 Levenberg-Marquardt {fig.lm_iterations} iterations; {sum(c.moving_frames for c in fig.cameras.values())} moving frames and
-{fig.object_links} object-marker instants seen by several cameras solved as poses of their own. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
+{fig.object_links} object-marker instants seen by several cameras solved as poses of their own{weighed}. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
 Anchors flagged as moved: {', '.join(map(str, fig.flagged_anchors)) or 'none'}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
 <table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>RMS at the same instants, offline / online (instants)</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>

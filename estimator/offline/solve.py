@@ -103,6 +103,8 @@ class ResolveResult:
     frame_stamps: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # camera -> (stamp, segment)
     keyframes: list[KeyframeResult] = field(default_factory=list)  # in log order per camera
     object_links: int = 0  # object-marker instants that linked two or more cameras
+    moving_frames_scale: float = 1.0  # the factor on the moving frames' covariances (``estimator.variance.inflation``)
+    moving_frames_left_out: int = 0  # moving frames it left out (``KeyframeConfig.max_inflation``)
 
 
 def resolve(
@@ -160,7 +162,7 @@ def resolve(
     values = optimizer.optimize()
     robust = gtsam.noiseModel.mEstimator.Huber.Create(config.huber_k)
     segment_keys = {seg: camera_symbol(i) for seg, i in est.camera_index.items() if values.exists(camera_symbol(i))}
-    added = _add_moving_frames(graph, values, est, moving.frames, segment_keys, robust)
+    added, scale, left_out = _add_moving_frames(graph, values, est, moving.frames, segment_keys, robust)
     linked = add_links(graph, values, links, segment_keys, config.max_fused, robust)
     if added or linked:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -192,17 +194,18 @@ def resolve(
     flagged = est.estimate(last_update or 0, with_covariance=False).flagged_anchors
     return ResolveResult(
         segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
-        float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes, linked,
+        float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes, linked, scale, left_out,
     )  # fmt: skip
 
 
 def _add_moving_frames(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, est: Estimator, frames: list[MovingFrame],
     segment_keys: dict[tuple[str, int], int], robust: gtsam.noiseModel.mEstimator.Base,
-) -> list[tuple[int, MovingFrame, int]]:
+) -> tuple[list[tuple[int, MovingFrame, int]], float, int]:
     """``add_keyframes`` against the static solution ``values``: its markers place the frames, its
     solved segments (``segment_keys``) are the views a frame must differ from, and how its pairs
-    fit weighs the frames (``weigh_by_fit``)."""
+    fit weighs the frames (``weigh_by_fit``). Returns the frames added, the factor on their
+    covariances and how many were left out for it."""
     markers = {m for (_, m) in est.pairs} | set(est.anchors)
     solved = {mk: values.atPose3(marker_symbol(mk)).matrix() for mk in markers if values.exists(marker_symbol(mk))}
     segment_poses: dict[str, list[np.ndarray]] = {}
@@ -214,10 +217,10 @@ def _add_moving_frames(
     if factor > config.max_inflation:
         log.info("%d moving frames left out: the static pairs fit %.3g times better than the frames against what each claims",
                  len(selected), factor)  # fmt: skip
-        return []
+        return [], factor, len(selected)
     if factor > 1.0:
         log.info("%d moving frames enter with their covariances x %.3g: the static pairs fit better than they claim", len(selected), factor)
-    return add_keyframes(graph, values, selected, est.rotation_floor_rad, robust, covariance_scale=factor)
+    return add_keyframes(graph, values, selected, est.rotation_floor_rad, robust, covariance_scale=factor), factor, 0
 
 
 def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames, segment_now: int) -> None:

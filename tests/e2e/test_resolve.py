@@ -244,9 +244,14 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     assert run_resolve(log, tmp_path / "off", off).result.keyframes == []
     sparse = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(min_frames=len(frames) + 1)})})
     assert run_resolve(log, tmp_path / "sparse", sparse).result.keyframes == []  # a move with too few frames adds none
+    assert run.figures.moving_frames_left_out == 0 and run.figures.moving_frames_covariance_scale == 1.0
     unbiased = tmp_path / "unbiased.mcap"
     write_log(unbiased, s, 5.0, flip_rate=0.0)
-    assert run_resolve(unbiased, tmp_path / "unbiased", cfg).result.keyframes == []
+    left = run_resolve(unbiased, tmp_path / "unbiased", cfg)
+    n_left = left.figures.moving_frames_left_out
+    assert left.result.keyframes == [] and n_left >= KeyframeConfig().min_frames
+    assert left.figures.moving_frames_covariance_scale > cfg.estimator.keyframes.max_inflation
+    assert f"{n_left} moving frames left out" in (tmp_path / "unbiased" / "report.html").read_text()
 
 
 
