@@ -209,6 +209,13 @@ def fit_of(selected: list[Selected]) -> Fit:
     return sum((s.placement.fit for s in selected), Fit())
 
 
+def weighed(static: Fit, frames: Fit, config: KeyframeConfig) -> tuple[float, bool]:
+    """The factor on moving frames' covariances against the static pairs (``inflation``; 1 without
+    ``weigh_by_fit``), and whether it leaves them out (past ``max_inflation``)."""
+    factor = inflation(static, frames) if config.weigh_by_fit else 1.0
+    return factor, factor > config.max_inflation
+
+
 def add_keyframes(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, selected: list[Selected], rotation_floor_rad: float,
     robust: gtsam.noiseModel.mEstimator.Base, first_index: int = 0, max_markers: int = 0, covariance_scale: float = 1.0,
@@ -292,17 +299,17 @@ class LiveKeyframes:
                 entered, fit = 0, Fit()
             config = self.config.model_copy(update={"min_frames": 1}) if entered >= self.config.min_frames else self.config
             selected = select_keyframes(group, world_T_marker, segment_poses, rotation_floor_rad, config)
-            self.next_index += len(group)
+            first_index, self.next_index = self.next_index, self.next_index + len(group)
             if not selected:
                 continue
             fit = fit + fit_of(selected)
-            self.inflation = inflation(static, fit) if self.config.weigh_by_fit else 1.0
+            self.inflation, left_out = weighed(static, fit, self.config)
             self._move_entered[cid] = (move, entered, fit)
-            if self.inflation > self.config.max_inflation:
+            if left_out:
                 self.refused += len(selected)
                 continue
             start = graph.size()
-            added = add_keyframes(graph, values, selected, rotation_floor_rad, robust, first_index=self.next_index - len(group),
+            added = add_keyframes(graph, values, selected, rotation_floor_rad, robust, first_index=first_index,
                                   max_markers=self.config.max_markers_online, covariance_scale=self.inflation)  # fmt: skip
             self._move_entered[cid] = (move, entered + len(added), fit)
             position = start

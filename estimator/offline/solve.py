@@ -25,8 +25,7 @@ import numpy as np
 from estimator.config import EstimatorConfig
 from estimator.estimate import through_camera
 from estimator.graph import Estimator, camera_symbol, marker_symbol
-from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes, fit_of, select_keyframes
-from estimator.variance import inflation
+from estimator.keyframes import MovingFrame, MovingFrames, add_keyframes, fit_of, select_keyframes, weighed
 from estimator.links import ObjectLinks, add_links, block_sightings
 from estimator.observation import ObservationRows
 from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam
@@ -213,8 +212,10 @@ def _add_moving_frames(
         segment_poses.setdefault(cam, []).append(values.atPose3(key).matrix())
     config = est.config.keyframes
     selected = select_keyframes(frames, solved, segment_poses, est.rotation_floor_rad, config)
-    factor = inflation(est.static_fit(values), fit_of(selected)) if config.weigh_by_fit and selected else 1.0
-    if factor > config.max_inflation:
+    if not selected:
+        return [], 1.0, 0
+    factor, left_out = weighed(est.static_fit(values), fit_of(selected), config)
+    if left_out:
         log.info("%d moving frames left out: the static pairs fit %.3g times better than the frames against what each claims",
                  len(selected), factor)  # fmt: skip
         return [], factor, len(selected)
