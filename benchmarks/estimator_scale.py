@@ -28,7 +28,8 @@ the daemon takes a moving camera's frames (``[estimator.keyframes] online``, its
 frames enter the graph ``lag_s`` after they were seen, and the newest ``max_live`` stay there.
 The ring's synthetic views carry noise and no bias, so its static pairs fit ~15 times better than
 their covariances claim, and weighed by that (``keyframes.weigh_by_fit``, ``estimator.variance``)
-the arm's frames would mostly be left out (3,753 of 3,899 at 64 cameras); views that carry the
+the arm's frames would mostly be left out (3,753 of 3,899 in a quarter hour at 64 cameras, a run with the
+weighing on); views that carry the
 bias the pairs allow for weigh them at their own covariances (the rendered demo does), so here they
 enter so, and the benchmark measures what entering them costs. What the weighing costs is one pass
 over every pair at most every 30 simulated s while frames enter: ``static_fit_ms``, best of 5 at
