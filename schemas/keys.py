@@ -45,7 +45,7 @@ CELL_TOPICS: dict[str, type[Message]] = {
     "truth/objects": m.PosesWithCovariance,
 }
 # Names a camera may not take, because they would collide with cell-wide topics.
-_RESERVED = {"tf", "estimate", "objects", "points", "truth", "alive"}
+RESERVED = frozenset({"tf", "estimate", "objects", "points", "truth", "alive"})
 
 
 def check_name(name: str, what: str = "name") -> str:
@@ -67,13 +67,27 @@ def object_frame(object_id: str) -> str:
 
 def _camera(cell: str, camera: str, topic: str) -> str:
     check_name(camera, "camera id")
-    if camera in _RESERVED:
+    if camera in RESERVED:
         raise KeyError_(f"camera id {camera!r} is reserved for cell-wide topics")
     return f"{ROOT}/{check_name(cell, 'cell name')}/{camera}/{topic}"
 
 
 def _cell(cell: str, topic: str) -> str:
     return f"{ROOT}/{check_name(cell, 'cell name')}/{topic}"
+
+
+def camera_topic(cell: str, camera: str, topic: str) -> str:
+    """Any per-camera topic's key (one of ``CAMERA_TOPICS``)."""
+    if topic not in CAMERA_TOPICS:
+        raise KeyError_(f"unknown camera topic {topic!r}; known: {sorted(CAMERA_TOPICS)}")
+    return _camera(cell, camera, topic)
+
+
+def cell_topic(cell: str, topic: str) -> str:
+    """Any cell-wide topic's key (one of ``CELL_TOPICS``)."""
+    if topic not in CELL_TOPICS:
+        raise KeyError_(f"unknown cell topic {topic!r}; known: {sorted(CELL_TOPICS)}")
+    return _cell(cell, topic)
 
 
 def color(cell: str, camera: str) -> str:
@@ -191,7 +205,7 @@ def parse(key: str) -> ParsedKey:
     if rest in CELL_TOPICS:
         return ParsedKey(cell, None, rest, CELL_TOPICS[rest])
     camera, topic = parts[2], "/".join(parts[3:])
-    if topic in CAMERA_TOPICS and camera not in _RESERVED:
+    if topic in CAMERA_TOPICS and camera not in RESERVED:
         return ParsedKey(cell, camera, topic, CAMERA_TOPICS[topic])
     raise KeyError_(f"unknown cellsight topic in key {key!r}")
 

@@ -17,7 +17,11 @@ Who may do what is decided at the router, by the common name of the client certi
   clients (the host's drivers, with ``driver.json5`` pointed at it), so a compromised edge host
   reaches no further than its cameras' topics.
 
-Every role may subscribe, query and hold a liveliness token under its own cell. With a ROS 2
+Every role may subscribe and query under its own cell, and hold a liveliness token only under its
+own component's prefix (``alive/<component>/``, ``ALIVE``): a robot cannot pretend to be the
+estimator. Camera topics are granted by wildcard (``*/markers``), and a wildcard also matches a
+cell-wide key (``estimate/markers``); so each publishing role is also denied, explicitly, every
+cell-wide family it does not own (``OWNS``), and zenoh's deny rules win over its allow rules. With a ROS 2
 domain (``ros2_domain``), the same split holds on rmw_zenoh's keys (``<domain>/<topic>/...``):
 only ``estimator`` may put ``/tf``, ``/tf_static`` and ``/cellsight/<camera>/pose``, only
 ``recognition`` ``/cellsight/objects`` and ``/cellsight/points``; every role, ``robot`` being the
@@ -34,6 +38,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import zenoh
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
@@ -58,6 +63,17 @@ PUBLISH_ROS2: dict[str, list[str]] = {
     "estimator": ["tf/**", "tf_static/**", "cellsight/*/pose/**"],
     "recognition": ["cellsight/objects/**", "cellsight/points/**"],
 }
+#: The cell-wide first key chunks (``keys.RESERVED``, never a camera id) each publishing role owns;
+#: it is denied puts under every other one, whatever its wildcards match.
+OWNS: dict[str, frozenset[str]] = {
+    "driver": frozenset({"truth"}),
+    "estimator": frozenset({"tf", "estimate"}),
+    "recognition": frozenset({"objects", "points"}),
+    "edge": frozenset({"truth"}),
+}
+#: The liveliness component each role may hold tokens under (``alive/<component>/<id>``); none for the rest.
+ALIVE: dict[str, str] = {"driver": "driver", "estimator": "estimator", "recognition": "recognition", "recorder": "recorder",
+                         "edge": "driver"}  # fmt: skip
 ROLES = tuple(PUBLISH)
 #: The roles whose processes are zenoh clients (``edge`` is a router).
 CLIENT_ROLES = tuple(role for role in ROLES if role != "edge")
@@ -140,10 +156,10 @@ def acl(cell: str, ros2_domain: int | None = None) -> dict:
     readable = [f"{base}/**"]
     if ros2_domain is not None:
         readable += [f"{int(ros2_domain)}/**", f"@ros2_lv/{int(ros2_domain)}/**"]
+    ros2_graph = [f"@ros2_lv/{int(ros2_domain)}/**"] if ros2_domain is not None else []
     rules = [
         {"id": "read", "permission": "allow", "flows": ["ingress"],
-         "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query",
-                      "liveliness_token"],
+         "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
          "key_exprs": readable},
         # What the router hands out to subscribers and queriers.
         {"id": "deliver", "permission": "allow", "flows": ["egress"],
@@ -153,16 +169,86 @@ def acl(cell: str, ros2_domain: int | None = None) -> dict:
         {"id": "answer_map", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_queryable", "reply"], "key_exprs": [keys.estimate_map(cell)]},
     ]
+    own_rules: dict[str, list[str]] = {role: [] for role in ROLES}
     for role, topics in PUBLISH.items():
         ros2 = [f"{int(ros2_domain)}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else []
         if topics:
             rules.append({"id": f"publish_{role}", "permission": "allow", "flows": ["ingress"],
                           "messages": ["put", "delete"], "key_exprs": [f"{base}/{t}" for t in topics] + ros2})
+            foreign = sorted(keys.RESERVED - OWNS.get(role, frozenset()))
+            rules.append({"id": f"deny_foreign_{role}", "permission": "deny", "flows": ["ingress"],
+                          "messages": ["put", "delete"], "key_exprs": [f"{base}/{r}/**" for r in foreign]})
+            own_rules[role] += [f"publish_{role}", f"deny_foreign_{role}"]
+        tokens = ([f"{base}/alive/{ALIVE[role]}/*"] if role in ALIVE else []) + ros2_graph
+        if tokens:
+            rules.append({"id": f"alive_{role}", "permission": "allow", "flows": ["ingress"],
+                          "messages": ["liveliness_token"], "key_exprs": tokens})
+            own_rules[role].append(f"alive_{role}")
     subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
     policies = [{"rules": ["read", "deliver"], "subjects": list(ROLES)}]
-    policies += [{"rules": [f"publish_{role}"], "subjects": [role]} for role, topics in PUBLISH.items() if topics]
+    policies += [{"rules": names, "subjects": [role]} for role, names in own_rules.items() if names]
     policies.append({"rules": ["answer_map"], "subjects": ["estimator"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+#: The operations of the access matrix: put on a key, subscribe to it (receive what was put),
+#: hold a liveliness token on it, query ``estimate/map`` and answer that query.
+OPERATIONS = ("put", "subscribe", "liveliness", "query", "answer")
+
+
+@dataclass(frozen=True)
+class AccessCell:
+    """Whether ``role`` may do ``operation`` on ``key`` (one representative key of a family)."""
+
+    role: str
+    family: str  # as the docs name it, e.g. "<camera>/markers", "estimate/status", "alive/driver"
+    key: str
+    operation: str
+    allowed: bool
+
+
+def _may_put(role: str, cell: str, key: str) -> bool:
+    base = f"{keys.ROOT}/{cell}"
+    first = key[len(base) + 1:].split("/")[0]
+    if first in keys.RESERVED and first not in OWNS.get(role, frozenset()):
+        return False
+    return any(zenoh.KeyExpr(f"{base}/{t}").intersects(zenoh.KeyExpr(key)) for t in PUBLISH[role])
+
+
+def access_matrix(cell: str, camera: str = "cam1") -> list[AccessCell]:
+    """Every cell of the access matrix the ACL grants, derived from the role definitions (``PUBLISH``,
+    ``OWNS``, ``ALIVE``): put on each camera and cell-wide topic, subscribe to each (every role
+    reads the whole cell), a token under each component's liveliness prefix, and the ``estimate/map``
+    query (anyone asks, only the estimator answers). ``docs/deployment.md`` prints it; the
+    access test tries each cell against the real router."""
+    families = {f"<camera>/{t}": keys.camera_topic(cell, camera, t) for t in keys.CAMERA_TOPICS}
+    families |= {t: keys.cell_topic(cell, t) for t in keys.CELL_TOPICS}
+    components = sorted(set(ALIVE.values()))
+    out = []
+    for role in ROLES:
+        for family, key in families.items():
+            out.append(AccessCell(role, family, key, "put", _may_put(role, cell, key)))
+            out.append(AccessCell(role, family, key, "subscribe", True))
+        for comp in components:
+            out.append(AccessCell(role, f"alive/{comp}", keys.alive(cell, comp, f"probe_{role}"), "liveliness", ALIVE.get(role) == comp))
+        out.append(AccessCell(role, "estimate/map", keys.estimate_map(cell), "query", True))
+        out.append(AccessCell(role, "estimate/map", keys.estimate_map(cell), "answer", role == "estimator"))
+    return out
+
+
+def matrix_markdown(cell: str = "demo") -> str:
+    """The access matrix as a Markdown table: a row per key family, a column per role; each cell
+    lists the operations allowed (p put, s subscribe, l liveliness token, q query, a answer)."""
+    letters = {"put": "p", "subscribe": "s", "liveliness": "l", "query": "q", "answer": "a"}
+    cells = access_matrix(cell)
+    families = list(dict.fromkeys(c.family for c in cells))
+    grid = {(c.family, c.role): "" for c in cells}
+    for c in cells:
+        if c.allowed:
+            grid[c.family, c.role] += letters[c.operation]
+    lines = ["| key family | " + " | ".join(f"`{r}`" for r in ROLES) + " |", "|---" * (len(ROLES) + 1) + "|"]
+    lines += [f"| `{f}` | " + " | ".join(grid[f, r] or "-" for r in ROLES) + " |" for f in families]
+    return "\n".join(lines)
 
 
 def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447", hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),

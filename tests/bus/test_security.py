@@ -11,6 +11,7 @@ from typing import Iterator
 import numpy as np
 import pytest
 
+from cellsight.access_probe import probe
 from cellsight.config import CellConfig
 from cellsight.launch import router_endpoint
 from schemas import keys
@@ -19,7 +20,7 @@ from schemas.bus import Bus, TransportConfig, open_session
 from schemas.errors import BusError
 from schemas.rmw_zenoh import NodeName, Ros2Node, topic_key
 from schemas.ros2 import DETECTIONS, ros2_types
-from schemas.security import Profile, write_profile
+from schemas.security import Profile, access_matrix, write_profile
 from tests.conftest import free_port
 from tests.helpers import wait_until
 
@@ -83,6 +84,40 @@ def test_each_role_publishes_only_its_own_topics_and_everyone_reads(profile: Pro
         assert len(replies) == 1, "only the estimator may answer estimate/map"
     finally:
         for bus in (viewer, driver, estimator, recognition, other_viewer):
+            bus.close()
+
+
+def test_every_cell_of_the_access_matrix_holds_at_the_real_router(profile: Profile) -> None:
+    """Each role's certificate tries every cell of the matrix (``docs/deployment.md``) through the
+    real router (the edge role through a real edge router): every disallowed put, token and answer
+    is refused, every allowed one delivered. With the ACL before the deny rules, a driver's put on
+    ``estimate/status`` (``*/status`` matched it) and any role's token under ``alive/estimator``
+    got through: 27 violations."""
+    result = probe(profile, CELL, f"tls/127.0.0.1:{free_port()}")
+    assert result.cells == len(access_matrix(CELL)) > 250
+    assert not result.violations, [(c.role, c.family, c.operation, what) for c, what in result.violations]
+
+
+def test_a_driver_cannot_forge_the_estimators_status_nor_its_liveliness(profile: Profile) -> None:
+    """The two findings as an operator met them: a driver certificate's put on ``estimate/status``
+    reached ``cellsight status``, and a robot's ``alive/estimator/main`` token listed an estimator."""
+    viewer, driver, robot = (_as(profile, r) for r in ("viewer", "driver", "robot"))
+    got: list[str] = []
+    try:
+        viewer.subscribe_raw(f"{keys.ROOT}/{CELL}/**", lambda key, _p, _ns: got.append(key))
+        time.sleep(0.3)
+        forged = m.EstimatorStatus(stamp_ns=time.time_ns())
+        forged.cameras.add(camera_id="cam1", state=m.CameraState.LOCALIZED, position_sigma_m=1e-4)
+        driver.session.put(keys.estimate_status(CELL), forged.SerializeToString())
+        driver.session.put(keys.estimate_markers(CELL), b"x")
+        robot.session.liveliness().declare_token(keys.alive(CELL, "estimator", "main"))
+        driver.session.put(keys.status(CELL, "cam1"), b"allowed")  # after the denied ones: one session's order is kept
+        wait_until(lambda: keys.status(CELL, "cam1") in got, 5.0, "the driver's own status")
+        time.sleep(0.3)
+        assert got == [keys.status(CELL, "cam1")]
+        assert viewer.alive() == []
+    finally:
+        for bus in (viewer, driver, robot):
             bus.close()
 
 
