@@ -621,11 +621,16 @@ def record(
         stop.wait(duration)
         rec.close()
     parts = ", ".join(str(p) for p in rec.parts)
-    _stderr().print(f"{parts}: {rec.messages} messages ({rec.thinned} images thinned, {sum(rec.bad.values())} malformed skipped)")
+    refused = sum(rec.refused.values())
+    _stderr().print(f"{parts}: {rec.messages} messages ({rec.thinned} images thinned, {refused} refused)")
+    for (key, reason), n in sorted(rec.refused.items()):
+        _stderr().print(f"[yellow]refused:[/] {n} on {key} ({reason})")
     for gap in rec.gaps:
         _stderr().print(f"[yellow]gap:[/] nothing from {gap.camera} for {gap.seconds:.1f} s (marked in the log)")
     if rec.failures:
         raise _fail(f"recording interrupted {len(rec.failures)} time(s), {rec.lost} messages not recorded; last error: {rec.failures[-1]}", 1)
+    if refused:
+        raise _fail(f"{refused} messages refused (malformed or implausible, listed above); the log holds the rest", 1)
 
 
 def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_image_hz: float | None, live: bool, foxglove_port: int | None = None) -> None:
@@ -770,8 +775,10 @@ def replay_cmd(
     with _bus(cfg, None, transport) as bus:
         result = replay(bus, log_file, rate, all_keys, stop)
     _stderr().print(f"{log_file}: {result.published} messages republished, {result.skipped} recorded estimates skipped")
+    for (key, reason), n in sorted(result.read.refused.items()):
+        _stderr().print(f"[yellow]skipped:[/] {n} messages on {key} ({reason})")
     if result.read.stopped_early:
-        _stderr().print(f"[yellow]warning:[/] the log ended early: {result.read.stopped_early}")
+        _stderr().print(f"[yellow]warning:[/] the log is {result.read.stopped_early}; republished what came before")
 
 
 @app.command("resolve")
@@ -789,7 +796,13 @@ def resolve_cmd(
     _setup_logging(verbose)
     if not log_file.is_file():
         raise _fail(f"{log_file}: no such log file", 2)
-    cfg = _load(config) if config is not None else peek_config(log_file)
+    from schemas.log import ReadReport
+
+    peeked = ReadReport()
+    cfg = _load(config) if config is not None else peek_config(log_file, peeked)
+    if cfg is None and peeked.stopped_early:
+        raise _fail(f"{log_file} is cut or damaged {peeked.stopped_early.removeprefix('cut or damaged ')}, before its cell config: "
+                    "nothing to solve there; give --config with the anchors to solve what precedes the damage", 2)  # fmt: skip
     if cfg is None:
         raise _fail(f"{log_file} has no embedded cell config (not written by cellsight record?): give --config with the anchors", 2)
     if not cfg.estimator.anchors:
@@ -815,8 +828,12 @@ def resolve_cmd(
     for child, o in run.figures.object_markers.items():
         off = o.offline_vs_truth_mm_deg
         typer.echo(f"  {child}: {o.poses} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))
+    for (key, reason), n in sorted(run.read.refused.items()):
+        _stderr().print(f"[yellow]skipped:[/] {n} messages on {key} ({reason}), as a running cell would have refused them")
     if run.read.stopped_early:
-        _stderr().print(f"[yellow]warning:[/] the log ended early ({run.read.stopped_early}); resolved from the {run.read.messages} messages before it")
+        _stderr().print(f"[yellow]warning:[/] the log is {run.read.stopped_early}; resolved from the {run.read.messages} messages before it")
+    if r.frames == 0:
+        raise _fail(f"{log_file}: no marker frames to solve (nothing written to {out} is a solution)", 1)
 
 
 @export_app.command("ros2")

@@ -1,9 +1,12 @@
 """The recorder: every key of a cell (or the ones asked for) into MCAP logs.
 
 A payload is written if it parses as its key's message type (every message in the log parses as
-its channel's schema); its content (finite poses, definite covariances, image sizes) is checked by
-whoever reads the log, as every subscriber checks it on the bus (``schemas.log`` skips and counts
-what fails), so a recording keeps what a faulty producer sent. Images can be
+its channel's schema) and its ids and stamps are what any receiver accepts (``codec.check_on_key``:
+a camera's message names its key's camera, stamps within the window of the recorder's clock);
+anything else is refused and counted per key and reason (``refused``), and the file stays valid
+past it. Its content (finite poses, definite covariances, image sizes) is checked by whoever reads
+the log, as every subscriber checks it on the bus (``schemas.log`` skips and counts what fails),
+so a recording keeps what a faulty producer sent. Images can be
 thinned to ``max_image_hz`` per key so a long run stays a reasonable size (recording the whole
 cell, images are subscribed only when one is due: ``schemas.bus.CellTap``). A recording is never
 overwritten: a restarted recorder writes ``NAME.1.mcap``, ``NAME.2.mcap``, ... beside the first
@@ -28,7 +31,7 @@ from cellsight.errors import RunError
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
-from schemas.errors import SchemaError
+from schemas.errors import DecodeError, SchemaError
 from schemas.log import Gap, LogWriter, stamp_of
 
 log = logging.getLogger(__name__)
@@ -61,6 +64,7 @@ class Recorder:
         self.messages = 0
         self.lost = 0  # valid messages that arrived while no part could be written
         self.bad: Counter[str] = Counter()
+        self.refused: Counter[tuple[str, str]] = Counter()  # (key, reason) -> messages not written
         self.thinned = 0
         self.gap_after_s = gap_after_s
         self.gaps: list[Gap] = []
@@ -69,6 +73,8 @@ class Recorder:
         self._retry_at = 0.0
         self._last_image: dict[str, int] = {}
         self._lock = threading.Lock()
+        self._refuse_lock = threading.Lock()  # refusals come from zenoh's threads, some while _lock is held
+        self.limits = bus.limits
         if not self._new_part():
             raise RunError(f"cannot record to {path}: {self.failures[-1]}")
         tapped = bool(max_image_hz) and not key_exprs  # images subscribed only when one is due
@@ -100,10 +106,11 @@ class Recorder:
             parsed = keys.parse(key)
             msg_type = parsed.message_type
             msg = codec.decode(payload, msg_type, semantic=False)  # content: the reader's (~0.5 ms a message)
+            # Ids and stamps the log could not hold or a reader would refuse: a negative stamp made the
+            # MCAP writer fail half-way through a record, and the log unreadable past it.
+            codec.check_on_key(msg, parsed.camera, receive_ns, self.limits)
         except SchemaError as exc:
-            self.bad[key] += 1
-            if self.bad[key] == 1:
-                log.warning("not recording malformed payload on %s: %s", key, exc)
+            self._refuse(key, exc)
             return
         stamp = stamp_of(msg, receive_ns)
         if self.max_image_hz and msg_type is m.RawImage:
@@ -124,6 +131,8 @@ class Recorder:
             try:
                 self._writer.write_raw(key, msg_type, payload, receive_ns, stamp)
                 self.messages += 1
+            except SchemaError as exc:  # checked before anything was written: the part stays valid
+                self._refuse(key, exc)
             except OSError as exc:  # e.g. disk full: end this part, keep what is on disk, retry later
                 self._writer.abandon()
                 self._writer = None
@@ -132,6 +141,15 @@ class Recorder:
                 self.lost += 1
                 log.error("recording to %s stopped: %s (readable up to its last complete chunk; a new part is tried "
                           "every %.0f s)", self.parts[-1], exc, self.retry_s)  # fmt: skip
+
+    def _refuse(self, key: str, exc: SchemaError) -> None:
+        reason = exc.reason if isinstance(exc, DecodeError) else "malformed"
+        with self._refuse_lock:
+            self.bad[key] += 1
+            self.refused[key, reason] += 1
+            first = self.bad[key] == 1
+        if first:  # once per key: a flood must not flood the log
+            log.warning("not recording a message on %s: %s (further ones on this key are only counted)", key, exc)
 
     def _mark(self, gap: Gap) -> None:
         """Note a gap (caller holds the lock); written into the current part, if there is one."""

@@ -102,9 +102,10 @@ def config_of_log(report: ReadReport) -> CellConfig | None:
     return None if text is None else parse_config(tomllib.loads(text), "config embedded in the log")
 
 
-def peek_config(path: Path) -> CellConfig | None:
-    """The cell config embedded in a log, reading only up to the log's metadata record (the recorder writes it first)."""
-    report = ReadReport()
+def peek_config(path: Path, report: ReadReport | None = None) -> CellConfig | None:
+    """The cell config embedded in a log, reading only up to the log's metadata record (the recorder
+    writes it first); ``report`` says whether the log ended early when there is none."""
+    report = report if report is not None else ReadReport()
     for _ in read_log(path, set(), report):
         if report.metadata:
             break

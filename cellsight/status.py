@@ -1,9 +1,10 @@
 """What is running and how well: driver rates, estimator camera states and poses, objects,
-liveliness (rich tables)."""
+liveliness, and messages refused as implausible or malformed (rich tables)."""
 
 from __future__ import annotations
 
 import logging
+from collections import Counter
 
 from rich.console import Group, RenderableType
 from rich.table import Table
@@ -73,15 +74,33 @@ class StatusBoard:
             t.caption = f"observations {s.observations}, rejected {s.rejected}, unknown markers {s.unknown_markers}, update {s.update_ms:.1f} ms, factors rebuilt {s.factors_rebuilt}{flagged}"
         if alive is not None:
             t.caption = (t.caption or "") + "\nalive: " + ", ".join(a.split("/alive/")[1] for a in alive)
+        tables: list[RenderableType] = [t]
+        if refused := self.refused():
+            r = Table(title="refused messages (by the estimator and by this viewer)")
+            for col in ("key", "reason", "count"):
+                r.add_column(col, no_wrap=True)
+            for (key, reason), count in sorted(refused.items()):
+                r.add_row(key, reason, str(count))
+            tables.append(r)
         if self.objects is None or not self.objects.objects:
-            return t
+            return Group(*tables) if len(tables) > 1 else t
         o = Table(title="objects (world frame)")
         for col in ("object", "x, y, z (m)", "cameras", "fitness", "rmse (mm)"):
             o.add_column(col, no_wrap=True)
         for det in self.objects.objects:
             T = codec.pose_from_msg(det.world_T_object, det.object_id)
             o.add_row(det.object_id, _xyz(T), ", ".join(det.camera_ids), f"{det.fitness:.2f}", f"{det.rmse_m * 1000:.1f}")
-        return Group(t, o)
+        return Group(*tables, o)
+
+    def refused(self) -> Counter[tuple[str, str]]:
+        """(key, reason) -> messages refused: the estimator's (from its status) and this board's own."""
+        out: Counter[tuple[str, str]] = Counter()
+        if self.estimator is not None:
+            for r in self.estimator.rejections:
+                out[r.key, r.reason] += r.count
+        for sub in self._subs:
+            out.update(sub.rejected)
+        return out
 
     def close(self) -> None:
         for s in self._subs:

@@ -64,6 +64,7 @@ HOLD_MAX_NS = 2_000_000_000  # a segment whose pairs do not settle (markers seen
 #: How often the anchors are checked against their observations (ns): ~15 ms at 64 cameras.
 ANCHOR_CHECK_NS = 1_000_000_000
 STATIC_FIT_NS = 30_000_000_000  # how often the static pairs' fit is recomputed while moving frames enter (ns)
+UNKNOWN_IDS_LOGGED = 10  # unknown marker ids named in the log; the rest are counted
 RELINEARIZE_SKIP = 10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
 
 
@@ -81,6 +82,7 @@ class CameraTrack:
     latest: dict[int, Observation] = field(default_factory=dict)  # newest frame's observations
     markers_seen: int = 0
     segment_start_ns: int = 0  # stamp of the current segment's first frame
+    backwards: int = 0  # frames refused for a stamp before the newest one
     screen: RigidScreen | None = None  # the batched path's rigid-motion screen for the current view
 
 
@@ -213,7 +215,10 @@ class Estimator:
         track = self.tracks.setdefault(camera_id, CameraTrack(camera_id))
         if stamp_ns < track.last_stamp_ns:
             self.counters.rejected += len(observations)
-            log.warning("%s: frame stamp went backwards (%d < %d); frame ignored", camera_id, stamp_ns, track.last_stamp_ns)
+            track.backwards += 1
+            if track.backwards == 1:  # once per camera: a flood of stale frames must not flood the log
+                log.warning("%s: frame stamp went backwards (%d < %d); frame ignored (further ones only counted)",
+                            camera_id, stamp_ns, track.last_stamp_ns)  # fmt: skip
             return False
         track.last_stamp_ns = stamp_ns
         static: list[Observation] = []
@@ -223,7 +228,11 @@ class Estimator:
                 self.counters.unknown_markers += 1
                 if obs.marker_id not in self.unknown_ids:
                     self.unknown_ids.add(obs.marker_id)
-                    log.warning("marker %d seen by %s is not in the configuration; ignored", obs.marker_id, camera_id)
+                    # A few ids by name; past that a stray pattern or a fuzzing peer would fill the log.
+                    if len(self.unknown_ids) <= UNKNOWN_IDS_LOGGED:
+                        log.warning("marker %d seen by %s is not in the configuration; ignored%s", obs.marker_id, camera_id,
+                                    " (further unknown ids only counted: status unknown_markers)"
+                                    if len(self.unknown_ids) == UNKNOWN_IDS_LOGGED else "")  # fmt: skip
                 continue
             track.latest[obs.marker_id] = obs
             if obs.marker_id not in self.object_markers:

@@ -17,6 +17,7 @@ from schemas import messages as m
 from schemas.codec import MarkerArrays, MarkerFields
 from schemas.errors import DecodeError
 from schemas.geometry import matrices_from_quats
+from schemas.limits import DEFAULT_LIMITS, WireLimits
 
 
 @dataclass(frozen=True)
@@ -78,37 +79,38 @@ def observation_rows(a: MarkerArrays) -> ObservationRows:
 @dataclass(frozen=True)
 class ValidatedFrames:
     """What ``validated_rows`` kept: indices of the good frames, their rows (``frame`` indexes the
-    kept frames; None when none was good) and, per dropped frame, (its index, what was wrong)."""
+    kept frames; None when none was good) and, per dropped frame, (its index, what was wrong, the
+    reason: one of ``schemas.limits.REASONS``)."""
 
     kept: list[int]
     rows: ObservationRows | None
-    dropped: list[tuple[int, str]]
+    dropped: list[tuple[int, str, str]]
 
 
-def validated_rows(msgs: Sequence[m.MarkerObservations]) -> ValidatedFrames:
+def validated_rows(msgs: Sequence[m.MarkerObservations], limits: WireLimits = DEFAULT_LIMITS) -> ValidatedFrames:
     """``validated_fields`` of the messages' fields: frames of any cameras, whose ids the caller
     checked (the daemon validates each update's frames in one pass; ``ObservationRows.of_frames``
     splits them by camera)."""
-    return _validated(len(msgs), codec.marker_fields(msgs))
+    return _validated(len(msgs), codec.marker_fields(msgs), limits)
 
 
-def validated_fields(camera_id: str, frames: int, fields: MarkerFields) -> ValidatedFrames:
+def validated_fields(camera_id: str, frames: int, fields: MarkerFields, limits: WireLimits = DEFAULT_LIMITS) -> ValidatedFrames:
     """Check a camera's frames together, in numpy, and convert the good ones once: a frame with
     any bad marker is dropped whole (the rest of it is not trusted either). The one validation of
     marker observations on both the live and the offline path."""
     try:
         codec.check_id(camera_id, "marker observations camera_id")
     except DecodeError as exc:
-        return ValidatedFrames([], None, [(i, str(exc)) for i in range(frames)])
-    return _validated(frames, fields)
+        return ValidatedFrames([], None, [(i, str(exc), exc.reason) for i in range(frames)])
+    return _validated(frames, fields, limits)
 
 
-def _validated(frames: int, fields: MarkerFields) -> ValidatedFrames:
-    problems = codec.marker_problems(fields)
+def _validated(frames: int, fields: MarkerFields, limits: WireLimits) -> ValidatedFrames:
+    problems = codec.marker_problems(fields, limits)
     frame_of = fields.rows[:, 1].astype(np.int64)
-    why: dict[int, str] = {}
-    for row, what in problems:
-        why.setdefault(int(frame_of[row]), what)
+    why: dict[int, tuple[str, str]] = {}
+    for row, what, reason in problems:
+        why.setdefault(int(frame_of[row]), (what, reason))
     if not why:
         return ValidatedFrames(list(range(frames)), observation_rows(fields.arrays()), [])
     kept = [i for i in range(frames) if i not in why]
@@ -116,7 +118,7 @@ def _validated(frames: int, fields: MarkerFields) -> ValidatedFrames:
     rows = None
     if kept:
         rows = observation_rows(fields.arrays(keep_rows)).of_frames(np.array(kept))  # frame indices among the kept frames
-    return ValidatedFrames(kept, rows, sorted(why.items()))
+    return ValidatedFrames(kept, rows, [(i, what, reason) for i, (what, reason) in sorted(why.items())])
 
 
 def observations_of(camera_id: str, stamp_ns: int, a: ObservationRows) -> list[Observation]:

@@ -160,6 +160,7 @@ class EstimatorService:
         # Content is validated once, a camera's frames together, in ``ingest``.
         self._sub = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192, semantic=False)
         self.bad_frames: Counter[str] = Counter()  # camera -> frames dropped as malformed
+        self.rejected: Counter[tuple[str, str]] = Counter()  # (key, reason) -> frames dropped here
         self._pub = {
             "tf": bus.publisher(keys.tf(cell)),
             "cameras": bus.publisher(keys.estimate_cameras(cell)),
@@ -208,24 +209,27 @@ class EstimatorService:
         """One update's frames: validated together in one numpy pass, then each camera's as one block
         (``Estimator.add_frames``: a still camera's frames fold in with numpy, the same as one by
         one). Cameras are independent between updates."""
-        cams, stamps, msgs = [], [], []
+        cams, stamps, msgs, keys_ = [], [], [], []
         for item in items:
             try:  # before the id keys any per-camera state
                 codec.check_id(item.msg.camera_id, "marker observations camera_id")
-            except DecodeError:
+            except DecodeError as exc:
                 self.bad_frames["(invalid camera id)"] += 1
+                self.rejected[item.key, exc.reason] += 1
                 continue
             stamp_ns = self.clock_jumps.correct(item.msg.camera_id, item.msg.stamp_ns, item.receive_ns)
             self.clock.observe(stamp_ns, item.receive_ns)
             cams.append(item.msg.camera_id)
             stamps.append(stamp_ns)
             msgs.append(item.msg)
+            keys_.append(item.key)
         if not msgs:
             return
-        v = validated_rows(msgs)
-        for i, why in v.dropped:
+        v = validated_rows(msgs, self.bus.limits)
+        for i, why, reason in v.dropped:
             camera_id = cams[i]
             self.bad_frames[camera_id] += 1
+            self.rejected[keys_[i], reason] += 1
             if self.bad_frames[camera_id] == 1:  # once per camera: garbage must not flood the log
                 log.warning("dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
                             camera_id[:40], msgs[i].stamp_ns, why)  # fmt: skip
@@ -285,6 +289,8 @@ class EstimatorService:
             factors_rebuilt=c.factors_rebuilt, update_cpu_ms=c.last_update_cpu_ms,
         )  # fmt: skip
         msg.flagged_anchors.extend(est.flagged_anchors)
+        for (key, reason), count in sorted((self._sub.rejected + self.rejected).items()):
+            msg.rejections.add(key=key, reason=reason, count=count)
         for cam in sorted(est.cameras.values(), key=lambda x: x.camera_id):
             sigma = 0.0
             if cam.pose is not None and cam.pose.covariance is not None:

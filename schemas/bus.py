@@ -7,8 +7,9 @@
   (``Inbox``) and liveliness tokens.
 
 Subscriptions decode in zenoh's callback thread and keep messages in a bounded inbox: a ring
-(newest wins) for frames, a FIFO for small messages. A payload that does not decode is counted per
-key, logged once per key and dropped; the subscription keeps running.
+(newest wins) for frames, a FIFO for small messages. A payload that does not decode, or holds what
+no sensor sends (``schemas.limits``), is counted per key and reason, logged once per key and
+dropped; the subscription keeps running.
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ from google.protobuf.message import Message
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import keys
-from schemas.codec import decode
-from schemas.errors import BusError, KeyError_, SchemaError
+from schemas.codec import check_on_key, decode
+from schemas.errors import BusError, DecodeError, KeyError_, SchemaError
+from schemas.limits import DEFAULT_LIMITS, WireLimits
 
 log = logging.getLogger(__name__)
 
@@ -214,28 +216,33 @@ class Subscription(Generic[Msg]):
 
     def __init__(
         self, session: zenoh.Session, key_expr: str, msg_type: type[Msg] | None = None, *, capacity: int = 1024, ring: bool = False,
-        callback: Callable[[Received[Msg]], None] | None = None, semantic: bool = True,
+        callback: Callable[[Received[Msg]], None] | None = None, semantic: bool = True, limits: WireLimits = DEFAULT_LIMITS,
     ) -> None:  # fmt: skip
         self.key_expr = key_expr
         self._semantic = semantic
+        self._limits = limits
         self._msg_type = msg_type
         self.inbox: Inbox[Msg] = Inbox(capacity, ring)
         self._callback = callback
         self.received = 0
         self.bad: Counter[str] = Counter()
+        self.rejected: Counter[tuple[str, str]] = Counter()  # (key, reason) -> messages dropped
         self._lock = threading.Lock()
         self._sub = session.declare_subscriber(key_expr, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
-            contract = keys.message_type(key)
-            if self._msg_type is not None and contract is not self._msg_type:
+            parsed = keys.parse(key)
+            if self._msg_type is not None and parsed.message_type is not self._msg_type:
                 # "cellsight/c/*/status" also matches "cellsight/c/estimate/status": not ours, not bad.
                 return
-            item = Received(key, decode(sample.payload.to_bytes(), contract, self._semantic), time.time_ns())
+            now_ns = time.time_ns()
+            msg = decode(sample.payload.to_bytes(), parsed.message_type, self._semantic, self._limits)
+            check_on_key(msg, parsed.camera, now_ns, self._limits)
+            item = Received(key, msg, now_ns)
         except SchemaError as exc:
-            self._count_bad(key, str(exc))
+            self._count_bad(key, str(exc), exc.reason if isinstance(exc, DecodeError) else "malformed")
             return
         with self._lock:
             self.received += 1
@@ -245,12 +252,13 @@ class Subscription(Generic[Msg]):
         try:
             self._callback(item)
         except Exception:  # zenoh's thread boundary: a handler bug must not kill the subscription
-            self._count_bad(key, "handler raised")
+            self._count_bad(key, "handler raised", "handler")
             log.exception("handler for %s raised on a message", key)
 
-    def _count_bad(self, key: str, why: str) -> None:
+    def _count_bad(self, key: str, why: str, reason: str) -> None:
         with self._lock:
             self.bad[key] += 1
+            self.rejected[key, reason] += 1
             first = self.bad[key] == 1
         if first:  # once per key: a flood of garbage must not flood the log
             log.warning("dropping malformed payload on %s: %s (further ones on this key are only counted)", key, why)
@@ -397,8 +405,9 @@ class CellTap:
 class Bus:
     """A zenoh session bound to one cell. Close it (or use ``with``) to leave the network."""
 
-    def __init__(self, transport: TransportConfig, cell: str) -> None:
+    def __init__(self, transport: TransportConfig, cell: str, limits: WireLimits = DEFAULT_LIMITS) -> None:
         self.cell = keys.check_name(cell, "cell name")
+        self.limits = limits  # what every subscription of this bus accepts
         self.transport = usable_transport(transport)
         self.session = open_session(self.transport)
         self._tokens: list[zenoh.LivelinessToken] = []
@@ -433,7 +442,8 @@ class Bus:
 
         ``semantic=False`` checks wire format and schema only, for a consumer that validates the
         content itself, many messages at once (the estimator's marker observations)."""
-        return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback, semantic=semantic)
+        return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback, semantic=semantic,
+                            limits=self.limits)  # fmt: skip
 
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes, int], None]) -> zenoh.Subscriber:
         """Undecoded payloads: ``callback(key, payload, receive_ns)`` in zenoh's thread (recorder)."""
@@ -471,7 +481,9 @@ class Bus:
             if reply.ok is None:
                 continue
             try:
-                out.append(Received(str(reply.ok.key_expr), decode(reply.ok.payload.to_bytes(), msg_type), time.time_ns()))
+                msg = decode(reply.ok.payload.to_bytes(), msg_type, limits=self.limits)
+                check_on_key(msg, None, time.time_ns(), self.limits)
+                out.append(Received(str(reply.ok.key_expr), msg, time.time_ns()))
             except SchemaError as exc:
                 log.warning("dropping malformed reply on %s: %s", key, exc)
         return out

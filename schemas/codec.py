@@ -20,6 +20,7 @@ from google.protobuf.message import Message
 from schemas import messages as m
 from schemas.errors import DecodeError
 from schemas.geometry import matrices_from_quats, quats_from_matrices
+from schemas.limits import DEFAULT_LIMITS, WireLimits
 
 Msg = TypeVar("Msg", bound=Message)
 _EYE3, _LAST_ROW = np.eye(3), np.array([0.0, 0.0, 0.0, 1.0])
@@ -42,12 +43,12 @@ def check_poses(T: np.ndarray, what: str = "pose", tol: float = 1e-6) -> np.ndar
     if T.ndim != 3 or T.shape[1:] != (4, 4):
         raise DecodeError(f"{what}: expected (N, 4, 4) poses, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
-        raise DecodeError(f"{what}: contains NaN or inf")
+        raise DecodeError(f"{what}: contains NaN or inf", "not_finite")
     R = T[:, :3, :3]
     # Plain max-abs checks: np.allclose costs more than the rest of a pose's conversion.
     orthonormal = np.abs(np.einsum("nji,njk->nik", R, R) - _EYE3).max(axis=(1, 2)) <= tol
     if not (orthonormal.all() and (np.linalg.det(R) > 0).all() and np.abs(T[:, 3] - _LAST_ROW).max(initial=0.0) <= tol):
-        raise DecodeError(f"{what}: not a rigid transform (rotation not orthonormal or bad last row)")
+        raise DecodeError(f"{what}: not a rigid transform (rotation not orthonormal or bad last row)", "not_rigid")
     return T
 
 
@@ -78,27 +79,30 @@ def foxglove_pose(T: np.ndarray, out) -> None:
     out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = p.qx, p.qy, p.qz, p.qw
 
 
-def pose_from_msg(msg: m.Pose, what: str = "pose") -> np.ndarray:
-    """4x4 pose from a ``Pose`` message; rejects non-finite values and non-unit quaternions."""
+def pose_from_msg(msg: m.Pose, what: str = "pose", limits: WireLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """4x4 pose from a ``Pose`` message; rejects non-finite values, non-unit quaternions and
+    positions beyond ``limits.max_position_m``."""
     t = np.array([[msg.x, msg.y, msg.z]])
     q = np.array([[msg.qx, msg.qy, msg.qz, msg.qw]])
-    return _poses_from_arrays(t, q, [what])[0]
+    return _poses_from_arrays(t, q, [what], limits)[0]
 
 
 # ---------------------------------------------------------------- covariances
 
 
-def check_covariance(cov: np.ndarray, what: str = "covariance") -> np.ndarray:
-    """Return a 6x6 symmetric positive-definite covariance, else raise ``DecodeError``."""
+def check_covariance(cov: np.ndarray, what: str = "covariance", limits: WireLimits | None = None) -> np.ndarray:
+    """Return a 6x6 symmetric positive-definite covariance, else raise ``DecodeError``; with
+    ``limits``, also one whose standard deviations are outside their bounds."""
     cov = np.asarray(cov, dtype=np.float64)
     if cov.size != 36:
-        raise DecodeError(f"{what}: expected 36 values, got {cov.size}")
-    return _checked_covariances(cov.reshape(1, 36), [what])[0]
+        raise DecodeError(f"{what}: expected 36 values, got {cov.size}", "covariance")
+    return _checked_covariances(cov.reshape(1, 36), [what], limits)[0]
 
 
-def covariance_problems(rows: np.ndarray) -> list[tuple[int, str]]:
+def covariance_problems(rows: np.ndarray, limits: WireLimits | None = DEFAULT_LIMITS) -> list[tuple[int, str]]:
     """(row, what is wrong) for each bad covariance of ``rows`` (N, 36), in row order: non-finite,
-    not symmetric, not positive definite (the first of these per row). Empty when all are good."""
+    not symmetric, not positive definite, then (with ``limits``) a standard deviation outside
+    ``[min_sigma, max_sigma]`` (the first of these per row). Empty when all are good."""
     cov = rows.reshape(-1, 6, 6)
     finite = np.all(np.isfinite(rows), axis=1)
     c = np.where(finite[:, None, None], cov, np.eye(6))  # rows already flagged are checked as identity
@@ -112,15 +116,36 @@ def covariance_problems(rows: np.ndarray) -> list[tuple[int, str]]:
         not_pd = smallest <= 0
         not_pd[int(np.argmin(smallest))] = True  # Cholesky failed: at least the least definite one
     why = [(~finite, "contains NaN or inf"), (asym, "not symmetric"), (not_pd, "not positive definite")]
-    return [(i, next(say for mask, say in why if mask[i])) for i in np.flatnonzero(~finite | asym | not_pd).tolist()]
+    bad = ~finite | asym | not_pd
+    if limits is not None:
+        c = np.where(bad[:, None, None], np.eye(6) * limits.min_sigma, c)
+        out = _sigma_out_of_bounds(c, limits)
+        why.append((out, f"a standard deviation outside [{limits.min_sigma:g}, {limits.max_sigma_m:g} m / {limits.max_sigma_rad:g} rad]"))
+        bad |= out
+    return [(i, next(say for mask, say in why if mask[i])) for i in np.flatnonzero(bad).tolist()]
 
 
-def _checked_covariances(rows: np.ndarray, what: Sequence[str]) -> np.ndarray:
+def _sigma_out_of_bounds(c: np.ndarray, limits: WireLimits) -> np.ndarray:
+    """Which of the symmetric positive-definite covariances ``c`` (N, 6, 6; ROS order) claim a
+    standard deviation below ``min_sigma`` along any direction (their smallest eigenvalue, by one
+    batched Cholesky of ``c - min_sigma^2 I``) or above the largest allowed on the diagonal."""
+    diag = np.einsum("nii->ni", c)
+    too_wide = (diag[:, :3] > limits.max_sigma_m**2).any(axis=1) | (diag[:, 3:] > limits.max_sigma_rad**2).any(axis=1)
+    floor = limits.min_sigma**2 * np.eye(6)
+    too_sharp = np.zeros(len(c), bool)
+    try:
+        np.linalg.cholesky(c - floor)
+    except np.linalg.LinAlgError:
+        too_sharp = np.linalg.eigvalsh(c).min(axis=1) <= limits.min_sigma**2
+    return too_wide | too_sharp
+
+
+def _checked_covariances(rows: np.ndarray, what: Sequence[str], limits: WireLimits | None = DEFAULT_LIMITS) -> np.ndarray:
     """Covariances (N, 6, 6) from ``rows`` (N, 36); the first bad one raises ``DecodeError`` named by ``what``."""
-    problems = covariance_problems(rows)
+    problems = covariance_problems(rows, limits)
     if problems:
         i, why = problems[0]
-        raise DecodeError(f"{what[i]}: {why}")
+        raise DecodeError(f"{what[i]}: {why}", "not_finite" if "NaN" in why else "covariance")
     return rows.reshape(-1, 6, 6)
 
 
@@ -304,27 +329,32 @@ def transforms_to_msg(stamp_ns: int, transforms: Iterable[tuple[str, str, np.nda
     return msg
 
 
-def transforms_from_msg(msg: m.FrameTransforms) -> dict[tuple[str, str], np.ndarray]:
+def transforms_from_msg(msg: m.FrameTransforms, limits: WireLimits = DEFAULT_LIMITS) -> dict[tuple[str, str], np.ndarray]:
     """{(parent, child): parent_T_child} of a ``FrameTransforms``, each checked as ``pose_from_msg``
     checks one, all in one batch (a map's tf holds every marker, and subscribers read it at the
     estimator's rate)."""
     trs = msg.transforms
     t = np.array([(tr.translation.x, tr.translation.y, tr.translation.z) for tr in trs], dtype=np.float64).reshape(-1, 3)
     q = np.array([(tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w) for tr in trs], dtype=np.float64).reshape(-1, 4)
-    T = _poses_from_arrays(t, q, [f"transform {tr.child_frame_id}" for tr in trs])
+    T = _poses_from_arrays(t, q, [f"transform {tr.child_frame_id}" for tr in trs], limits)
     return {(tr.parent_frame_id, tr.child_frame_id): pose for tr, pose in zip(trs, T)}
 
 
-def _poses_from_arrays(t: np.ndarray, q: np.ndarray, what: Sequence[str]) -> np.ndarray:
+def _poses_from_arrays(t: np.ndarray, q: np.ndarray, what: Sequence[str], limits: WireLimits = DEFAULT_LIMITS) -> np.ndarray:
     """Poses (N, 4, 4) from translations (N, 3) and quaternions (N, 4; x y z w) as received, rejecting
-    non-finite values and non-unit quaternions: the first bad pose raises ``DecodeError`` named by
-    ``what``."""
+    non-finite values, non-unit quaternions and positions beyond ``limits.max_position_m``: the first
+    bad pose raises ``DecodeError`` named by ``what``."""
     finite = np.isfinite(t).all(axis=1) & np.isfinite(q).all(axis=1)
     norm = np.linalg.norm(np.where(finite[:, None], q, 1.0), axis=1)
-    bad = ~finite | (np.abs(norm - 1.0) > 1e-3)
+    far = np.abs(np.where(finite[:, None], t, 0.0)).max(axis=1, initial=0.0) > limits.max_position_m
+    bad = ~finite | (np.abs(norm - 1.0) > 1e-3) | far
     if bad.any():
         i = int(np.argmax(bad))
-        raise DecodeError(f"{what[i]}: contains NaN or inf" if not finite[i] else f"{what[i]}: quaternion norm {norm[i]:.4g} is not 1")
+        if not finite[i]:
+            raise DecodeError(f"{what[i]}: contains NaN or inf", "not_finite")
+        if far[i]:
+            raise DecodeError(f"{what[i]}: position {t[i].tolist()} beyond {limits.max_position_m:g} m", "out_of_bounds")
+        raise DecodeError(f"{what[i]}: quaternion norm {norm[i]:.4g} is not 1", "not_rigid")
     T = np.zeros((len(t), 4, 4))
     T[:, :3, :3] = matrices_from_quats(q) if len(q) else np.zeros((0, 3, 3))
     T[:, :3, 3], T[:, 3, 3] = t, 1.0
@@ -354,19 +384,19 @@ def poses_to_msg(stamp_ns: int, poses: Iterable[StampedPose]) -> m.PosesWithCova
     return msg
 
 
-def poses_from_msg(msg: m.PosesWithCovariance) -> dict[str, StampedPose]:
+def poses_from_msg(msg: m.PosesWithCovariance, limits: WireLimits = DEFAULT_LIMITS) -> dict[str, StampedPose]:
     """{child_frame: StampedPose}; raises ``DecodeError`` on any bad pose or covariance."""
     items = msg.poses
     what = [f"pose of {item.child_frame_id!r}" for item in items]
     t = np.array([(i.pose.x, i.pose.y, i.pose.z) for i in items], dtype=np.float64).reshape(-1, 3)
     q = np.array([(i.pose.qx, i.pose.qy, i.pose.qz, i.pose.qw) for i in items], dtype=np.float64).reshape(-1, 4)
-    T = _poses_from_arrays(t, q, what)
+    T = _poses_from_arrays(t, q, what, limits)
     given = [k for k, item in enumerate(items) if len(item.covariance)]
     for k in given:
         if len(items[k].covariance) != 36:
-            raise DecodeError(f"{what[k]}: expected 36 values, got {len(items[k].covariance)}")
+            raise DecodeError(f"{what[k]}: expected 36 values, got {len(items[k].covariance)}", "covariance")
     rows = np.array([items[k].covariance for k in given], dtype=np.float64).reshape(-1, 36)
-    covs = dict(zip(given, _checked_covariances(rows, [what[k] for k in given])))
+    covs = dict(zip(given, _checked_covariances(rows, [what[k] for k in given], limits)))
     return {item.child_frame_id: StampedPose(item.parent_frame_id, item.child_frame_id, item.stamp_ns, T[k], covs.get(k))
             for k, item in enumerate(items)}  # fmt: skip
 
@@ -390,22 +420,21 @@ class MarkerArrays:
     frame: np.ndarray
 
 
-def marker_arrays(msg: m.MarkerObservations, check: bool = True) -> MarkerArrays:
+def marker_arrays(msg: m.MarkerObservations, check: bool = True, limits: WireLimits = DEFAULT_LIMITS) -> MarkerArrays:
     """``marker_batch`` of one message."""
-    return marker_batch([msg], check)
+    return marker_batch([msg], check, limits)
 
 
-def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True) -> MarkerArrays:
+def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True, limits: WireLimits = DEFAULT_LIMITS) -> MarkerArrays:
     """Validate every observation of the messages at once (batched numpy) and return them as arrays.
 
     ``check=False`` only converts: for messages already validated (``decode`` with
-    ``semantic=True``). Raises ``DecodeError`` naming the first bad marker: wrong corner count,
-    non-positive side, non-finite or non-unit quaternion, covariance not 36 values / not symmetric
-    / not positive definite.
+    ``semantic=True``). Raises ``DecodeError`` naming the first bad marker (``marker_problems``).
     """
     fields = marker_fields(msgs)
-    if check and (problems := marker_problems(fields)):
-        raise DecodeError(problems[0][1])
+    if check and (problems := marker_problems(fields, limits)):
+        _, why, reason = problems[0]
+        raise DecodeError(why, reason)
     return fields.arrays()
 
 
@@ -469,28 +498,36 @@ def _packed_covariances(msgs: Sequence[m.MarkerObservations], n: int) -> np.ndar
     return buf[(hits + 3)[:, None] + np.arange(288)].view("<f8").reshape(-1, 36)
 
 
-def marker_problems(f: MarkerFields) -> list[tuple[int, str]]:
-    """(row, what is wrong) for every bad row, the first problem of each, in row order: wrong
-    corner count, covariance not 36 values, non-positive side, non-finite or non-unit quaternion,
-    covariance non-finite / not symmetric / not positive definite. Empty when all are good."""
+def marker_problems(f: MarkerFields, limits: WireLimits = DEFAULT_LIMITS) -> list[tuple[int, str, str]]:
+    """(row, what is wrong, reason) for every bad row, the first problem of each, in row order:
+    wrong corner count, covariance not 36 values, side not positive or too large, id too large,
+    non-finite values, a position beyond the cell, a non-unit quaternion, a covariance non-finite /
+    not symmetric / not positive definite / with a standard deviation out of bounds. ``reason`` is
+    one of ``schemas.limits.REASONS``. Empty when all are good."""
     r, ids = f.rows, f.rows[:, 0].astype(np.int64)
-    found: dict[int, str] = {}
+    found: dict[int, tuple[str, str]] = {}
 
-    def flag(mask: np.ndarray, say) -> None:
+    def flag(mask: np.ndarray, reason: str, say) -> None:
         for i in np.flatnonzero(mask).tolist():
-            found.setdefault(i, say(i))
+            found.setdefault(i, (say(i), reason))
 
-    flag(r[:, 4] != 8, lambda i: f"marker {ids[i]}: {int(r[i, 4])} corner values, expected 8")
-    flag(r[:, 5] != 36, lambda i: f"marker {ids[i]} covariance: expected 36 values, got {int(r[i, 5])}")
-    flag(~(r[:, 3] > 0) | ~np.isfinite(r[:, 3]), lambda i: f"marker {ids[i]}: side length {r[i, 3]} must be positive")
+    flag(r[:, 4] != 8, "malformed", lambda i: f"marker {ids[i]}: {int(r[i, 4])} corner values, expected 8")
+    flag(r[:, 5] != 36, "covariance", lambda i: f"marker {ids[i]} covariance: expected 36 values, got {int(r[i, 5])}")
+    flag(~(r[:, 3] > 0) | ~np.isfinite(r[:, 3]), "out_of_bounds", lambda i: f"marker {ids[i]}: side length {r[i, 3]} must be positive")
+    flag(r[:, 3] > limits.max_marker_side_m, "out_of_bounds",
+         lambda i: f"marker {ids[i]}: side length {r[i, 3]:g} m beyond {limits.max_marker_side_m:g} m")  # fmt: skip
+    flag(ids > limits.max_marker_id, "out_of_bounds", lambda i: f"marker id {ids[i]} beyond {limits.max_marker_id}")
     for name, values, quat in (("camera_T_marker", r[:, 6:13], r[:, 9:13]), ("candidate_a", r[:, 13:17], r[:, 13:17]),
                                ("candidate_b", r[:, 17:21], r[:, 17:21])):  # fmt: skip
-        norms = np.linalg.norm(quat, axis=1)
-        flag(~np.all(np.isfinite(values), axis=1), lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf")
-        flag(np.abs(norms - 1.0) > 1e-3, lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")
-    for i, why in covariance_problems(f.covariances):
-        found.setdefault(i, f"marker {ids[i]} covariance: {why}")
-    return sorted(found.items())
+        flag(~np.all(np.isfinite(values), axis=1), "not_finite", lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf")
+        norms = np.linalg.norm(np.nan_to_num(quat), axis=1)
+        flag(np.abs(norms - 1.0) > 1e-3, "not_rigid",
+             lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")  # fmt: skip
+    far = np.abs(np.nan_to_num(r[:, 6:9])).max(axis=1, initial=0.0) > limits.max_position_m
+    flag(far, "out_of_bounds", lambda i: f"marker {ids[i]} camera_T_marker: position {r[i, 6:9].tolist()} beyond {limits.max_position_m:g} m")
+    for i, why in covariance_problems(f.covariances, limits):
+        found.setdefault(i, (f"marker {ids[i]} covariance: {why}", "not_finite" if "NaN" in why else "covariance"))
+    return [(i, why, reason) for i, (why, reason) in sorted(found.items())]
 
 
 def _has_unknown_fields(msg: Message, payload: bytes) -> bool:
@@ -515,10 +552,20 @@ def _has_unknown_fields(msg: Message, payload: bytes) -> bool:
 
 def check_id(value: str, what: str) -> None:
     if not value or len(value) > 128 or not value.replace("_", "").replace("-", "").replace(".", "").isalnum():
-        raise DecodeError(f"{what} {value[:40]!r} is not a valid id")
+        raise DecodeError(f"{what} {value[:40]!r} is not a valid id", "invalid_id")
 
 
-def _validate(msg: Message, payload: bytes, semantic: bool = True) -> None:
+def _check_count(n: int, what: str, limits: WireLimits) -> None:
+    if n > limits.max_items:
+        raise DecodeError(f"{what}: {n} items, more than {limits.max_items}", "too_many")
+
+
+def _check_image_size(width: int, height: int, what: str, limits: WireLimits) -> None:
+    if max(width, height) > limits.max_image_side_px:
+        raise DecodeError(f"{what}: {width}x{height} pixels, a side beyond {limits.max_image_side_px}", "out_of_bounds")
+
+
+def _validate(msg: Message, payload: bytes, semantic: bool, limits: WireLimits) -> None:
     """Semantic checks beyond protobuf's wire format, per message type."""
     # Fields our schema does not know mean garbage or a producer on another schema version.
     if _has_unknown_fields(msg, payload):
@@ -527,29 +574,39 @@ def _validate(msg: Message, payload: bytes, semantic: bool = True) -> None:
         return
     if isinstance(msg, m.DriverStatus):
         check_id(msg.camera_id, "driver status camera_id")
+        if not (0.0 <= msg.rate_hz <= 1e6):  # NaN fails too
+            raise DecodeError(f"driver status rate_hz {msg.rate_hz} is not a frame rate", "out_of_bounds")
     elif isinstance(msg, m.EstimatorStatus):
         for cam in msg.cameras:
             check_id(cam.camera_id, "estimator status camera_id")
+            if not (0.0 <= cam.position_sigma_m <= limits.max_sigma_m):
+                raise DecodeError(f"estimator status sigma {cam.position_sigma_m} of {cam.camera_id!r}", "out_of_bounds")
     elif isinstance(msg, m.RawImage):
+        _check_image_size(msg.width, msg.height, "image", limits)
         image_from_msg(msg)
     elif isinstance(msg, m.CameraCalibration):
+        _check_image_size(msg.width, msg.height, "camera info", limits)
         CameraInfo.from_msg(msg)
     elif isinstance(msg, m.MarkerObservations):
         check_id(msg.camera_id, "marker observations camera_id")
-        marker_arrays(msg)
+        _check_image_size(msg.image_width, msg.image_height, "marker observations image", limits)
+        marker_arrays(msg, limits=limits)
     elif isinstance(msg, m.PosesWithCovariance):
-        poses_from_msg(msg)
+        poses_from_msg(msg, limits)
     elif isinstance(msg, m.FrameTransforms):
-        transforms_from_msg(msg)
+        transforms_from_msg(msg, limits)
     elif isinstance(msg, m.ObjectDetections):
         for det in msg.objects:
-            pose_from_msg(det.world_T_object, f"object {det.object_id!r}")
+            check_id(det.object_id, "object id")
+            pose_from_msg(det.world_T_object, f"object {det.object_id!r}", limits)
+            if not (0.0 <= det.fitness <= 1.0 and 0.0 <= det.rmse_m <= limits.max_position_m):
+                raise DecodeError(f"object {det.object_id!r}: fitness {det.fitness} or rmse {det.rmse_m} m out of range", "out_of_bounds")
     elif isinstance(msg, m.Map):
-        poses_from_msg(msg.cameras)
-        poses_from_msg(msg.markers)
+        poses_from_msg(msg.cameras, limits)
+        poses_from_msg(msg.markers, limits)
 
 
-def decode(payload: bytes, msg_type: type[Msg], semantic: bool = True) -> Msg:
+def decode(payload: bytes, msg_type: type[Msg], semantic: bool = True, limits: WireLimits = DEFAULT_LIMITS) -> Msg:
     """Parse and validate an untrusted payload; raise ``DecodeError`` saying what was wrong.
 
     ``semantic=False`` checks the wire format and the schema only, for a caller that validates
@@ -560,5 +617,56 @@ def decode(payload: bytes, msg_type: type[Msg], semantic: bool = True) -> Msg:
         msg.ParseFromString(data)
     except (_PbDecodeError, RuntimeError, ValueError) as exc:
         raise DecodeError(f"not a valid {msg_type.DESCRIPTOR.full_name}: {exc}") from exc
-    _validate(msg, data, semantic)
+    _validate(msg, data, semantic, limits)
     return msg
+
+
+# ---------------------------------------------------------------- what needs the key and the clock
+
+#: Repeated fields whose length ``check_on_key`` bounds, per message type.
+_ITEMS = {
+    m.MarkerObservations: "markers", m.PosesWithCovariance: "poses", m.FrameTransforms: "transforms",
+    m.ObjectDetections: "objects", m.EstimatorStatus: "cameras", m.SceneUpdate: "entities",
+}  # fmt: skip
+#: Messages a camera's driver sends, whose ``camera_id`` must be the camera of their key.
+_CAMERA_OWNED = (m.MarkerObservations, m.DriverStatus)
+
+
+def message_stamps(msg: Message) -> list[int]:
+    """Every stamp a message carries (ns; 0 where a stamp was left unset): its own and its items'."""
+    fields = msg.DESCRIPTOR.fields_by_name
+    stamps = []
+    if "stamp_ns" in fields:
+        stamps.append(int(msg.stamp_ns))
+    if "timestamp" in fields:
+        stamps.append(timestamp_to_stamp(msg.timestamp))
+    if isinstance(msg, m.PosesWithCovariance):
+        stamps += [int(p.stamp_ns) for p in msg.poses]
+    elif isinstance(msg, m.ObjectDetections):
+        stamps += [int(o.stamp_ns) for o in msg.objects]
+    elif isinstance(msg, m.EstimatorStatus):
+        stamps += [int(c.last_stamp_ns) for c in msg.cameras]
+    elif isinstance(msg, m.FrameTransforms):
+        stamps += [timestamp_to_stamp(t.timestamp) for t in msg.transforms]
+    elif isinstance(msg, m.Map):
+        stamps += message_stamps(msg.cameras) + message_stamps(msg.markers) + message_stamps(msg.status)
+    return stamps
+
+
+def check_on_key(msg: Message, camera: str | None, now_ns: int, limits: WireLimits = DEFAULT_LIMITS) -> None:
+    """What a message's own fields cannot show alone: a camera's message names the camera of the key
+    it came on (``camera``, None for cell-wide keys), its stamps lie in the window of the receiver's
+    clock ``now_ns`` (0 is an unset stamp; a camera's frames and statuses must carry one), and its
+    lists are no longer than ``limits.max_items``. Raises ``DecodeError``; cheap, for every message."""
+    if isinstance(msg, _CAMERA_OWNED) and msg.camera_id != camera:
+        raise DecodeError(f"camera_id {msg.camera_id[:40]!r} on the key of camera {camera!r}", "id_mismatch")
+    if (field_name := _ITEMS.get(type(msg))) is not None:
+        _check_count(len(getattr(msg, field_name)), f"{msg.DESCRIPTOR.name}.{field_name}", limits)
+    latest = now_ns + int(limits.max_stamp_ahead_s * 1e9)
+    earliest = 1 if limits.max_stamp_age_s is None else now_ns - int(limits.max_stamp_age_s * 1e9)
+    for stamp in message_stamps(msg):
+        if stamp == 0 and not isinstance(msg, _CAMERA_OWNED):
+            continue
+        if not earliest <= stamp <= latest:
+            ahead = (stamp - now_ns) / 1e9
+            raise DecodeError(f"{msg.DESCRIPTOR.name} stamp {stamp} ns is {ahead:+.3g} s from the receiver's clock", "stamp")

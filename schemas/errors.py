@@ -10,7 +10,12 @@ class KeyError_(SchemaError, ValueError):
 
 
 class DecodeError(SchemaError, ValueError):
-    """A payload could not be decoded, or decoded into something inconsistent."""
+    """A payload could not be decoded, or decoded into something inconsistent. ``reason`` is one of
+    ``schemas.limits.REASONS``: what services count refusals by."""
+
+    def __init__(self, message: str, reason: str = "malformed") -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 class BusError(SchemaError, RuntimeError):

@@ -26,11 +26,13 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from schemas import codec, keys
-from schemas.errors import SchemaError
+from schemas.errors import DecodeError, SchemaError
+from schemas.limits import DEFAULT_LIMITS, WireLimits
 
 log = logging.getLogger(__name__)
 _RECORD = struct.Struct("<BQ")  # opcode, content length
 _MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time; then the payload
+_UINT64 = 1 << 64
 
 
 def stamp_of(msg: Message, default_ns: int) -> int:
@@ -107,6 +109,12 @@ class LogWriter:
         self.write_raw(key, type(msg), msg.SerializeToString(), log_time_ns, publish_time_ns or stamp_of(msg, log_time_ns))
 
     def write_raw(self, key: str, msg_type: type[Message], payload: bytes, log_time_ns: int, publish_time_ns: int) -> None:
+        """Append one message; a time MCAP cannot hold (negative, or past 2^64 ns) raises ``DecodeError``
+        before anything is written: the writer would fail half-way through the record, and the log
+        would not read past it."""
+        for name, t in (("log time", log_time_ns), ("publish time", publish_time_ns)):
+            if not 0 <= t < _UINT64:
+                raise DecodeError(f"{key}: {name} {t} ns cannot be written (MCAP times are unsigned 64-bit)", "stamp")
         self._writer.add_message(self._channel(key, msg_type), log_time_ns, payload, publish_time_ns)
         self.messages += 1
 
@@ -149,7 +157,8 @@ class ReadReport:
     undecodable: int = 0
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # MCAP metadata records by name
     unknown_keys: set[str] = field(default_factory=set)
-    stopped_early: str | None = None
+    stopped_early: str | None = None  # where and why the log could not be read further
+    refused: dict[tuple[str, str], int] = field(default_factory=dict)  # (key, reason) -> messages skipped as implausible
 
     def gaps(self) -> list["Gap"]:
         """The silences the recorder marked (metadata records ``gap/<camera>/<from_ns>``), oldest first."""
@@ -232,14 +241,18 @@ def read_log(
     report: ReadReport | None = None,
     progress: Callable[[int, int], None] | None = None,
     deferred: frozenset[type[Message]] = frozenset(),
+    limits: WireLimits = DEFAULT_LIMITS,
 ) -> Iterator[LogMessage]:
     """Stream a log in file order, decoding and validating each message.
 
     Messages of a ``deferred`` type are checked against the schema only: the caller validates
     their content itself, many at once (``codec.marker_batch``), and must not trust them before.
+    Every message is checked as a live receiver checks it (``codec.check_on_key``, the recorder's
+    receive time as the clock): what the bus would have refused is skipped here too, and counted in
+    ``report.refused`` by key and reason.
 
     A truncated or damaged file yields everything before the damage; ``report.stopped_early``
-    says why it stopped. Undecodable messages are counted and skipped.
+    says where and why it stopped. Undecodable messages are counted and skipped.
     """
     report = report if report is not None else ReadReport()
     channels: dict[int, Channel] = {}
@@ -268,8 +281,13 @@ def read_log(
                     if key_filter is not None and ch.topic not in key_filter:
                         continue
                     try:
-                        msg_type = keys.message_type(ch.topic)
-                        msg = codec.decode(record.data, msg_type, semantic=msg_type not in deferred)
+                        parsed = keys.parse(ch.topic)
+                        msg = codec.decode(record.data, parsed.message_type, parsed.message_type not in deferred, limits)
+                        codec.check_on_key(msg, parsed.camera, record.log_time, limits)
+                    except DecodeError as exc:
+                        report.undecodable += 1
+                        report.refused[ch.topic, exc.reason] = report.refused.get((ch.topic, exc.reason), 0) + 1
+                        continue
                     except SchemaError:
                         report.undecodable += 1
                         if ch.topic.startswith(keys.ROOT):
@@ -280,5 +298,5 @@ def read_log(
                     yield LogMessage(ch.topic, msg, record.log_time, record.publish_time)
         # RuntimeError: lz4 on a damaged chunk; struct.error: a record cut short of its length field
         except (McapError, EOFError, ValueError, OSError, RuntimeError, struct.error) as exc:
-            report.stopped_early = f"{type(exc).__name__}: {exc}"
+            report.stopped_early = f"cut or damaged at byte {f.tell():,} of {total:,} ({type(exc).__name__}: {exc})"
             log.warning("%s: stopped reading after %d messages: %s", path, report.messages, report.stopped_early)

@@ -19,6 +19,7 @@ from schemas.gen.cellsight.cellsight_pb2 import (
     Pose,
     PosesWithCovariance,
     PoseWithCovariance,
+    Rejection,
 )
 
 __all__ = [
@@ -38,5 +39,6 @@ __all__ = [
     "PosesWithCovariance",
     "PoseWithCovariance",
     "RawImage",
+    "Rejection",
     "SceneUpdate",
 ]

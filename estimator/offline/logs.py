@@ -44,6 +44,7 @@ class FrameFields:
     camera_id: str
     stamps: np.ndarray
     fields: MarkerFields
+    cell: str
 
 
 def frame_blocks(
@@ -66,28 +67,31 @@ def frame_fields(
         if cells is not None and parsed.cell not in cells:
             cells.add(parsed.cell)
         if parsed.topic == "markers":
-            msgs = pending.setdefault(lm.msg.camera_id, [])
+            msgs = pending.setdefault((parsed.cell, lm.msg.camera_id), [])  # read_log checked the id against the key
             msgs.append(lm.msg)
             if len(msgs) == BLOCK_FRAMES:
-                yield _fields(lm.msg.camera_id, pending.pop(lm.msg.camera_id))
+                yield _fields(parsed.cell, lm.msg.camera_id, pending.pop((parsed.cell, lm.msg.camera_id)))
         elif on_message is not None:
             on_message(lm)
-    for camera_id, msgs in pending.items():
-        yield _fields(camera_id, msgs)
+    for (cell, camera_id), msgs in pending.items():
+        yield _fields(cell, camera_id, msgs)
 
 
-def _fields(camera_id: str, msgs: list[m.MarkerObservations]) -> FrameFields:
-    return FrameFields(camera_id, np.array([msg.stamp_ns for msg in msgs], dtype=np.int64), codec.marker_fields(msgs))
+def _fields(cell: str, camera_id: str, msgs: list[m.MarkerObservations]) -> FrameFields:
+    return FrameFields(camera_id, np.array([msg.stamp_ns for msg in msgs], dtype=np.int64), codec.marker_fields(msgs), cell)
 
 
 def checked(raw: FrameFields, report: ReadReport) -> Iterator[FrameBlock]:
-    """The block of a camera's frames that pass the checks; each dropped frame is counted in
-    ``report`` as undecodable and logged."""
+    """The block of a camera's frames that pass the checks the daemon makes; each dropped frame is
+    counted in ``report`` as undecodable and refused (by reason), and the first of each reason logged."""
     v = validated_fields(raw.camera_id, len(raw.stamps), raw.fields)
-    for i, why in v.dropped:
+    for i, why, reason in v.dropped:
         report.messages -= 1
         report.undecodable += 1
-        log.warning("%s frame at %d ns skipped: %s", raw.camera_id[:40], int(raw.stamps[i]), why)
+        where = (keys.markers(raw.cell, raw.camera_id), reason)
+        report.refused[where] = report.refused.get(where, 0) + 1
+        if report.refused[where] == 1:
+            log.warning("%s frame at %d ns skipped: %s (further ones only counted)", raw.camera_id[:40], int(raw.stamps[i]), why)
     if v.rows is not None:
         yield FrameBlock(raw.camera_id, raw.stamps[v.kept], v.rows)
 
@@ -131,6 +135,8 @@ def background_frame_blocks(
                     setattr(report, f.name, getattr(rest[0], f.name))
                 report.messages += dropped.messages
                 report.undecodable += dropped.undecodable
+                for where, n in dropped.refused.items():
+                    report.refused[where] = report.refused.get(where, 0) + n
                 if cells is not None:
                     cells |= rest[1]
                 return

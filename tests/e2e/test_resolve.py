@@ -302,3 +302,49 @@ def test_a_log_from_the_openni2_driver_resolves_to_an_unanchored_camera(router_e
     figures = json.loads((tmp_path / "out" / "resolve.json").read_text())
     assert figures["log_complete"] and figures["unanchored"] == ["kinect"]
     assert (tmp_path / "out" / "report.html").stat().st_size > 0
+
+
+def test_absurd_but_finite_observations_in_a_log_are_skipped_and_counted(tmp_path: Path) -> None:
+    """Twenty observations at z = 1e6 m (or one at 1e300) made ``resolve`` die in iSAM2
+    (IndeterminateSystemException). They are what a running cell refuses, so the offline solve skips
+    them too, says how many and why, and solves the rest as if they were not there."""
+    s = scene()
+    clean, dirty = tmp_path / "clean.mcap", tmp_path / "dirty.mcap"
+    write_log(clean, s, 3.0)
+    w = LogWriter(dirty, chunk_size=64 * 1024, metadata={"config": peek_config(clean).to_toml()})
+    n = 0
+    for lm in read_log(clean):
+        w.write(lm.key, lm.msg, lm.log_time_ns, lm.publish_time_ns)
+        if lm.key == keys.markers(CELL, "a") and n < 20:
+            bad = m.MarkerObservations()
+            bad.CopyFrom(lm.msg)
+            bad.stamp_ns += 1  # after the good frame: the camera's stamps keep going forward
+            bad.markers[0].camera_T_marker.z = 1e300 if n == 0 else 1e6
+            w.write(lm.key, bad, lm.log_time_ns, bad.stamp_ns)
+            n += 1
+    w.close()
+    a, b = run_resolve(clean, tmp_path / "a", peek_config(clean)), run_resolve(dirty, tmp_path / "b", peek_config(dirty))
+    assert b.read.refused == {(keys.markers(CELL, "a"), "out_of_bounds"): 20}
+    assert b.result.frames == a.result.frames
+    for sa, sb in zip(a.result.segments, b.result.segments):
+        np.testing.assert_allclose(sb.world_T_camera, sa.world_T_camera, atol=1e-9)
+    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(dirty), "--out", str(tmp_path / "c")],
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0 and "20 messages on cellsight/res/a/markers (out_of_bounds)" in out.stderr.replace("\n", " "), out.stderr
+
+
+def test_a_log_cut_before_its_config_is_called_cut_and_an_empty_solve_exits_1(tmp_path: Path) -> None:
+    """A log cut after a few bytes was reported as having "no embedded cell config"; a log with no
+    marker frames exited 0 where the docs promise 1."""
+    s = scene()
+    log = tmp_path / "log.mcap"
+    cfg = write_log(log, s, 1.0)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.read_bytes()[:40])
+    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(cut)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "cut or damaged at byte" in out.stderr and "no embedded" not in out.stderr, out.stderr
+    empty = tmp_path / "empty.mcap"
+    LogWriter(empty, metadata={"config": cfg.to_toml()}).close()
+    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(empty), "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert out.returncode == 1 and "no marker frames" in out.stderr, (out.returncode, out.stderr)

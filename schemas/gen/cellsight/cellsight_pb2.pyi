@@ -152,7 +152,7 @@ class CameraState(_message.Message):
     def __init__(self, camera_id: _Optional[str] = ..., state: _Optional[_Union[CameraState.State, str]] = ..., segment: _Optional[int] = ..., last_stamp_ns: _Optional[int] = ..., markers_seen: _Optional[int] = ..., position_sigma_m: _Optional[float] = ...) -> None: ...
 
 class EstimatorStatus(_message.Message):
-    __slots__ = ("stamp_ns", "cameras", "observations", "rejected", "unknown_markers", "flagged_anchors", "update_ms", "factors", "factors_rebuilt", "update_cpu_ms")
+    __slots__ = ("stamp_ns", "cameras", "observations", "rejected", "unknown_markers", "flagged_anchors", "update_ms", "factors", "factors_rebuilt", "update_cpu_ms", "rejections")
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
     OBSERVATIONS_FIELD_NUMBER: _ClassVar[int]
@@ -163,6 +163,7 @@ class EstimatorStatus(_message.Message):
     FACTORS_FIELD_NUMBER: _ClassVar[int]
     FACTORS_REBUILT_FIELD_NUMBER: _ClassVar[int]
     UPDATE_CPU_MS_FIELD_NUMBER: _ClassVar[int]
+    REJECTIONS_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     cameras: _containers.RepeatedCompositeFieldContainer[CameraState]
     observations: int
@@ -173,7 +174,18 @@ class EstimatorStatus(_message.Message):
     factors: int
     factors_rebuilt: int
     update_cpu_ms: float
-    def __init__(self, stamp_ns: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraState, _Mapping]]] = ..., observations: _Optional[int] = ..., rejected: _Optional[int] = ..., unknown_markers: _Optional[int] = ..., flagged_anchors: _Optional[_Iterable[int]] = ..., update_ms: _Optional[float] = ..., factors: _Optional[int] = ..., factors_rebuilt: _Optional[int] = ..., update_cpu_ms: _Optional[float] = ...) -> None: ...
+    rejections: _containers.RepeatedCompositeFieldContainer[Rejection]
+    def __init__(self, stamp_ns: _Optional[int] = ..., cameras: _Optional[_Iterable[_Union[CameraState, _Mapping]]] = ..., observations: _Optional[int] = ..., rejected: _Optional[int] = ..., unknown_markers: _Optional[int] = ..., flagged_anchors: _Optional[_Iterable[int]] = ..., update_ms: _Optional[float] = ..., factors: _Optional[int] = ..., factors_rebuilt: _Optional[int] = ..., update_cpu_ms: _Optional[float] = ..., rejections: _Optional[_Iterable[_Union[Rejection, _Mapping]]] = ...) -> None: ...
+
+class Rejection(_message.Message):
+    __slots__ = ("key", "reason", "count")
+    KEY_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    key: str
+    reason: str
+    count: int
+    def __init__(self, key: _Optional[str] = ..., reason: _Optional[str] = ..., count: _Optional[int] = ...) -> None: ...
 
 class Map(_message.Message):
     __slots__ = ("cameras", "markers", "status")
