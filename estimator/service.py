@@ -209,7 +209,7 @@ class EstimatorService:
         """One update's frames: validated together in one numpy pass, then each camera's as one block
         (``Estimator.add_frames``: a still camera's frames fold in with numpy, the same as one by
         one). Cameras are independent between updates."""
-        cams, stamps, msgs, keys_ = [], [], [], []
+        cams, receive, msgs, keys_ = [], [], [], []
         for item in items:
             try:  # before the id keys any per-camera state
                 codec.check_id(item.msg.camera_id, "marker observations camera_id")
@@ -217,10 +217,8 @@ class EstimatorService:
                 self.bad_frames["(invalid camera id)"] += 1
                 self.rejected[item.key, exc.reason] += 1
                 continue
-            stamp_ns = self.clock_jumps.correct(item.msg.camera_id, item.msg.stamp_ns, item.receive_ns)
-            self.clock.observe(stamp_ns, item.receive_ns)
             cams.append(item.msg.camera_id)
-            stamps.append(stamp_ns)
+            receive.append(item.receive_ns)
             msgs.append(item.msg)
             keys_.append(item.key)
         if not msgs:
@@ -235,6 +233,12 @@ class EstimatorService:
                             camera_id[:40], msgs[i].stamp_ns, why)  # fmt: skip
         if v.rows is None:
             return
+        # Only frames that passed reach the clocks: a dropped frame's stamp is as untrusted as the rest
+        # of it (garbage stamped in the past read as a sensor clock stepping back, and shifted its frames).
+        stamps = {}
+        for i in v.kept:
+            stamps[i] = self.clock_jumps.correct(cams[i], msgs[i].stamp_ns, receive[i])
+            self.clock.observe(stamps[i], receive[i])
         owner = np.array([cams[i] for i in v.kept])
         for camera_id in dict.fromkeys(owner.tolist()):
             mine = np.flatnonzero(owner == camera_id)  # positions among the kept frames, in arrival order

@@ -154,7 +154,7 @@ def test_restart_restores_the_map(client_transport: TransportConfig, tmp_path: P
     # A fresh daemon whose config has no anchor left and whose camera sees only markers 1-3:
     # without the restored map it would be unanchored; with it, it is localised at once.
     s.markers = [mk for mk in s.markers if mk.id != 0]
-    svc, statuses, _ = run_service(client_transport, s, state, 0.3, 2 * 10**18)
+    svc, statuses, _ = run_service(client_transport, s, state, 0.3, 10**18 + 10**15)
     assert svc.restored == 4  # markers 0-3 as saved
     assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED
 
@@ -202,13 +202,13 @@ def test_a_full_disk_keeps_the_saved_state_and_saving_resumes(client_transport: 
                 f.flush()
         except OSError:
             pass
-    svc, statuses, _ = run_service(client_transport, s, state, 1.0, 2 * 10**18)
+    svc, statuses, _ = run_service(client_transport, s, state, 1.0, 10**18 + 10**15)
     assert svc.save_failures >= 1 and "cannot save state" in caplog.text
     assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED  # it kept running
     assert state.read_bytes() == saved, "the saved state was damaged by the failed save"
     assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "state.json"]  # no half-written copy left
     filler.unlink()
-    svc, _, _ = run_service(client_transport, s, state, 0.3, 3 * 10**18)
+    svc, _, _ = run_service(client_transport, s, state, 0.3, 10**18 + 2 * 10**15)
     assert svc.restored == 4 and svc.save_failures == 0
     assert state.read_bytes() != saved  # saved again
 
