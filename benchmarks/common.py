@@ -10,6 +10,8 @@ import argparse
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,8 +34,30 @@ def demo_cell_text(duration_s: float) -> str:
     return text.replace("duration_s = 30.0", f"duration_s = {duration_s:.1f}")
 
 
-#: PCL's real clouds in the shared data beside the repository (../shared/data/pcl).
-PCL_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
+def launch_demo_cell(tmp: Path, cell: str, duration_s: float) -> tuple[subprocess.Popen, Path, int]:
+    """The demo cell (its scenario running ``duration_s``) under ``cellsight run --record`` in
+    ``tmp/run`` on a router at a free loopback port; returns (the launcher, the run folder, the port)
+    once every process is started (the recognition models are built first). Stop it with SIGTERM."""
+    from tests.conftest import free_port
+
+    port = free_port()
+    run_dir = tmp / "run"
+    (tmp / "scenario.toml").write_text(demo_cell_text(duration_s))
+    (tmp / "cell.toml").write_text(f'[cell]\nname = "{cell}"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
+    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(run_dir), "--record"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    deadline = time.monotonic() + 300
+    while not (run_dir / "processes.json").exists():
+        if time.monotonic() > deadline or proc.poll() is not None:
+            proc.kill()
+            raise RuntimeError(f"the cell did not start (see {run_dir}/logs)")
+        time.sleep(0.5)
+    return proc, run_dir, port
+
+
+#: The repository's public real data (``data/``), and PCL's real clouds in it.
+REAL_DATA = Path(__file__).resolve().parents[1] / "data"
+PCL_DATA = REAL_DATA / "pcl"
 
 
 def pin_one_core() -> int:

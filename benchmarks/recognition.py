@@ -12,7 +12,7 @@ max surface distance, minimised over the shape's symmetries) averaged over BOP's
 VFH binning (the paper's) as the reference.
 
 Real scenes: the demo objects and PCL's milk.pcd (as ``cellsight model build --demo --cloud
-milk=...``) against every real scene in ``../shared/data/pcl/`` (Kinect frames, one stereo pair):
+milk=...``) against every real scene in ``data/pcl/`` (Kinect frames, one stereo pair):
 the milk found in its scene (true pose the identity) with its model-to-scene RMSE, and every other
 detection counted false (``false_positives_real_scenes``; none of the other scenes holds any of the
 objects).

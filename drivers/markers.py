@@ -468,7 +468,7 @@ _REFINEMENT = {
 
 # Adaptive-threshold windows (px): 3 and 11. OpenCV's default ladder, 3, 13 and 23, costs 4.0 ms a
 # demo frame against 2.4; on the demo frames (444 markers, 20-150 px wide) and the 526 markers of the
-# real photos in shared/data both find the same markers, edge-refined corners within 0.25 px. Small
+# real photos in data/markers both find the same markers, edge-refined corners within 0.25 px. Small
 # markers need the 3 px window, large ones a wider one; a YAML file's values take precedence.
 THRESHOLD_WINDOWS_PX = (3, 11)
 

@@ -1,6 +1,6 @@
 """The wire contract shared by every cellsight process: messages, key expressions, codecs, bus.
 
-``drivers``, ``estimator`` and ``recognition`` meet only here (DESIGN.md section 2).
+``drivers``, ``estimator`` and ``recognition`` meet only here (docs/architecture.md section 2).
 """
 
 from schemas.errors import SchemaError

@@ -1,7 +1,7 @@
 """Conversions between messages and numpy (poses, covariances, images, camera info, transforms) and
 the validation of untrusted payloads. The maths itself is ``schemas.geometry``.
 
-Conventions (DESIGN.md section 3): poses are 4x4 float64 ``parent_T_child`` arrays; quaternions on
+Conventions (docs/architecture.md section 3): poses are 4x4 float64 ``parent_T_child`` arrays; quaternions on
 the wire are (x, y, z, w); 6x6 covariances on the wire are ROS order (x, y, z, rx, ry, rz) while
 gtsam's Pose3 tangent is rotation first (rx, ry, rz, x, y, z). Every ``*_from_msg`` treats its
 input as untrusted and raises ``DecodeError`` naming what was wrong.
@@ -520,7 +520,8 @@ def marker_problems(f: MarkerFields, limits: WireLimits = DEFAULT_LIMITS) -> lis
     for name, values, quat in (("camera_T_marker", r[:, 6:13], r[:, 9:13]), ("candidate_a", r[:, 13:17], r[:, 13:17]),
                                ("candidate_b", r[:, 17:21], r[:, 17:21])):  # fmt: skip
         flag(~np.all(np.isfinite(values), axis=1), "not_finite", lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf")
-        norms = np.linalg.norm(np.nan_to_num(quat), axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):  # 1e300 squared is inf: not a unit norm either way
+            norms = np.linalg.norm(np.nan_to_num(quat), axis=1)
         flag(np.abs(norms - 1.0) > 1e-3, "not_rigid",
              lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")  # fmt: skip
     far = np.abs(np.nan_to_num(r[:, 6:9])).max(axis=1, initial=0.0) > limits.max_position_m

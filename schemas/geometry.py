@@ -1,6 +1,6 @@
 """SE(3) maths on numpy arrays: the one home for rotations, poses and their differences.
 
-Conventions (DESIGN.md section 3): poses are 4x4 float64 ``parent_T_child``; quaternions are
+Conventions (docs/architecture.md section 3): poses are 4x4 float64 ``parent_T_child``; quaternions are
 (x, y, z, w); 6x6 covariances are ROS order (x, y, z, rx, ry, rz) unless a name says gtsam.
 Nothing here knows about messages or the bus (that is ``codec``).
 """

@@ -1,4 +1,4 @@
-"""Every zenoh key expression of the wire contract (DESIGN.md section 4), built by functions.
+"""Every zenoh key expression of the wire contract (docs/architecture.md section 4), built by functions.
 
 Call sites never concatenate key strings; they call these. ``message_type`` maps any concrete key
 back to the protobuf class that travels on it, which the recorder, ``bus echo`` and the decoders

@@ -22,7 +22,7 @@ import pytest  # noqa: E402
 from schemas.bus import TransportConfig, open_session  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
+REAL_DATA = ROOT / "data"  # public real data, each source's licence and provenance beside it
 
 
 def free_port() -> int:
@@ -54,10 +54,10 @@ def client_transport(router_endpoint: str) -> TransportConfig:
 
 
 @pytest.fixture()
-def shared_data() -> Path:
-    if not SHARED_DATA.is_dir():
-        pytest.fail(f"real test data missing: expected {SHARED_DATA} (the shared/ folder beside the repo)")
-    return SHARED_DATA
+def real_data() -> Path:
+    if not REAL_DATA.is_dir():
+        pytest.fail(f"real test data missing: expected {REAL_DATA} (part of the repository)")
+    return REAL_DATA
 
 
 @pytest.fixture()

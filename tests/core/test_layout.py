@@ -1,4 +1,4 @@
-"""The import direction of DESIGN.md section 2: schemas <- drivers, estimator, recognition <- cellsight."""
+"""The import direction of docs/architecture.md section 2: schemas <- drivers, estimator, recognition <- cellsight."""
 
 from __future__ import annotations
 

@@ -24,23 +24,23 @@ TUTORIAL = "markers/aruco_opencv_tutorial"
 MARKER_TOL_PX = 1.0  # OpenCV's own test tolerance for marker corners
 
 
-def _gold(shared_data: Path) -> dict:
-    return json.loads((shared_data / TUTORIAL / "ground_truth_corners.json").read_text())
+def _gold(real_data: Path) -> dict:
+    return json.loads((real_data / TUTORIAL / "ground_truth_corners.json").read_text())
 
 
-def _config(shared_data: Path, entry: dict, **kw) -> MarkerConfig:
+def _config(real_data: Path, entry: dict, **kw) -> MarkerConfig:
     d = entry["dictionary"]
     if d.startswith("custom"):
-        d = str(shared_data / TUTORIAL / "tutorial_dict.yml")
+        d = str(real_data / TUTORIAL / "tutorial_dict.yml")
     # The gold corners come from OpenCV's unrefined detection; compare like with like.
     return MarkerConfig(dictionary=d, corner_refinement="none", **kw)
 
 
 @pytest.mark.parametrize("image", ["singlemarkersoriginal.jpg", "gboriginal.png", "choriginal.jpg", "chocclusion_original.jpg"])
-def test_real_photos_every_marker_with_gold_corners(shared_data: Path, image: str) -> None:
-    entry = _gold(shared_data)[image]
+def test_real_photos_every_marker_with_gold_corners(real_data: Path, image: str) -> None:
+    entry = _gold(real_data)[image]
     gold = entry["markers"] if isinstance(entry["markers"], dict) else ast.literal_eval(entry["markers"])
-    ids, corners = MarkerDetector(_config(shared_data, entry)).find(cv2.imread(str(shared_data / TUTORIAL / image)))
+    ids, corners = MarkerDetector(_config(real_data, entry)).find(cv2.imread(str(real_data / TUTORIAL / image)))
     found = dict(zip(ids.tolist(), corners))
     assert sorted(found) == sorted(int(k) for k in gold), f"{image}: ids differ"
     for k, c in gold.items():
@@ -48,22 +48,22 @@ def test_real_photos_every_marker_with_gold_corners(shared_data: Path, image: st
         assert err <= MARKER_TOL_PX, f"{image} marker {k}: corner off by {err:.2f} px"
 
 
-def test_real_diamond_photo_finds_every_marker_with_upstream_params(shared_data: Path) -> None:
-    entry = _gold(shared_data)["diamondmarkers.png"]
+def test_real_diamond_photo_finds_every_marker_with_upstream_params(real_data: Path) -> None:
+    entry = _gold(real_data)["diamondmarkers.png"]
     expected = entry["expected_marker_id_counts"]
     expected = ast.literal_eval(expected) if isinstance(expected, str) else expected
-    cfg = _config(shared_data, entry, detector_params=shared_data / TUTORIAL / "detector_params.yml")
+    cfg = _config(real_data, entry, detector_params=real_data / TUTORIAL / "detector_params.yml")
     cfg = cfg.model_copy(update={"corner_refinement": "apriltag"})
-    ids, _ = MarkerDetector(cfg).find(cv2.imread(str(shared_data / TUTORIAL / "diamondmarkers.png")))
+    ids, _ = MarkerDetector(cfg).find(cv2.imread(str(real_data / TUTORIAL / "diamondmarkers.png")))
     counts = {str(i): int((ids == i).sum()) for i in np.unique(ids)}
     assert counts == {k: int(v) for k, v in expected.items()}
 
 
-def test_real_photo_pose_reprojects_onto_the_corners(shared_data: Path) -> None:
+def test_real_photo_pose_reprojects_onto_the_corners(real_data: Path) -> None:
     """Both IPPE candidates are kept, sorted by reprojection error, on a real calibrated image."""
-    fs = cv2.FileStorage(str(shared_data / TUTORIAL / "tutorial_camera_charuco.yml"), cv2.FILE_STORAGE_READ)
+    fs = cv2.FileStorage(str(real_data / TUTORIAL / "tutorial_camera_charuco.yml"), cv2.FILE_STORAGE_READ)
     info = CameraInfo(640, 480, fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel())
-    img = cv2.imread(str(shared_data / TUTORIAL / "singlemarkersoriginal.jpg"))
+    img = cv2.imread(str(real_data / TUTORIAL / "singlemarkersoriginal.jpg"))
     dets = MarkerDetector(MarkerConfig(dictionary="DICT_6X6_250", side_m=0.05)).detect(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), info)
     assert len(dets) == 6
     for d in dets:

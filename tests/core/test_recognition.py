@@ -1,4 +1,4 @@
-"""Recognition against the Point Cloud Library's own data and reference values (shared/data/pcl)."""
+"""Recognition against the Point Cloud Library's own data and reference values (data/pcl)."""
 
 from __future__ import annotations
 
@@ -26,8 +26,9 @@ from recognition.vfh import F_BINS, vfh
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, look_at_matrix, make_pose, rotation_angle
 from tests.helpers import assert_pose_close
+from tests.conftest import REAL_DATA
 
-PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
+PCL = REAL_DATA / "pcl"
 GRABBER_K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])  # pclzf/*.xml
 
 

@@ -21,9 +21,9 @@ from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
 from recognition.verify import GREY, DepthView, Explained, chroma_ranges, colour_agrees, inliers_and_violations, verdict
 from schemas.geometry import make_pose, rpy_matrix
-from tests.conftest import SHARED_DATA
+from tests.conftest import REAL_DATA
 
-PCL = SHARED_DATA / "pcl"
+PCL = REAL_DATA / "pcl"
 K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 TOL, NOISE = 0.015, 0.0043
 
