@@ -20,8 +20,6 @@ import logging
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -29,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import demo_cell_text, main
-from drivers.sim.scenario import load_scenario
+from benchmarks.common import launch_demo_cell, main
 from schemas import keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
@@ -99,12 +96,6 @@ class Watch:
 
     def all_localized_after(self, t: float) -> bool:
         return any(at > t and all(s.get(c) == m.CameraState.LOCALIZED for c in CAMERAS) for at, s in self.states[-50:])
-
-
-def scenario_toml(path: Path, duration_s: float) -> None:
-    """The demo cell, running long enough for the soak (its camera motions happen in the warm-up)."""
-    path.write_text(demo_cell_text(duration_s + 120))
-    load_scenario(path)
 
 
 def processes(run_dir: Path) -> dict[str, int]:
@@ -186,28 +177,16 @@ def window(samples: list[tuple[float, float]], lo: float, hi: float) -> np.ndarr
 
 
 def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]:
-    from tests.conftest import free_port
-
     minutes = 0.75 if quick else (args.minutes if args is not None else 30.0)
     sched = Schedule(minutes * 60, 10.0, 5.0, 5.0, 5.0) if quick else Schedule(minutes * 60, 60.0, 300.0, 90.0, 60.0)
-    port = free_port()
     watch, faults = Watch(), []
     rss: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, private MiB)
     shm: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, shared-memory MiB)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        run_dir = tmp / "run"
-        scenario_toml(tmp / "scenario.toml", sched.duration_s)
-        (tmp / "cell.toml").write_text(f'[cell]\nname = "{CELL}"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
-        proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(run_dir), "--record"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        proc, run_dir, port = launch_demo_cell(tmp, CELL, sched.duration_s + 120)  # its camera motions happen in the warm-up
         bus = None
         try:
-            deadline = time.monotonic() + 300  # the recognition models are built first
-            while not (run_dir / "processes.json").exists():
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError(f"the cell did not start (see {run_dir}/logs)")
-                time.sleep(0.5)
             t0, t0_ns = time.monotonic(), time.time_ns()
             bus = Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), CELL)
             bus.subscribe(keys.estimate_status(CELL), m.EstimatorStatus, callback=watch.on_status)

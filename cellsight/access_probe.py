@@ -29,6 +29,12 @@ class ProbeResult:
     cells: int = 0
     violations: list[tuple[AccessCell, str]] = field(default_factory=list)
 
+    def judge(self, cell: AccessCell, happened: bool, what: str) -> None:
+        """Count a cell; a violation where what happened (``what``, or its negation) is not what it allows."""
+        self.cells += 1
+        if happened != cell.allowed:
+            self.violations.append((cell, what if happened else f"not {what}"))
+
 
 def _wait(pred, timeout_s: float) -> None:
     end = time.monotonic() + timeout_s
@@ -86,9 +92,7 @@ def _puts(buses: dict[str, Bus], matrix: list[AccessCell], got, lock, timeout_s:
     with lock:
         delivered = got["observer"]
         for c in puts:
-            result.cells += 1
-            if ((c.key, c.role) in delivered) != c.allowed:
-                result.violations.append((c, "not delivered" if c.allowed else "delivered"))
+            result.judge(c, (c.key, c.role) in delivered, "delivered")
         for c in (c for c in matrix if c.operation == "subscribe"):
             result.cells += 1
             owners = {(k, r) for k, r in allowed if k == c.key and r != c.role}
@@ -112,9 +116,7 @@ def _tokens(buses: dict[str, Bus], matrix: list[AccessCell], cell: str, timeout_
         time.sleep(SETTLE_S)
         look()
         for c in cells:
-            result.cells += 1
-            if (c.key in seen) != c.allowed:
-                result.violations.append((c, "token seen" if not c.allowed else "token not seen"))
+            result.judge(c, c.key in seen, "token seen")
     finally:
         for t in tokens:
             t.undeclare()
@@ -137,9 +139,7 @@ def _queries(buses: dict[str, Bus], matrix: list[AccessCell], result: ProbeResul
                 result.violations.append((c, "no answer"))
         every = set().union(*(got - {role} for role, got in answers.items()))  # a session's own answer is local
         for c in answering:
-            result.cells += 1
-            if (c.role in every) != c.allowed:
-                result.violations.append((c, "answer delivered" if not c.allowed else "answer not delivered"))
+            result.judge(c, c.role in every, "answer delivered")
     finally:
         for q in queryables:
             q.undeclare()

@@ -151,7 +151,7 @@ def _bus(cell_cfg, cell: str | None, transport: TransportFlags):
     """A bus session from the cell config's transport with the command's flags on top."""
     from schemas.bus import Bus
 
-    return Bus(transport.apply(cell_cfg.transport), cell or cell_cfg.cell.name)
+    return Bus(transport.apply(cell_cfg.transport), cell or cell_cfg.cell.name, cell_cfg.wire)
 
 
 # ---------------------------------------------------------------- config

@@ -26,6 +26,7 @@ from estimator.config import EstimatorConfig
 from recognition.config import RecognitionConfig
 from schemas.bus import TransportConfig
 from schemas.keys import check_name
+from schemas.limits import WireLimits
 from schemas.ros2 import Ros2Config
 from schemas.spec import format_validation_error, read_toml
 
@@ -70,6 +71,7 @@ class CellConfig(BaseModel):
     estimator: EstimatorConfig = Field(default_factory=EstimatorConfig)
     recognition: RecognitionConfig = Field(default_factory=RecognitionConfig)
     ros2: Ros2Config = Field(default_factory=Ros2Config)
+    wire: WireLimits = Field(default_factory=WireLimits)
 
     @model_validator(mode="after")
     def _consistent(self) -> "CellConfig":

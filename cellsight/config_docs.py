@@ -70,7 +70,7 @@ def section(model: type[BaseModel], name: str, seen: set[str], array: bool = Fal
     """The table of one model's fields, then the sections of the models inside it; ``array``:
     a TOML array of tables (``[[name]]``)."""
     lines = [f"\n## `[[{name}]]`\n" if array else f"\n## `[{name}]`\n"]
-    doc = (model.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
+    doc = " ".join((model.__doc__ or "").strip().split("\n\n")[0].split())
     if doc:
         lines.append(doc + "\n")
     lines += ["| field | type | default | what |", "|---|---|---|---|"]
