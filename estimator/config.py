@@ -36,7 +36,7 @@ class KeyframeConfig(BaseModel):
         default=0, ge=0,
         description="online: a moving frame's factors go to at most this many of its markers, the best-determined "
         "(smallest position covariance; 0: all). A latency knob for cells whose cameras each see dozens of markers, at a "
-        "cost in accuracy (docs/design.md)",
+        "cost in accuracy (docs/design/estimator.md)",
     )
     lag_s: float = Field(
         default=2.0, ge=0,

@@ -1,4 +1,4 @@
-"""Object recognition: VFH descriptors, camera-roll alignment and ICP (docs/design.md, recognition).
+"""Object recognition: VFH descriptors, camera-roll alignment and ICP (docs/design/recognition.md).
 
 Pure cores: ``cloud`` (depth -> cloud, normals), ``vfh``, ``align`` (roll histogram, ICP),
 ``segment``, ``models`` (the database), ``pipeline`` (one frame -> detections).

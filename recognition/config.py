@@ -91,7 +91,7 @@ class RecognitionConfig(BaseModel):
     min_plane_fraction: float = Field(default=0.1, gt=0, le=1, description="a dominant plane holds this share of the scene")
     plane_seed: int = Field(
         default=0, ge=0, description="seed of the plane RANSAC: its draw decides which planes a room's frame loses "
-        "(docs/design.md, 'A room in view')"
+        "(docs/design/recognition.md, Segmentation)"
     )
     cluster_tolerance_m: float = Field(default=0.035, gt=0, description="Euclidean clustering distance")
     cluster_min_points: int = Field(default=30, ge=3)

@@ -23,8 +23,8 @@ from tests.helpers import logged_messages, wait_until
 CELL = "rr"
 
 
-def status(i: int) -> m.DriverStatus:
-    return m.DriverStatus(camera_id="cam1", stamp_ns=1_000 + i, frames=i)
+def status(i: int, camera: str = "cam1") -> m.DriverStatus:
+    return m.DriverStatus(camera_id=camera, stamp_ns=1_000 + i, frames=i)
 
 
 def test_recorder_writes_what_decodes_and_skips_garbage(client_transport: TransportConfig, tmp_path: Path) -> None:
@@ -139,7 +139,7 @@ def test_a_camera_falling_silent_is_marked_in_the_log(client_transport: Transpor
             end = time.monotonic() + seconds
             while time.monotonic() < end:
                 for pub in pubs:
-                    pub.put(status(1))
+                    pub.put(status(1, keys.parse(pub.key).camera))  # each camera's on its own key
                 time.sleep(0.05)
 
         talk(0.5, cam1, cam2)
