@@ -1,19 +1,22 @@
-"""Fuzz: a driver credential's worst, into a running demo cell and into ``resolve``; the access matrix.
+"""Fuzz: the worst a peer can send, into a running demo cell and into ``resolve``; the access matrix.
 
 Three parts, one run:
 
 1. **Access matrix**: a fresh secure profile, the real router, every cell of
    ``schemas.security.access_matrix`` tried with each role's certificate (``cellsight.access_probe``):
    ``acl_cells_tested``, ``acl_violations``.
-2. **A running cell**: the demo cell under ``cellsight run --record``. After a fault-free window
-   (the baseline), ``--messages`` fuzzed messages (hypothesis, ``fuzzed``) go onto the keys a driver
-   may put (the cameras' and ghost cameras' markers, status, camera_info and images): well-formed
-   protobuf whose fields are drawn from extremes (NaN, infinities, 1e300, subnormals, negative and
-   far-future stamps, huge counts, ids of other cameras and of none) and from plausible values.
-   ``processes_exited`` (any process of the cell not running at the end) and
-   ``supervisor_restarts`` must be 0; ``camera_error_over_baseline_max`` is each camera's median
-   position error against the simulator's truth in the window after the fuzz over the one before,
-   the worst camera; ``rejected_by_reason_*`` are the estimator's refusals (its status).
+2. **A running cell**: the demo cell under ``cellsight run --record`` (the local profile: any
+   process may put anything). After a fault-free window (the baseline), ``--messages`` fuzzed
+   messages (hypothesis, ``fuzzed``) go onto the cameras' and ghost cameras' markers, status,
+   camera_info and images, and (a quarter of them) onto the cell-wide keys (tf, estimates,
+   objects, points, truth): well-formed protobuf whose fields are drawn from extremes (NaN,
+   infinities, 1e300, subnormals, negative and far-future stamps, huge counts, ids of other cameras
+   and of none) and from plausible values. ``processes_exited`` (any process of the cell not
+   running at the end, or replaced) and ``supervisor_restarts`` must be 0;
+   ``camera_error_over_baseline_max`` is each camera's median position error against the
+   scenario's truth, as the estimator answers ``estimate/map`` (forged puts answer no query), in the
+   window after the fuzz over the one before, the worst camera; ``rejected_by_reason_*`` are the
+   estimator's refusals (its status).
 3. **Logs**: every part the recorder wrote reads to its footer (``unreadable_logs``), and
    ``cellsight resolve`` of the recording and of a log holding every fuzzed message (as written by
    ``LogWriter``, with times MCAP can hold) ends with exit code 0 or 1 and no traceback
@@ -53,7 +56,22 @@ SETTLE_S, WINDOW_S = 20.0, 8.0
 # ---------------------------------------------------------------- what is drawn
 
 #: Floats a field may take: extremes first (hypothesis also shrinks towards them), then plausible ones.
-EXTREMES = (0.0, -0.0, 1.0, -1.0, 1e300, -1e300, 1e6, -1e6, 5e-324, 1e-40, 101.0, float("nan"), float("inf"), float("-inf"))
+EXTREMES = (
+    0.0,
+    -0.0,
+    1.0,
+    -1.0,
+    1e300,
+    -1e300,
+    1e6,
+    -1e6,
+    5e-324,
+    1e-40,
+    101.0,
+    float("nan"),
+    float("inf"),
+    float("-inf"),
+)
 floats = st.one_of(st.sampled_from(EXTREMES), st.floats(-5.0, 5.0), st.floats(allow_nan=True, allow_infinity=True))
 uint32 = st.one_of(st.sampled_from((0, 1, 2**31, 2**32 - 1)), st.integers(0, 2**32 - 1))
 uint64 = st.one_of(st.sampled_from((0, 2**63, 2**64 - 1)), st.integers(0, 2**64 - 1))
@@ -97,7 +115,12 @@ def own_or_other(camera: str) -> st.SearchStrategy[str]:
 
 @st.composite
 def marker_observations(draw, camera: str) -> m.MarkerObservations:
-    msg = m.MarkerObservations(camera_id=draw(own_or_other(camera)), stamp_ns=draw(stamps()), image_width=draw(uint32), image_height=draw(uint32))
+    msg = m.MarkerObservations(
+        camera_id=draw(own_or_other(camera)),
+        stamp_ns=draw(stamps()),
+        image_width=draw(uint32),
+        image_height=draw(uint32),
+    )
     for _ in range(draw(st.sampled_from((0, 1, 2, 3, 5, 40)))):
         draw(marker(msg.markers.add()))
     return msg
@@ -105,16 +128,30 @@ def marker_observations(draw, camera: str) -> m.MarkerObservations:
 
 @st.composite
 def driver_status(draw, camera: str) -> m.DriverStatus:
-    return m.DriverStatus(camera_id=draw(own_or_other(camera)), stamp_ns=draw(stamps()), state=draw(st.integers(0, 5)), source="fuzz",
-                          rate_hz=draw(floats), frames=draw(uint64), dropped=draw(uint64), message=draw(st.text(max_size=50)))  # fmt: skip
+    return m.DriverStatus(
+        camera_id=draw(own_or_other(camera)),
+        stamp_ns=draw(stamps()),
+        state=draw(st.integers(0, 5)),
+        source="fuzz",
+        rate_hz=draw(floats),
+        frames=draw(uint64),
+        dropped=draw(uint64),
+        message=draw(st.text(max_size=50)),
+    )
 
 
 @st.composite
 def camera_info(draw, camera: str) -> m.CameraCalibration:
-    msg = m.CameraCalibration(frame_id=draw(own_or_other(camera)), width=draw(uint32), height=draw(uint32), distortion_model="plumb_bob")
+    msg = m.CameraCalibration(
+        frame_id=draw(own_or_other(camera)), width=draw(uint32), height=draw(uint32), distortion_model="plumb_bob"
+    )
     if draw(st.booleans()):
         codec.stamp_to_timestamp(draw(stamps()), msg.timestamp)
-    msg.K.extend(draw(st.lists(floats, min_size=0, max_size=12)) if draw(st.booleans()) else [525.0, 0, 320, 0, 525.0, 240, 0, 0, 1])
+    msg.K.extend(
+        draw(st.lists(floats, min_size=0, max_size=12))
+        if draw(st.booleans())
+        else [525.0, 0, 320, 0, 525.0, 240, 0, 0, 1]
+    )
     msg.D.extend(draw(st.lists(floats, max_size=8)))
     return msg
 
@@ -123,7 +160,13 @@ def camera_info(draw, camera: str) -> m.CameraCalibration:
 def image(draw, camera: str) -> m.RawImage:
     w, h = draw(st.sampled_from(((4, 3), (0, 3), (2**31, 1), (640, 480))))
     encoding = draw(st.sampled_from(("16UC1", "rgb8", "bgr8", "mono8", "yuv422", "")))
-    msg = m.RawImage(frame_id=draw(own_or_other(camera)), width=w, height=h, encoding=encoding, step=draw(st.sampled_from((w * 2, w * 3, 0, 7))))
+    msg = m.RawImage(
+        frame_id=draw(own_or_other(camera)),
+        width=w,
+        height=h,
+        encoding=encoding,
+        step=draw(st.sampled_from((w * 2, w * 3, 0, 7))),
+    )
     seconds = draw(st.one_of(st.just(time.time_ns() // 10**9), st.integers(-(2**63), 2**63 - 1)))
     msg.timestamp.seconds, msg.timestamp.nanos = seconds, draw(st.integers(0, 999_999_999))
     msg.data = bytes(draw(st.sampled_from((0, 24, 36, 100))))
@@ -131,20 +174,123 @@ def image(draw, camera: str) -> m.RawImage:
 
 
 #: Camera topics a driver may put, and what is drawn for each.
-TOPICS = {"markers": marker_observations, "status": driver_status, "camera_info": camera_info,
-          "depth/image_raw": image, "color/image_raw": image}  # fmt: skip
+TOPICS = {
+    "markers": marker_observations,
+    "status": driver_status,
+    "camera_info": camera_info,
+    "depth/image_raw": image,
+    "color/image_raw": image,
+}
+
+
+frame_ids = st.sampled_from(("world", "cam1", "marker_0", "object_can", "", "x" * 200))
 
 
 @st.composite
-def fuzzed(draw, cell: str = CELL) -> tuple[str, bytes]:
-    """(key, payload): a camera topic of a real or ghost camera, and a message drawn for it."""
-    topic = draw(st.sampled_from(sorted(TOPICS)))
-    camera = draw(st.sampled_from(CAMERAS + GHOSTS))
+def pose(draw, msg: m.Pose) -> None:
+    msg.x, msg.y, msg.z = (
+        draw(st.one_of(st.floats(-3.0, 3.0), floats)),
+        draw(floats),
+        draw(st.one_of(st.floats(-3.0, 3.0), floats)),
+    )
+    if draw(st.booleans()):
+        msg.qw = 1.0
+    else:
+        msg.qx, msg.qy, msg.qz, msg.qw = (draw(floats) for _ in range(4))
+
+
+@st.composite
+def poses(draw) -> m.PosesWithCovariance:
+    """Camera, marker or truth poses, as the estimator or the simulator publishes them."""
+    msg = m.PosesWithCovariance(stamp_ns=draw(stamps()))
+    for _ in range(draw(st.sampled_from((0, 1, 3, 40)))):
+        item = msg.poses.add(parent_frame_id="world", child_frame_id=draw(frame_ids), stamp_ns=draw(stamps()))
+        draw(pose(item.pose))
+        if draw(st.booleans()):
+            sigma = draw(st.one_of(st.just(0.002), floats))
+            with np.errstate(all="ignore"):
+                item.covariance.extend(
+                    (np.eye(6) * sigma * sigma).reshape(36).tolist()[: draw(st.sampled_from((36, 36, 35)))]
+                )
+    return msg
+
+
+@st.composite
+def transforms(draw) -> m.FrameTransforms:
+    msg = m.FrameTransforms()
+    for _ in range(draw(st.sampled_from((0, 1, 5)))):
+        tr = msg.transforms.add(parent_frame_id="world", child_frame_id=draw(frame_ids))
+        codec.stamp_to_timestamp(draw(stamps()), tr.timestamp)
+        tr.translation.x, tr.translation.y, tr.translation.z = draw(floats), draw(floats), draw(floats)
+        tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (
+            draw(floats),
+            draw(floats),
+            draw(floats),
+            draw(floats),
+        )
+    return msg
+
+
+@st.composite
+def objects(draw) -> m.ObjectDetections:
+    msg = m.ObjectDetections(stamp_ns=draw(stamps()))
+    for _ in range(draw(st.sampled_from((0, 1, 3)))):
+        det = msg.objects.add(object_id=draw(st.sampled_from(("can", "crate", "", "a/b"))), fitness=draw(floats), rmse_m=draw(floats),
+                              stamp_ns=draw(stamps()))  # fmt: skip
+        det.camera_ids.extend(draw(st.lists(camera_ids, max_size=3)))
+        draw(pose(det.world_T_object))
+    return msg
+
+
+@st.composite
+def estimator_status(draw) -> m.EstimatorStatus:
+    msg = m.EstimatorStatus(
+        stamp_ns=draw(stamps()), observations=draw(uint64), rejected=draw(uint64), update_ms=draw(floats)
+    )
+    for _ in range(draw(st.sampled_from((0, 1, 4)))):
+        msg.cameras.add(
+            camera_id=draw(camera_ids),
+            state=draw(st.integers(0, 4)),
+            position_sigma_m=draw(floats),
+            last_stamp_ns=draw(stamps()),
+        )
+    return msg
+
+
+@st.composite
+def cloud(draw) -> m.PointCloud:
+    n = draw(st.sampled_from((0, 3, 100)))
+    xyz = np.array([[draw(floats) for _ in range(3)]] * n, dtype=np.float32).reshape(-1, 3) if n else np.zeros((0, 3))
+    msg = codec.points_to_msg(
+        draw(stamps()), "world", np.nan_to_num(xyz) if draw(st.booleans()) else xyz, np.zeros((n, 4), np.uint8)
+    )
+    if draw(st.booleans()):
+        msg.data = msg.data[: draw(st.integers(0, len(msg.data)))]
+    return msg
+
+
+#: Cell-wide topics, and what is drawn for each: under the secure profile only their owner may put
+#: them, on a cell without it anyone can.
+CELL_TOPICS = {"tf": transforms, "estimate/cameras": poses, "estimate/markers": poses, "estimate/status": estimator_status,
+               "objects": objects, "points": cloud, "truth/cameras": poses, "truth/marker_poses": poses}  # fmt: skip
+
+
+@st.composite
+def fuzzed(draw, cell: str = CELL, cell_wide: bool = True) -> tuple[str, bytes]:
+    """(key, payload): a camera topic of a real or ghost camera, or (``cell_wide``) a cell-wide
+    topic, and a message drawn for it."""
+    if cell_wide and draw(st.integers(0, 3)) == 0:
+        topic = draw(st.sampled_from(sorted(CELL_TOPICS)))
+        key, strategy = keys.cell_topic(cell, topic), CELL_TOPICS[topic]()
+    else:
+        topic, camera = draw(st.sampled_from(sorted(TOPICS))), draw(st.sampled_from(CAMERAS + GHOSTS))
+        key, strategy = keys.camera_topic(cell, camera, topic), TOPICS[topic](camera)
     try:
-        payload = draw(TOPICS[topic](camera)).SerializeToString()
+        with np.errstate(all="ignore"):
+            payload = draw(strategy).SerializeToString()
     except (ValueError, OverflowError):  # protobuf refuses to hold some values (a uint32 field's range): garbage then
         payload = bytes(draw(st.binary(max_size=64)))
-    return keys.camera_topic(cell, camera, topic), payload
+    return key, payload
 
 
 def generate(n: int, seed: int) -> list[tuple[str, bytes]]:
@@ -183,43 +329,52 @@ def acl_figures(tmp: Path) -> dict[str, float]:
 
 
 class Errors:
-    """Each camera's position error (m) against the newest truth, per estimate, stamped with time.monotonic()."""
+    """Each camera's position error (m) against its true pose, per answer of the estimator's
+    ``estimate/map`` queryable (polled: forged puts on ``estimate/cameras`` answer no query, and
+    the truth comes from the scenario file, not from ``truth/`` keys the fuzz also puts on)."""
 
-    def __init__(self) -> None:
-        self.truth: dict[str, np.ndarray] = {}
+    def __init__(self, truth: dict[str, np.ndarray]) -> None:
+        self.truth = truth
         self.samples: dict[str, list[tuple[float, float]]] = defaultdict(list)
         self.status: m.EstimatorStatus | None = None
-        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
 
-    def on_truth(self, r) -> None:
-        with self._lock:
-            self.truth.update({k: p.T for k, p in codec.poses_from_msg(r.msg).items()})
+    def poll(self, bus, period_s: float = 0.25) -> None:
+        def loop() -> None:
+            while not self._stop.wait(period_s):
+                for reply in bus.query(keys.estimate_map(CELL), timeout_s=1.0):
+                    now = time.monotonic()
+                    self.status = reply.msg.status
+                    for cam, p in codec.poses_from_msg(reply.msg.cameras).items():
+                        if cam in self.truth:
+                            self.samples[cam].append((now, float(np.linalg.norm(p.T[:3, 3] - self.truth[cam][:3, 3]))))
 
-    def on_estimate(self, r) -> None:
-        now = time.monotonic()
-        with self._lock:
-            for cam, p in codec.poses_from_msg(r.msg).items():
-                if cam in self.truth:
-                    self.samples[cam].append((now, float(np.linalg.norm(p.T[:3, 3] - self.truth[cam][:3, 3]))))
+        self._thread = threading.Thread(target=loop, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
 
     def median(self, cam: str, lo: float, hi: float) -> float:
-        with self._lock:
-            window = [e for t, e in self.samples[cam] if lo <= t < hi]
+        window = [e for t, e in list(self.samples[cam]) if lo <= t < hi]
         return float(np.median(window)) if window else float("nan")
 
 
 def cell_figures(tmp: Path, messages: list[tuple[str, bytes]], rate_hz: float) -> tuple[dict[str, float], Path]:
     from benchmarks.soak import processes
+    from drivers.sim.scenario import load_scenario
     from schemas.bus import Bus, TransportConfig
 
     proc, run_dir, port = launch_demo_cell(tmp, CELL, SETTLE_S + 2 * WINDOW_S + len(messages) / rate_hz + 60)
-    errors, bus = Errors(), None
+    scenario = load_scenario(tmp / "scenario.toml")  # the demo's cameras are still after 14 s
+    errors, bus = Errors({c.id: c.world_T_camera(SETTLE_S) for c in scenario.cameras}), None
     try:
         t0 = time.monotonic()
         bus = Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), CELL)
-        bus.subscribe(keys.truth(CELL, "cameras"), m.PosesWithCovariance, callback=errors.on_truth)
-        bus.subscribe(keys.estimate_cameras(CELL), m.PosesWithCovariance, callback=errors.on_estimate)
-        bus.subscribe(keys.estimate_status(CELL), m.EstimatorStatus, callback=lambda r: setattr(errors, "status", r.msg))
+        errors.poll(bus)
         before = processes(run_dir)
         time.sleep(max(t0 + SETTLE_S + WINDOW_S - time.monotonic(), 0.0))
         fuzz_from = time.monotonic()
@@ -237,12 +392,16 @@ def cell_figures(tmp: Path, messages: list[tuple[str, bytes]], rate_hz: float) -
         proc.send_signal(signal.SIGTERM)
         proc.wait(120)
     finally:
+        errors.stop()
         if bus is not None:
             bus.close()
         if proc.poll() is None:
             proc.kill()
-    ratios = {cam: errors.median(cam, fuzz_to + 1.0, fuzz_to + 1.0 + WINDOW_S) / errors.median(cam, fuzz_from - WINDOW_S, fuzz_from)
-              for cam in CAMERAS}  # fmt: skip
+    ratios = {
+        cam: errors.median(cam, fuzz_to + 1.0, fuzz_to + 1.0 + WINDOW_S)
+        / errors.median(cam, fuzz_from - WINDOW_S, fuzz_from)
+        for cam in CAMERAS
+    }
     reasons: Counter[str] = Counter()
     for r in errors.status.rejections if errors.status is not None else []:
         reasons[r.reason] += r.count
@@ -252,7 +411,10 @@ def cell_figures(tmp: Path, messages: list[tuple[str, bytes]], rate_hz: float) -
         "processes_exited": sum(not ok for ok in alive.values()) + sum(before.get(n) != after.get(n) for n in before),
         "supervisor_restarts": sum(p["restarts"] for p in manifest),
         "camera_error_over_baseline_max": max(ratios.values()),
-        **{f"camera_error_mm_after_{cam}": 1000 * errors.median(cam, fuzz_to + 1.0, fuzz_to + 1.0 + WINDOW_S) for cam in CAMERAS},
+        **{
+            f"camera_error_mm_after_{cam}": 1000 * errors.median(cam, fuzz_to + 1.0, fuzz_to + 1.0 + WINDOW_S)
+            for cam in CAMERAS
+        },
         **{f"rejected_by_reason_{reason}": reasons.get(reason, 0) for reason in REASONS},
         "rejected_total": sum(reasons.values()),
     }
@@ -281,8 +443,12 @@ def log_figures(run_dir: Path, messages: list[tuple[str, bytes]]) -> dict[str, f
     w.close()
     exceptions = 0
     for log in parts[:1] + [every]:
-        out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(log), "--out", str(log.with_suffix(".resolved"))],
-                             capture_output=True, text=True, timeout=1800)  # fmt: skip
+        out = subprocess.run(
+            [sys.executable, "-m", "cellsight.cli", "resolve", str(log), "--out", str(log.with_suffix(".resolved"))],
+            capture_output=True,
+            text=True,
+            timeout=1800,
+        )
         if out.returncode not in (0, 1) or "Traceback" in out.stderr:
             exceptions += 1
             print(f"resolve {log.name}: exit {out.returncode}\n{out.stderr[-2000:]}", file=sys.stderr)
