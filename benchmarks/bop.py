@@ -68,13 +68,19 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.recognition import WORKSPACE, PpfBaseline, random_layout, rough, visibility_class, visible_share  # pins this process to one core first
-
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from rich.progress import track  # noqa: E402
 
 from benchmarks.common import PCL_DATA, main  # noqa: E402
+from benchmarks.recognition import (  # pins this process to one core first
+    WORKSPACE,
+    PpfBaseline,
+    random_layout,
+    rough,
+    visibility_class,
+    visible_share,
+)
 from cellsight.bop import MODEL_FOLDERS, BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
 from cellsight.errors import ConfigError  # noqa: E402
@@ -91,15 +97,28 @@ from schemas.geometry import invert_pose  # noqa: E402
 
 NEAR_M = 1.2  # instances nearer the camera than this (m) are scored apart too (``bop_adds_recall_near``)
 #: PCL's real Kinect frames (organised clouds, fx = fy = 525 px), none holding a demo object.
-REAL_FRAMES = ("milk_cartoon_all_small_clorox.pcd", "office1.pcd", "five_people.pcd",
-               *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))
+REAL_FRAMES = (
+    "milk_cartoon_all_small_clorox.pcd",
+    "office1.pcd",
+    "five_people.pcd",
+    *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))),
+)
 KINECT_F = 525.0  # the PCL frames' focal length, px (data README)
 #: The pass on objects that are no box or cylinder (``drivers.sim.shapes``; not with --quick): its layouts, and
 #: the figures it reports, named bop_shapes_...
 SHAPE_LAYOUTS = 3
-SHAPE_FIGURES = ("bop_instances_scored", "bop_adds_recall", "bop_adds_recall_near", "bop_adds_recall_far", "bop_false_detections",
-                 "bop_ppf_adds_recall", "bop_adds_recall_camera_frame", "bop_false_detections_camera_frame",
-                 "bop_adds_recall_depth_only", "bop_false_detections_depth_only")
+SHAPE_FIGURES = (
+    "bop_instances_scored",
+    "bop_adds_recall",
+    "bop_adds_recall_near",
+    "bop_adds_recall_far",
+    "bop_false_detections",
+    "bop_ppf_adds_recall",
+    "bop_adds_recall_camera_frame",
+    "bop_false_detections_camera_frame",
+    "bop_adds_recall_depth_only",
+    "bop_false_detections_depth_only",
+)
 #: Models added to the database in a pass of their own (``bop_adds_recall_lookalikes``), never in a
 #: frame: boxes and cans a fifth smaller or larger than the demo's, the crate's and the can's shapes
 #: in other colours. A dataset's database holds such families (YCB-V: four boxes, four cans).
@@ -124,10 +143,17 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
     """The scenario's objects laid on their side at random table positions and yaws, apart as
     ``random_layout`` keeps upright ones: each object turned a quarter about its x axis, its height
     along the table."""
+
     def stand_in(o: ObjectSpec) -> ObjectSpec:  # its outline lying down, as an upright box's
         width = 2 * o.size[0] if o.shape == "cylinder" else o.size[0]
         return o.model_copy(update={"shape": "box", "size": (width, o.size[2], 0.1)})
-    placed = {o.id: o.world_T_object(0.0) for o in random_layout(s.model_copy(update={"objects": [stand_in(o) for o in s.objects]}), rng, tight=False).objects}  # fmt: skip
+
+    placed = {
+        o.id: o.world_T_object(0.0)
+        for o in random_layout(
+            s.model_copy(update={"objects": [stand_in(o) for o in s.objects]}), rng, tight=False
+        ).objects
+    }
     objects = []
     for o in s.objects:
         T = placed[o.id]
@@ -138,8 +164,9 @@ def lying_layout(s: Scenario, rng: np.random.Generator) -> Scenario:
     return s.model_copy(update={"objects": objects})
 
 
-def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec] | None = None,
-                  rough_sensor: bool = False) -> Path:  # fmt: skip
+def write_default(
+    root: Path, layouts: int, lying: int, objects: list[ObjectSpec] | None = None, rough_sensor: bool = False
+) -> Path:
     """The dataset measured without --dataset (module docstring): simulated scenes 1..layouts from
     the cell's cameras, layouts+1..2 layouts from close, ``lying`` more after them with the objects
     on their side (every other one from close, without the cameras' poses), the real frames scene
@@ -166,12 +193,26 @@ def write_default(root: Path, layouts: int, lying: int, objects: list[ObjectSpec
         cell = SimCell(s)
         for image_id, cam in enumerate(s.cameras):
             frame = cell.render(cam.id, 0.0, scene)
-            truth = [(ids[o.id], invert_pose(frame.world_T_camera) @ o.world_T_object(0.0), visible_share(cell, s, cam.id, o))
-                     for o in s.objects]  # fmt: skip
+            truth = [
+                (
+                    ids[o.id],
+                    invert_pose(frame.world_T_camera) @ o.world_T_object(0.0),
+                    visible_share(cell, s, cam.id, o),
+                )
+                for o in s.objects
+            ]
             # Lying objects are no cell's (its upright test turns them down): their frames go without
             # the camera's pose, as a dataset's.
-            w.add_frame(scene, image_id, frame.depth_mm * 0.001, frame.info.K, truth, frame.rgb, depth_scale_mm=1.0,
-                        world_T_camera=frame.world_T_camera if scene <= 2 * layouts else None)
+            w.add_frame(
+                scene,
+                image_id,
+                frame.depth_mm * 0.001,
+                frame.info.K,
+                truth,
+                frame.rgb,
+                depth_scale_mm=1.0,
+                world_T_camera=frame.world_T_camera if scene <= 2 * layouts else None,
+            )
     for image_id, name in enumerate(REAL_FRAMES if objects is None else ()):
         depth, K, rgb = kinect_frame(name)
         w.add_frame(100, image_id, depth, K, [], rgb)
@@ -189,8 +230,9 @@ class Tally:
     upside_down: int = 0
     times: list[float] = field(default_factory=list)
 
-    def add(self, frame: BopFrame, found: list[tuple[str, np.ndarray]], db: ModelDatabase,
-            diameter: dict[str, float]) -> bool:  # fmt: skip
+    def add(
+        self, frame: BopFrame, found: list[tuple[str, np.ndarray]], db: ModelDatabase, diameter: dict[str, float]
+    ) -> bool:
         """Score a frame's detections (object id, camera_T_object) against its annotations: whether
         all was right (no false detection, every scored instance found)."""
         s = score(frame.truth, found, {oid: m.points for oid, m in db.models.items()}, diameter)
@@ -198,7 +240,11 @@ class Tally:
         for inst, hit, j in zip(frame.truth, s.found, s.matched):
             if (cls := _class(inst.visible_share)) is not None:
                 self.rows.append((cls, bool(np.linalg.norm(inst.camera_T_object[:3, 3]) < NEAR_M), hit))
-            if j is not None and db.models[inst.object_id].stands_on_z and found[j][1][:3, 2] @ inst.camera_T_object[:3, 2] < 0:
+            if (
+                j is not None
+                and db.models[inst.object_id].stands_on_z
+                and found[j][1][:3, 2] @ inst.camera_T_object[:3, 2] < 0
+            ):
                 self.upside_down += 1
         scored = [hit for inst, hit in zip(frame.truth, s.found) if _class(inst.visible_share) is not None]
         return not s.false and all(scored)
@@ -209,9 +255,16 @@ class Tally:
         return float(np.mean(hits)) if hits else None
 
 
-def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
-                db: ModelDatabase, diameter: dict[str, float], progress: str, colour: bool = True,
-                pictures: Path | None = None) -> Tally:  # fmt: skip
+def _recognised(
+    rec: Recognizer,
+    frames: list[BopFrame],
+    pose_of: dict[tuple[int, int], np.ndarray | None],
+    db: ModelDatabase,
+    diameter: dict[str, float],
+    progress: str,
+    colour: bool = True,
+    pictures: Path | None = None,
+) -> Tally:
     """The frames through ``rec`` with colour (unless not ``colour``: depth alone), each with its
     world pose in ``pose_of`` (absent: none), scored; ``progress`` names the pass on its progress bar.
     pictures: a folder for a picture of each frame with a miss or a false detection
@@ -221,7 +274,9 @@ def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int
     for frame in track(frames, description=progress):
         cloud, rgb = frame.load()
         t0 = time.perf_counter()
-        found = rec.recognize(cloud, world_T_camera=pose_of.get((frame.scene_id, frame.image_id)), rgb=rgb if colour else None)
+        found = rec.recognize(
+            cloud, world_T_camera=pose_of.get((frame.scene_id, frame.image_id)), rgb=rgb if colour else None
+        )
         tally.times.append(time.perf_counter() - t0)
         right = tally.add(frame, [(d.object_id, d.camera_T_object) for d in found], db, diameter)
         if pictures is not None and not right:
@@ -232,9 +287,17 @@ def _recognised(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int
     return tally
 
 
-def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, ...], cfg: RecognitionConfig,
-            lying_scenes: frozenset[int] = frozenset(), world_z_up: bool = False,
-            lookalikes: tuple[ObjectSpec, ...] = (), depth_only: bool = True, pictures: Path | None = None) -> dict[str, float]:  # fmt: skip
+def measure(
+    dataset: BopDataset,
+    frames: int | None,
+    distances_m: tuple[float, ...],
+    cfg: RecognitionConfig,
+    lying_scenes: frozenset[int] = frozenset(),
+    world_z_up: bool = False,
+    lookalikes: tuple[ObjectSpec, ...] = (),
+    depth_only: bool = True,
+    pictures: Path | None = None,
+) -> dict[str, float]:
     """Ours and the point-pair baseline on ``frames`` of the dataset's frames (all if None), the
     database built from its models with views at ``distances_m`` (m): the figures of the module
     docstring; ``bop_adds_recall_lying`` over the scenes in ``lying_scenes``. A frame's world pose is
@@ -255,8 +318,12 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
         chosen = [chosen[i] for i in np.linspace(0, len(chosen) - 1, frames).round().astype(int)]
     standing = [f for f in chosen if f.scene_id not in lying_scenes]
     posed = [f for f in standing if f.world_T_camera is not None]
-    pose_of = {(f.scene_id, f.image_id): f.world_T_camera if world_z_up else level_world_pose(rec, f.load()[0], f.world_T_camera)
-               for f in posed}  # fmt: skip
+    pose_of = {
+        (f.scene_id, f.image_id): f.world_T_camera
+        if world_z_up
+        else level_world_pose(rec, f.load()[0], f.world_T_camera)
+        for f in posed
+    }
     ours = _recognised(rec, standing, pose_of, db, diameter, "recognising", pictures=pictures)
     lying_frames = [f for f in chosen if f.scene_id in lying_scenes]
     lying = _recognised(rec, lying_frames, {}, db, diameter, "lying", pictures=pictures)
@@ -273,8 +340,13 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     level = Recognizer(db, cfg.model_copy(update={"level_support": True}))
     alone_level = _recognised(level, posed, {}, db, diameter, "camera frame, level support", pictures=pictures)
     theirs, ppf_times = _baseline(rec, standing, pose_of, db, diameter)
-    out = {"bop_frames": float(len(chosen)), "bop_instances_scored": float(len(ours.rows)), "bop_models": float(len(db.models)),
-           "bop_model_build_s": build_s, "bop_frames_world_pose_set_aside": float(sum(p is None for p in pose_of.values()))}  # fmt: skip
+    out = {
+        "bop_frames": float(len(chosen)),
+        "bop_instances_scored": float(len(ours.rows)),
+        "bop_models": float(len(db.models)),
+        "bop_model_build_s": build_s,
+        "bop_frames_world_pose_set_aside": float(sum(p is None for p in pose_of.values())),
+    }
     for name, tally in (("bop_adds_recall", ours), ("bop_ppf_adds_recall", theirs)):
         out[name] = tally.recall() if tally.rows else float("nan")
         for cls in ("unoccluded", "partly_occluded"):
@@ -310,19 +382,33 @@ def measure(dataset: BopDataset, frames: int | None, distances_m: tuple[float, .
     return out
 
 
-def _with_lookalikes(db: ModelDatabase, cfg: RecognitionConfig, distances_m: tuple[float, ...], lookalikes: tuple[ObjectSpec, ...],
-                     frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
-                     diameter: dict[str, float], pictures: Path | None = None) -> Tally:  # fmt: skip
+def _with_lookalikes(
+    db: ModelDatabase,
+    cfg: RecognitionConfig,
+    distances_m: tuple[float, ...],
+    lookalikes: tuple[ObjectSpec, ...],
+    frames: list[BopFrame],
+    pose_of: dict[tuple[int, int], np.ndarray | None],
+    diameter: dict[str, float],
+    pictures: Path | None = None,
+) -> Tally:
     """The frames recognised with the look-alikes' models added to ``db`` (their views at
     ``distances_m``), each with the world pose the main pass gave it (``pose_of``)."""
     wider = ModelDatabase(db.descriptor, dict(db.models))
     for o in lookalikes:
-        wider.add(model_from_mesh(o.id, object_mesh(o).paint_uniform_color(o.color), cfg.descriptor, distances_m=distances_m))
+        wider.add(
+            model_from_mesh(o.id, object_mesh(o).paint_uniform_color(o.color), cfg.descriptor, distances_m=distances_m)
+        )
     return _recognised(Recognizer(wider, cfg), frames, pose_of, db, diameter, "with look-alikes", pictures=pictures)
 
 
-def _baseline(rec: Recognizer, frames: list[BopFrame], pose_of: dict[tuple[int, int], np.ndarray | None],
-              db: ModelDatabase, diameter: dict[str, float]) -> tuple[Tally, list[float]]:  # fmt: skip
+def _baseline(
+    rec: Recognizer,
+    frames: list[BopFrame],
+    pose_of: dict[tuple[int, int], np.ndarray | None],
+    db: ModelDatabase,
+    diameter: dict[str, float],
+) -> tuple[Tally, list[float]]:
     """Point-pair voting on the frames that hold objects, given which: scored, and its frame times
     (s). In a pass of its own, so that nothing it leaves behind is in our timings; not on lying
     frames (the whole room in view, ~30 s a frame)."""
@@ -345,51 +431,103 @@ def _class(visible: float | None) -> str | None:
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     if args.dataset is not None and args.rough_sensor:
-        raise ConfigError("--rough-sensor renders the simulated dataset; a --dataset's frames are as its sensor took them")
+        raise ConfigError(
+            "--rough-sensor renders the simulated dataset; a --dataset's frames are as its sensor took them"
+        )
     if args.dataset is not None:
         cfg = load_config(args.cell_config).recognition if args.cell_config else RecognitionConfig()
         cfg = cfg.model_copy(update={"free_with_pose": not args.standing})
         dataset = BopDataset.open(args.dataset, args.split, args.models)
-        return measure(dataset, args.frames or (10 if quick else None), tuple(args.distance), cfg,
-                       world_z_up=args.world_z_up, pictures=args.pictures)
+        return measure(
+            dataset,
+            args.frames or (10 if quick else None),
+            tuple(args.distance),
+            cfg,
+            world_z_up=args.world_z_up,
+            pictures=args.pictures,
+        )
     # The simulated frames carry the cameras' poses in the cell, so the cell's workspace crops them,
     # as in the running cell; PCL's real frames have none and are recognised in the camera frame.
     cfg = RecognitionConfig(workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
     layouts, lying = (1, 1) if quick else (6, 6)
     with tempfile.TemporaryDirectory() as tmp:
         dataset = BopDataset.open(write_default(Path(tmp) / "demo", layouts, lying, rough_sensor=args.rough_sensor))
-        out = measure(dataset, args.frames, tuple(args.distance), cfg, frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
-                      world_z_up=True, lookalikes=() if quick else LOOKALIKES, depth_only=not quick,
-                      pictures=args.pictures)  # the cell's world, written here
+        out = measure(
+            dataset,
+            args.frames,
+            tuple(args.distance),
+            cfg,
+            frozenset(range(2 * layouts + 1, 2 * layouts + lying + 1)),
+            world_z_up=True,
+            lookalikes=() if quick else LOOKALIKES,
+            depth_only=not quick,
+            pictures=args.pictures,
+        )  # the cell's world, written here
         if not quick:
             (Path(tmp) / "meshes").mkdir()
-            other = BopDataset.open(write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes"), args.rough_sensor))
-            out |= {name.replace("bop_", "bop_shapes_", 1): value for name, value in measure(other, None, tuple(args.distance), cfg, world_z_up=True).items()
-                    if name in SHAPE_FIGURES}  # fmt: skip
+            other = BopDataset.open(
+                write_default(Path(tmp) / "shapes", SHAPE_LAYOUTS, 0, shapes(Path(tmp) / "meshes"), args.rough_sensor)
+            )
+            out |= {
+                name.replace("bop_", "bop_shapes_", 1): value
+                for name, value in measure(other, None, tuple(args.distance), cfg, world_z_up=True).items()
+                if name in SHAPE_FIGURES
+            }
         return out
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--dataset", type=Path, help="a BOP dataset folder (models/, SPLIT/NNNNNN/...); default: one written from the simulator and PCL's real frames")
+    parser.add_argument(
+        "--dataset",
+        type=Path,
+        help="a BOP dataset folder (models/, SPLIT/NNNNNN/...); default: one written from the simulator and PCL's real frames",
+    )
     parser.add_argument("--split", default="test", help="the dataset's split folder (test, val, test_primesense, ...)")
-    parser.add_argument("--models", help="the dataset's model folder (default: the first of "
-                        f"{', '.join(MODEL_FOLDERS)} it has; T-LESS: models_cad or models_reconst)")
-    parser.add_argument("--frames", type=int, help="at most this many frames, spread over the split (--quick: 10 of a given dataset)")
-    parser.add_argument("--cell-config", type=Path, help="cell config TOML whose [recognition] is used (default: the defaults; "
-                        "its workspace crops frames whose scene_camera.json gives the camera's world pose)")
-    parser.add_argument("--world-z-up", action="store_true",
-                        help="the dataset's world frame has z up: every frame's world pose is used (default: only where a "
-                        "plane the frame shows is level in it)")
-    parser.add_argument("--standing", action="store_true",
-                        help="every object stands on its model's +z, as a cell's: in a frame with a world pose only "
-                        "standing objects are looked for (default: also any way up and lying, as without a pose)")
-    parser.add_argument("--rough-sensor", action="store_true",
-                        help="render the simulated frames by benchmarks.recognition's rougher sensor (flying pixels, light 15 %% "
-                        "warmer or cooler, washed-out colour, colour 3 px off); not with --dataset")
-    parser.add_argument("--pictures", type=Path, help="write a picture of each frame a pass got wrong to this folder: "
-                        "what was found drawn over the frame, the annotated poses outlined in white")
-    parser.add_argument("--distance", type=float, nargs="+", default=list(VIEW_DISTANCES_M),
-                        help="virtual camera distances for the models' views, m (default: as cellsight model build)")
+    parser.add_argument(
+        "--models",
+        help="the dataset's model folder (default: the first of "
+        f"{', '.join(MODEL_FOLDERS)} it has; T-LESS: models_cad or models_reconst)",
+    )
+    parser.add_argument(
+        "--frames", type=int, help="at most this many frames, spread over the split (--quick: 10 of a given dataset)"
+    )
+    parser.add_argument(
+        "--cell-config",
+        type=Path,
+        help="cell config TOML whose [recognition] is used (default: the defaults; "
+        "its workspace crops frames whose scene_camera.json gives the camera's world pose)",
+    )
+    parser.add_argument(
+        "--world-z-up",
+        action="store_true",
+        help="the dataset's world frame has z up: every frame's world pose is used (default: only where a "
+        "plane the frame shows is level in it)",
+    )
+    parser.add_argument(
+        "--standing",
+        action="store_true",
+        help="every object stands on its model's +z, as a cell's: in a frame with a world pose only "
+        "standing objects are looked for (default: also any way up and lying, as without a pose)",
+    )
+    parser.add_argument(
+        "--rough-sensor",
+        action="store_true",
+        help="render the simulated frames by benchmarks.recognition's rougher sensor (flying pixels, light 15 %% "
+        "warmer or cooler, washed-out colour, colour 3 px off); not with --dataset",
+    )
+    parser.add_argument(
+        "--pictures",
+        type=Path,
+        help="write a picture of each frame a pass got wrong to this folder: "
+        "what was found drawn over the frame, the annotated poses outlined in white",
+    )
+    parser.add_argument(
+        "--distance",
+        type=float,
+        nargs="+",
+        default=list(VIEW_DISTANCES_M),
+        help="virtual camera distances for the models' views, m (default: as cellsight model build)",
+    )
 
 
 if __name__ == "__main__":

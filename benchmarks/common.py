@@ -13,9 +13,9 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
 
 from rich.console import Console
 from rich.table import Table
@@ -43,9 +43,14 @@ def launch_demo_cell(tmp: Path, cell: str, duration_s: float) -> tuple[subproces
     port = free_port()
     run_dir = tmp / "run"
     (tmp / "scenario.toml").write_text(demo_cell_text(duration_s))
-    (tmp / "cell.toml").write_text(f'[cell]\nname = "{cell}"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
-    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(run_dir), "--record"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    (tmp / "cell.toml").write_text(
+        f'[cell]\nname = "{cell}"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n'
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(run_dir), "--record"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.monotonic() + 300
     while not (run_dir / "processes.json").exists():
         if time.monotonic() > deadline or proc.poll() is not None:
@@ -90,7 +95,7 @@ class CoresUsed:
     """Measured cores over a stretch of work: this process's CPU time (all threads, getrusage)
     over the wall time between ``start`` and ``stop``; ~1.0 when pinned and busy."""
 
-    def start(self) -> "CoresUsed":
+    def start(self) -> CoresUsed:
         self._cpu, self._wall = time.process_time(), time.perf_counter()
         return self
 
@@ -110,7 +115,12 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
-def main(name: str, description: str, run: Callable[[bool], dict[str, float]], extra_args: Callable[[argparse.ArgumentParser], None] | None = None) -> None:
+def main(
+    name: str,
+    description: str,
+    run: Callable[[bool], dict[str, float]],
+    extra_args: Callable[[argparse.ArgumentParser], None] | None = None,
+) -> None:
     parser = argparse.ArgumentParser(prog=f"python -m benchmarks.{name}", description=description)
     parser.add_argument("--quick", action="store_true", help="a smaller run that finishes within a minute")
     parser.add_argument("--json", type=Path, help="write the figures to this JSON file")

@@ -40,7 +40,7 @@ through them). Observation level (no renderer): the rendered front-end's own bia
 from __future__ import annotations
 
 import copy
-from typing import Callable
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -48,7 +48,16 @@ import numpy as np
 from benchmarks.chain import chain_solve
 from benchmarks.common import main
 from cellsight.synthetic import NoiseSettings, ViewBiases, estimator_config, frame_observations
-from drivers.sim.scenario import BoxSpec, CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario, load_scenario
+from drivers.sim.scenario import (
+    BoxSpec,
+    CameraMotion,
+    CameraSpec,
+    MarkerSpec,
+    ObjectMotion,
+    ObjectSpec,
+    Scenario,
+    load_scenario,
+)
 from estimator.estimate import CameraState
 from estimator.graph import Estimator, camera_symbol, marker_symbol
 from schemas.geometry import cov_ros_to_gtsam, invert_pose, pose_error, quat_from_matrix
@@ -90,8 +99,14 @@ def online(s: Scenario, frames: list[list], links: bool = False, keyframes: bool
     """The daemon's estimator fed ``frames``, an update every 3, with its opt-in online links and
     moving frames as asked."""
     cfg = estimator_config(s)
-    est = Estimator(cfg.model_copy(update={"links": cfg.links.model_copy(update={"online": links}),
-                                           "keyframes": cfg.keyframes.model_copy(update={"online": keyframes})}))  # fmt: skip
+    est = Estimator(
+        cfg.model_copy(
+            update={
+                "links": cfg.links.model_copy(update={"online": links}),
+                "keyframes": cfg.keyframes.model_copy(update={"online": keyframes}),
+            }
+        )
+    )
     for k, frame in enumerate(frames):
         for cid, stamp, obs in frame:
             est.add_frame(cid, stamp, obs)
@@ -109,7 +124,13 @@ def batch(s: Scenario, frames: list[list], est: Estimator) -> dict[str, np.ndarr
         import math
 
         sig = [math.radians(a.sigma_rotation_deg)] * 3 + [a.sigma_position_m] * 3
-        graph.add(gtsam.PriorFactorPose3(marker_symbol(a.marker_id), gtsam.Pose3(a.world_T_marker.matrix()), gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
+        graph.add(
+            gtsam.PriorFactorPose3(
+                marker_symbol(a.marker_id),
+                gtsam.Pose3(a.world_T_marker.matrix()),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array(sig)),
+            )
+        )
     huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.huber_k)
     objects = set(cfg.object_markers)
     for frame in frames:
@@ -118,8 +139,12 @@ def batch(s: Scenario, frames: list[list], est: Estimator) -> dict[str, np.ndarr
             for o in obs:
                 if o.marker_id in objects or not est.values.exists(marker_symbol(o.marker_id)):
                     continue
-                noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(o.covariance)))
-                graph.add(gtsam.BetweenFactorPose3(ck, marker_symbol(o.marker_id), gtsam.Pose3(o.camera_T_marker), noise))
+                noise = gtsam.noiseModel.Robust.Create(
+                    huber, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(o.covariance))
+                )
+                graph.add(
+                    gtsam.BetweenFactorPose3(ck, marker_symbol(o.marker_id), gtsam.Pose3(o.camera_T_marker), noise)
+                )
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(200)
     result = gtsam.LevenbergMarquardtOptimizer(graph, est.values, params).optimize()
@@ -135,7 +160,9 @@ def accuracy(seeds: list[int], seconds: float) -> dict[str, float]:
         est = online(s, frames)
         e = est.estimate(frames[-1][0][1])
         b = batch(s, frames, est)
-        pairs = {(cam, mk): p.mean() for ((cam, seg), mk), p in est.pairs.items() if p.n > 0 and mk not in est.object_markers}
+        pairs = {
+            (cam, mk): p.mean() for ((cam, seg), mk), p in est.pairs.items() if p.n > 0 and mk not in est.object_markers
+        }
         ch = chain_solve(est.anchors, pairs)
         for cid in cams:
             truth = s.camera(cid).world_T_camera(seconds)
@@ -160,7 +187,9 @@ def bump_recovery(seed: int) -> float:
     """Seconds from the bump until cam2 stays within 5 mm / 0.25 deg (inf if it never does)."""
     s = static_demo()
     bump_t = 4.0
-    s.camera("cam2").motion = [CameraMotion(kind="bump", start_s=bump_t, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))]
+    s.camera("cam2").motion = [
+        CameraMotion(kind="bump", start_s=bump_t, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))
+    ]
     est = Estimator(estimator_config(s))
     rng = np.random.default_rng(seed)
     ok_since = None
@@ -198,23 +227,54 @@ def corridor(hops: int = 4, per_group: int = 3) -> Scenario:
     for g in range(hops + 1):
         x = g * GROUP_SPACING
         for j, (dx, z) in enumerate(GROUP[:per_group]):
-            markers.append(MarkerSpec(id=10 * g + j, role="anchor" if g == 0 else "static", side_m=0.2,
-                                      pose=PoseSpec(position=(x + dx, 1.199, z), normal=(0.0, -1.0, 0.0))))  # fmt: skip
-    cameras = [CameraSpec(id=f"cam{k}", pose=PoseSpec(position=((k - 0.5) * GROUP_SPACING, 1.2 - CAMERA_DISTANCE, 1.3),
-                                                       look_at=((k - 0.5) * GROUP_SPACING, 1.2, 1.3)))
-               for k in range(1, hops + 1)]  # fmt: skip
-    wall = BoxSpec(size=(hops * GROUP_SPACING + 2.0, 0.02, 2.0), pose=PoseSpec(position=(hops * GROUP_SPACING / 2, 1.21, 1.0)))
-    return Scenario(name="corridor", marker_side_m=0.2, floor_size=(hops * GROUP_SPACING + 3.0, 4.0), boxes=[wall],
-                    markers=markers, cameras=cameras)  # fmt: skip
+            markers.append(
+                MarkerSpec(
+                    id=10 * g + j,
+                    role="anchor" if g == 0 else "static",
+                    side_m=0.2,
+                    pose=PoseSpec(position=(x + dx, 1.199, z), normal=(0.0, -1.0, 0.0)),
+                )
+            )
+    cameras = [
+        CameraSpec(
+            id=f"cam{k}",
+            pose=PoseSpec(
+                position=((k - 0.5) * GROUP_SPACING, 1.2 - CAMERA_DISTANCE, 1.3),
+                look_at=((k - 0.5) * GROUP_SPACING, 1.2, 1.3),
+            ),
+        )
+        for k in range(1, hops + 1)
+    ]
+    wall = BoxSpec(
+        size=(hops * GROUP_SPACING + 2.0, 0.02, 2.0), pose=PoseSpec(position=(hops * GROUP_SPACING / 2, 1.21, 1.0))
+    )
+    return Scenario(
+        name="corridor",
+        marker_side_m=0.2,
+        floor_size=(hops * GROUP_SPACING + 3.0, 4.0),
+        boxes=[wall],
+        markers=markers,
+        cameras=cameras,
+    )
 
 
 def corridor_cart(hops: int = 4, per_group: int = 2) -> Scenario:
     """The corridor with a cart 0.3 m before the wall carrying an object marker (0.15 m, facing the
     cameras) along all of it in 10 s: neighbouring cameras see it together where their views overlap."""
     s = corridor(hops, per_group)
-    cart = ObjectSpec(id="cart", size=(0.2, 0.2, 0.2), pose=PoseSpec(position=(0.0, 0.9, 0.9)),
-                      motion=ObjectMotion(kind="slide", offset=(hops * GROUP_SPACING, 0.0, 0.0), period_s=20.0))  # fmt: skip
-    marker = MarkerSpec(id=900, role="object", object="cart", side_m=0.15, pose=PoseSpec(position=(0.0, -0.101, 0.1), normal=(0.0, -1.0, 0.0)))
+    cart = ObjectSpec(
+        id="cart",
+        size=(0.2, 0.2, 0.2),
+        pose=PoseSpec(position=(0.0, 0.9, 0.9)),
+        motion=ObjectMotion(kind="slide", offset=(hops * GROUP_SPACING, 0.0, 0.0), period_s=20.0),
+    )
+    marker = MarkerSpec(
+        id=900,
+        role="object",
+        object="cart",
+        side_m=0.15,
+        pose=PoseSpec(position=(0.0, -0.101, 0.1), normal=(0.0, -1.0, 0.0)),
+    )
     return s.model_copy(update={"objects": [cart], "markers": [*s.markers, marker]})
 
 
@@ -227,7 +287,9 @@ def surveyed_off(s: Scenario, seed: int) -> Scenario:
         if mk.role == "anchor":
             xi = np.r_[rng.normal(0, np.radians(mk.sigma_rotation_deg), 3), rng.normal(0, mk.sigma_position_m, 3)]
             T = (gtsam.Pose3(s.world_T_marker(mk, 0.0)) * gtsam.Pose3.Expmap(xi)).matrix()
-            mk = mk.model_copy(update={"pose": PoseSpec(position=tuple(T[:3, 3]), quaternion=tuple(quat_from_matrix(T[:3, :3])))})
+            mk = mk.model_copy(
+                update={"pose": PoseSpec(position=tuple(T[:3, 3]), quaternion=tuple(quat_from_matrix(T[:3, :3])))}
+            )
         markers.append(mk)
     return s.model_copy(update={"markers": markers})
 
@@ -244,8 +306,10 @@ def biased_frames(s: Scenario, seconds: float, seed: int, max_fused: int, floor_
         frame = []
         for c in s.cameras:
             camera_T_world = invert_pose(c.world_T_camera(t))
-            obs = [biases.apply(o, camera_T_world @ s.world_T_marker(specs[o.marker_id], t), rng)
-                   for o in frame_observations(s, c.id, t, stamp, rng, NOISE)]  # fmt: skip
+            obs = [
+                biases.apply(o, camera_T_world @ s.world_T_marker(specs[o.marker_id], t), rng)
+                for o in frame_observations(s, c.id, t, stamp, rng, NOISE)
+            ]
             frame.append((c.id, stamp, obs))
         frames.append(frame)
     return frames
@@ -257,18 +321,29 @@ def fused_batch(est: Estimator) -> tuple[dict[str, np.ndarray], dict[str, float]
     graph = gtsam.NonlinearFactorGraph()
     for a in est.config.anchors:
         sig = [np.radians(a.sigma_rotation_deg)] * 3 + [a.sigma_position_m] * 3
-        graph.add(gtsam.PriorFactorPose3(marker_symbol(a.marker_id), gtsam.Pose3(a.world_T_marker.matrix()),
-                                         gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))  # fmt: skip
+        graph.add(
+            gtsam.PriorFactorPose3(
+                marker_symbol(a.marker_id),
+                gtsam.Pose3(a.world_T_marker.matrix()),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array(sig)),
+            )
+        )
     for ((cid, seg), mk), pair in est.pairs.items():
         if pair.n == 0 or mk in est.object_markers:
             continue
         cov = cov_ros_to_gtsam(pair.factor_covariance(est.config.max_fused, est.rotation_floor_rad))
-        graph.add(gtsam.BetweenFactorPose3(camera_symbol(est.camera_index[(cid, seg)]), marker_symbol(mk),
-                                           gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov)))  # fmt: skip
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                camera_symbol(est.camera_index[(cid, seg)]),
+                marker_symbol(mk),
+                gtsam.Pose3(pair.mean(exact=True)),
+                gtsam.noiseModel.Gaussian.Covariance(cov),
+            )
+        )
     result = gtsam.LevenbergMarquardtOptimizer(graph, est.values, gtsam.LevenbergMarquardtParams()).optimize()
     marginals = gtsam.Marginals(graph, result)
     poses, sigma = {}, {}
-    for (cid, seg), i in est.camera_index.items():
+    for (cid, _seg), i in est.camera_index.items():
         poses[cid] = result.atPose3(camera_symbol(i)).matrix()
         cov = marginals.marginalCovariance(camera_symbol(i))  # tangent (rotation, translation), body frame
         R = poses[cid][:3, :3]
@@ -276,7 +351,9 @@ def fused_batch(est: Estimator) -> tuple[dict[str, np.ndarray], dict[str, float]
     return poses, sigma
 
 
-def chains(seeds: list[int], seconds: float, hops: int = 4, per_group: int = 3, prefix: str = "chain") -> dict[str, float]:
+def chains(
+    seeds: list[int], seconds: float, hops: int = 4, per_group: int = 3, prefix: str = "chain"
+) -> dict[str, float]:
     """The corridor, online and offline, against the predicted floor (see the module docstring);
     figures named ``<prefix>_<k>hop_...``."""
     s = corridor(hops, per_group)
@@ -300,9 +377,16 @@ def chains(seeds: list[int], seconds: float, hops: int = 4, per_group: int = 3, 
     for k, c in enumerate(s.cameras, start=1):
         on, off, sg = rms(err["online"][c.id]), rms(err["offline"][c.id]), float(np.mean(sigma[c.id]))
         name = f"{prefix}_{k}hop"
-        out.update({f"{name}_error_mm": on, f"{name}_offline_error_mm": off, f"{name}_sigma_mm": sg,
-                    f"{name}_error_over_floor": on / sg, f"{name}_online_over_offline": on / off,
-                    f"{name}_spread_mm": float(np.std(err["online"][c.id]))})  # fmt: skip
+        out.update(
+            {
+                f"{name}_error_mm": on,
+                f"{name}_offline_error_mm": off,
+                f"{name}_sigma_mm": sg,
+                f"{name}_error_over_floor": on / sg,
+                f"{name}_online_over_offline": on / off,
+                f"{name}_spread_mm": float(np.std(err["online"][c.id])),
+            }
+        )
     return out
 
 
@@ -312,8 +396,14 @@ def model_biased(s: Scenario, seconds: float, seed: int) -> list[list]:
     return biased_frames(s, seconds, seed, cfg.max_fused, Estimator(cfg).rotation_floor_rad)
 
 
-def option_paired(option: str, s: Scenario, seeds: list[int], seconds: float,
-                  frames_of: Callable[[Scenario, float, int], list[list]] = simulate, prefix: str = "") -> dict[str, float]:  # fmt: skip
+def option_paired(
+    option: str,
+    s: Scenario,
+    seeds: list[int],
+    seconds: float,
+    frames_of: Callable[[Scenario, float, int], list[list]] = simulate,
+    prefix: str = "",
+) -> dict[str, float]:
     """Online with an opt-in ``option`` ("links" or "keyframes") against without, same frames
     (``frames_of``): per camera the RMS position error over seeds at the end, the position sigma
     iSAM2 predicts (mean over seeds), the worst camera's ratios, the worst ratio of one camera in
@@ -324,8 +414,14 @@ def option_paired(option: str, s: Scenario, seeds: list[int], seconds: float,
     how many were left out and the factor on their covariances, ``estimator.variance``), and the mean
     normalised squared position error of both (NEES: 3 when the predicted covariances are the
     errors' own). Figures named ``<prefix or option>_...``."""
-    err: dict[str, dict[str, list[float]]] = {option: {c.id: [] for c in s.cameras}, "plain": {c.id: [] for c in s.cameras}}
-    sigma: dict[str, dict[str, list[float]]] = {option: {c.id: [] for c in s.cameras}, "plain": {c.id: [] for c in s.cameras}}
+    err: dict[str, dict[str, list[float]]] = {
+        option: {c.id: [] for c in s.cameras},
+        "plain": {c.id: [] for c in s.cameras},
+    }
+    sigma: dict[str, dict[str, list[float]]] = {
+        option: {c.id: [] for c in s.cameras},
+        "plain": {c.id: [] for c in s.cameras},
+    }
     entered, refused, inflation, nees = [], [], [], []
     for seed in seeds:
         frames = frames_of(s, seconds, seed)
@@ -348,16 +444,20 @@ def option_paired(option: str, s: Scenario, seeds: list[int], seconds: float,
     p = prefix or option
     out = {f"{p}_entered_per_run": float(np.mean(entered)), f"{p}_position_nees": float(np.mean(nees))}
     if option == "keyframes":  # frames left out, and the factor on their covariances (``estimator.variance``)
-        out |= {f"{p}_refused_per_run": float(np.mean(refused)), f"{p}_inflation_max": float(np.max(inflation)),
-                f"{p}_inflation_min": float(np.min(inflation))}  # fmt: skip
+        out |= {
+            f"{p}_refused_per_run": float(np.mean(refused)),
+            f"{p}_inflation_max": float(np.max(inflation)),
+            f"{p}_inflation_min": float(np.min(inflation)),
+        }
     for c in s.cameras:
         out[f"{p}_{c.id}_pos_mm"] = rms(err[option][c.id])
         out[f"{p}_plain_{c.id}_pos_mm"] = rms(err["plain"][c.id])
         out[f"{p}_{c.id}_sigma_over_plain"] = float(np.mean(sigma[option][c.id]) / np.mean(sigma["plain"][c.id]))
     out[f"{p}_over_plain_max"] = max(out[f"{p}_{c.id}_pos_mm"] / out[f"{p}_plain_{c.id}_pos_mm"] for c in s.cameras)
     out[f"{p}_over_plain_seed_max"] = max(max(np.divide(err[option][c.id], err["plain"][c.id])) for c in s.cameras)
-    out[f"{p}_seed_cost_over_sigma_max"] = max(max(np.subtract(err[option][c.id], err["plain"][c.id]) / sigma["plain"][c.id])
-                                               for c in s.cameras)  # both in mm  # fmt: skip
+    out[f"{p}_seed_cost_over_sigma_max"] = max(
+        max(np.subtract(err[option][c.id], err["plain"][c.id]) / sigma["plain"][c.id]) for c in s.cameras
+    )  # both in mm
     out[f"{p}_sigma_over_plain_max"] = max(out[f"{p}_{c.id}_sigma_over_plain"] for c in s.cameras)
     return out
 

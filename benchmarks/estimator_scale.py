@@ -43,8 +43,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
 from rich.progress import Progress
@@ -56,9 +56,8 @@ from estimator.config import AnchorConfig, EstimatorConfig
 from estimator.graph import Estimator
 from estimator.observation import ObservationRows
 from schemas.codec import CameraInfo
-from schemas.geometry import invert_pose, quat_from_matrix
+from schemas.geometry import invert_pose, look_at_matrix, normal_matrix, quat_from_matrix
 from schemas.spec import PoseSpec
-from schemas.geometry import look_at_matrix, normal_matrix
 
 RATE = 30
 UPDATE_EVERY = 3  # frames per camera per tick: the daemon's 10 Hz
@@ -109,7 +108,9 @@ def tick_pools(markers, cams, rng: np.random.Generator) -> dict[str, list[Observ
         frame = np.repeat(np.arange(UPDATE_EVERY), len(truth))
         block_covs = np.array(covs * UPDATE_EVERY)
         # (POOL, rows, 4, 4): every block's frames drawn at once, each row about its marker's truth
-        poses = perturb(np.broadcast_to(np.array([Tm for _, Tm in truth] * UPDATE_EVERY), (POOL, len(ids), 4, 4)), block_covs, rng)
+        poses = perturb(
+            np.broadcast_to(np.array([Tm for _, Tm in truth] * UPDATE_EVERY), (POOL, len(ids), 4, 4)), block_covs, rng
+        )
         pools[cid] = [ObservationRows(ids, P, P.copy(), block_covs, np.zeros(len(ids), bool), frame) for P in poses]
     return pools
 
@@ -191,8 +192,12 @@ def gtsam_rotation(rotvec: np.ndarray) -> np.ndarray:
 def camera_errors_mm(est: Estimator, truth: dict[str, np.ndarray], now_ns: int) -> dict[str, float]:
     """Each camera's position error (mm); NaN for one without a pose."""
     cams = est.estimate(now_ns, with_covariance=False).cameras
-    return {cid: float(np.linalg.norm(cams[cid].pose.T[:3, 3] - T[:3, 3]) * 1e3) if cid in cams and cams[cid].pose is not None
-            else float("nan") for cid, T in truth.items()}  # fmt: skip
+    return {
+        cid: float(np.linalg.norm(cams[cid].pose.T[:3, 3] - T[:3, 3]) * 1e3)
+        if cid in cams and cams[cid].pose is not None
+        else float("nan")
+        for cid, T in truth.items()
+    }
 
 
 @dataclass
@@ -280,7 +285,15 @@ def scan(hours: float, move_every_s: float) -> dict[str, float]:
     for n, mk in SCAN:
         r = measure(hours, move_every_s, n, mk)
         p99[(n, mk)], p50[(n, mk)] = r["update_ms_p99"], r["update_ms_p50"]
-        for key in ("update_ms_p50", "update_ms_p99", "estimate_ms_p99", "observations_per_s", "rss_growth_mb", "factors_max", "solver_updates_last_hour"):
+        for key in (
+            "update_ms_p50",
+            "update_ms_p99",
+            "estimate_ms_p99",
+            "observations_per_s",
+            "rss_growth_mb",
+            "factors_max",
+            "solver_updates_last_hour",
+        ):
             out[f"{key}_{n}cams_{mk}markers"] = r[key]
     cams = [(n, mk) for n, mk in SCAN if mk == 2 * n]
     out["growth_exponent_cameras"] = growth_exponent([n for n, _ in cams], [p99[c] for c in cams])
@@ -294,12 +307,22 @@ def growth_exponent(sizes: list[int], values: list[float]) -> float:
     return float(np.polyfit(np.log(sizes), np.log(values), 1)[0])
 
 
-def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16, arm: bool = False) -> dict[str, float]:
+def measure(
+    hours: float, move_every_s: float, n_cams: int = 8, n_markers: int = 16, arm: bool = False
+) -> dict[str, float]:
     """One cell of ``n_cams`` cameras and ``n_markers`` markers for ``hours`` simulated hours, the
     daemon's default estimator config; with ``arm``, ``cam0`` on an arm (``Arm``)."""
     markers, cams, anchors = ring_cell(n_cams, n_markers)
     cfg = EstimatorConfig(
-        anchors=[AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3])))) for a in anchors]
+        anchors=[
+            AnchorConfig(
+                marker_id=a,
+                world_T_marker=PoseSpec(
+                    position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3]))
+                ),
+            )
+            for a in anchors
+        ]
     )
     if arm:  # see the module docstring: the arm's frames enter at their own covariances
         cfg = cfg.model_copy(update={"keyframes": cfg.keyframes.model_copy(update={"weigh_by_fit": False})})
@@ -307,7 +330,13 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
     pools = dict(base)
     the_arm = Arm("cam0", cams["cam0"][0]) if arm else None
     bumped = {cid: c for cid, c in cams.items() if the_arm is None or cid != the_arm.camera_id}
-    mover = Mover(bumped, {cid: base[cid] for cid in bumped}, pools, int(move_every_s * RATE / UPDATE_EVERY), np.random.default_rng(1))
+    mover = Mover(
+        bumped,
+        {cid: base[cid] for cid in bumped},
+        pools,
+        int(move_every_s * RATE / UPDATE_EVERY),
+        np.random.default_rng(1),
+    )
     ticks_per_hour = 3600 * RATE // UPDATE_EVERY
     n_ticks = int(hours * ticks_per_hour)
     window = min(ticks_per_hour, n_ticks // 2)  # "an hour"
@@ -319,7 +348,9 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
         task = progress.add_task(f"{hours:g} simulated hours", total=n_ticks + 2 * window)
         for k in range(n_ticks):
             if mover.due(k):
-                errors = camera_errors_mm(aged.est, mover.truth, k * TICK_NS)  # the newest moved camera had a full period
+                errors = camera_errors_mm(
+                    aged.est, mover.truth, k * TICK_NS
+                )  # the newest moved camera had a full period
                 mover.move()
             n_obs += aged.step()
             if k == warmup:
@@ -328,14 +359,20 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
                 factors_max = max(factors_max, aged.est.factor_count())
             if k % 2000 == 0:
                 progress.update(task, completed=k)
-            if k and k % max(n_ticks // 20, 1) == 0 and not progress.console.is_terminal:  # a log file sees progress too
-                progress.console.log(f"{k / ticks_per_hour:.3g} of {hours:g} simulated hours, {time.perf_counter() - t_start:.0f} s")
+            if (
+                k and k % max(n_ticks // 20, 1) == 0 and not progress.console.is_terminal
+            ):  # a log file sees progress too
+                progress.console.log(
+                    f"{k / ticks_per_hour:.3g} of {hours:g} simulated hours, {time.perf_counter() - t_start:.0f} s"
+                )
         if not errors:
             errors = camera_errors_mm(aged.est, mover.truth, n_ticks * TICK_NS)
         arm_mm = float("nan")
         if the_arm is not None:  # the arm's error at the last tick's newest frame
             last_ns = (n_ticks - 1) * TICK_NS + (UPDATE_EVERY - 1) * (TICK_NS // UPDATE_EVERY)
-            arm_mm = camera_errors_mm(aged.est, {the_arm.camera_id: the_arm.world_T_camera(last_ns)}, last_ns)[the_arm.camera_id]
+            arm_mm = camera_errors_mm(aged.est, {the_arm.camera_id: the_arm.world_T_camera(last_ns)}, last_ns)[
+                the_arm.camera_id
+            ]
         keyframes = aged.est.counters.keyframes
         fit_ms = min(timed_ms(aged.est.static_fit) for _ in range(5))
         wall = time.perf_counter() - t_start
@@ -373,11 +410,14 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
         "tick_ms_p99": float(np.percentile(tick, 99)),
         "warmup_update_ms_max": float(np.max(aged.update_ms[:warmup])) if warmup else 0.0,
         "last_over_first_hour_latency_ratio": paired_aged / paired_young,
-        "last_over_first_hour_tick_ratio": median_tick_ms(aged, paired_aged_from, paired_aged_from + window) / median_tick_ms(young, warmup, window),
+        "last_over_first_hour_tick_ratio": median_tick_ms(aged, paired_aged_from, paired_aged_from + window)
+        / median_tick_ms(young, warmup, window),
         "last_over_first_hour_latency_ratio_sequential": seq_last / seq_first,
         "solver_updates_first_hour": float(sum(aged.solved[warmup:window])),
-        "solver_updates_last_hour": float(sum(aged.solved[n_ticks - window:n_ticks])),
-        "reorders": float(reorders),  # updates in which iSAM2 re-ordered the whole tree (reorder_fill, or >65 % touched)
+        "solver_updates_last_hour": float(sum(aged.solved[n_ticks - window : n_ticks])),
+        "reorders": float(
+            reorders
+        ),  # updates in which iSAM2 re-ordered the whole tree (reorder_fill, or >65 % touched)
         "rss_growth_mb": rss_end - rss0,
         "factors_max": float(factors_max),
         "factors_in_graph": float(aged.est.factor_count()),
@@ -391,11 +431,22 @@ def measure(hours: float, move_every_s: float, n_cams: int = 8, n_markers: int =
 
 def add_args(parser) -> None:
     parser.add_argument("--hours", type=float, default=24.0, help="simulated span (default 24 h)")
-    parser.add_argument("--move-every", type=float, default=20.0, help="bump one camera, in turn, this often (simulated s; 0: a still cell)")
+    parser.add_argument(
+        "--move-every",
+        type=float,
+        default=20.0,
+        help="bump one camera, in turn, this often (simulated s; 0: a still cell)",
+    )
     parser.add_argument("--cameras", type=int, default=8, help="cameras on the ring (default 8)")
     parser.add_argument("--markers", type=int, default=16, help="markers on the ring (default 16; 4 are anchors)")
-    parser.add_argument("--arm", action="store_true", help="cam0 on an arm that never stops (its frames join the graph)")
-    parser.add_argument("--scan", action="store_true", help="a table over cameras 8..64 and markers up to 1,000 (--hours each, default 0.05)")
+    parser.add_argument(
+        "--arm", action="store_true", help="cam0 on an arm that never stops (its frames join the graph)"
+    )
+    parser.add_argument(
+        "--scan",
+        action="store_true",
+        help="a table over cameras 8..64 and markers up to 1,000 (--hours each, default 0.05)",
+    )
 
 
 if __name__ == "__main__":

@@ -102,14 +102,23 @@ def trial(n_cams: int, seconds: float, detector_params: Path | None = None) -> T
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         scenario_toml(tmp_path / "scenario.toml")
-        (tmp_path / "base.toml").write_text(f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\n[recognition]\nenabled = false\n')
-        cfg = cell_config_of(load_scenario(tmp_path / "scenario.toml"), tmp_path / "scenario.toml", load_config(tmp_path / "base.toml"))
+        (tmp_path / "base.toml").write_text(
+            f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\n[recognition]\nenabled = false\n'
+        )
+        cfg = cell_config_of(
+            load_scenario(tmp_path / "scenario.toml"), tmp_path / "scenario.toml", load_config(tmp_path / "base.toml")
+        )
         cameras = [c.model_copy(update={"prerender_frames": PRERENDER}) for c in cfg.cameras[:n_cams]]
         if detector_params is not None:
-            cfg = cfg.model_copy(update={"markers": cfg.markers.model_copy(update={"detector_params": detector_params.resolve()})})
+            cfg = cfg.model_copy(
+                update={"markers": cfg.markers.model_copy(update={"detector_params": detector_params.resolve()})}
+            )
         (tmp_path / "cell.toml").write_text(cfg.model_copy(update={"cameras": cameras}).to_toml())
-        proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(tmp_path / "run")],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(tmp_path / "run")],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         latency: list[float] = []
         status: dict[str, m.DriverStatus] = {}
         measuring = False
@@ -195,7 +204,11 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--detector-params", type=Path, help="an OpenCV DetectorParameters YAML for every driver ([markers] detector_params)")
+    parser.add_argument(
+        "--detector-params",
+        type=Path,
+        help="an OpenCV DetectorParameters YAML for every driver ([markers] detector_params)",
+    )
 
 
 if __name__ == "__main__":

@@ -27,8 +27,12 @@ from schemas import keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 
-EXTRA = [("cam5", (0.0, -1.45, 2.0), (0.0, 0.5, 0.7)), ("cam6", (1.45, 0.0, 2.0), (-0.5, 0.0, 0.7)),
-         ("cam7", (0.0, 1.45, 2.0), (0.0, -0.5, 0.7)), ("cam8", (-1.45, 0.0, 2.0), (0.5, 0.0, 0.7))]  # fmt: skip
+EXTRA = [
+    ("cam5", (0.0, -1.45, 2.0), (0.0, 0.5, 0.7)),
+    ("cam6", (1.45, 0.0, 2.0), (-0.5, 0.0, 0.7)),
+    ("cam7", (0.0, 1.45, 2.0), (0.0, -0.5, 0.7)),
+    ("cam8", (-1.45, 0.0, 2.0), (0.5, 0.0, 0.7)),
+]
 
 
 def scenario_toml(path: Path) -> None:
@@ -49,9 +53,14 @@ def run(quick: bool) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         scenario_toml(tmp / "scenario.toml")
-        (tmp / "cell.toml").write_text(f'[cell]\nname = "load"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
-        proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(tmp / "run")],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        (tmp / "cell.toml").write_text(
+            f'[cell]\nname = "load"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n'
+        )
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cellsight.cli", "run", str(tmp / "cell.toml"), "--out", str(tmp / "run")],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         received: Counter[str] = Counter()
         published: dict[str, int] = {}
         latency_ms: list[float] = []
@@ -65,8 +74,14 @@ def run(quick: bool) -> dict[str, float]:
                     time.sleep(0.5)
             if bus is None:
                 raise RuntimeError("the cell did not come up within 30 s")
-            bus.subscribe_raw(keys.all_cameras("load", "color/image_raw"), lambda k, p, t: received.update([k.split("/")[2]]))
-            bus.subscribe(keys.all_cameras("load", "status"), m.DriverStatus, callback=lambda r: published.__setitem__(r.msg.camera_id, r.msg.frames))
+            bus.subscribe_raw(
+                keys.all_cameras("load", "color/image_raw"), lambda k, p, t: received.update([k.split("/")[2]])
+            )
+            bus.subscribe(
+                keys.all_cameras("load", "status"),
+                m.DriverStatus,
+                callback=lambda r: published.__setitem__(r.msg.camera_id, r.msg.frames),
+            )
 
             def on_status(r) -> None:
                 for c in r.msg.cameras:

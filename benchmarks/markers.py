@@ -17,8 +17,8 @@ observations whose normalised error is under the chi-square 6-dof 95 % bound, 12
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import cv2
 import gtsam
@@ -118,12 +118,23 @@ def accuracy(quick: bool) -> dict[str, float]:
             ray = np.array([np.sin(view) * np.cos(phi), -np.cos(view), np.sin(view) * np.sin(phi)])
             cam_pos = np.array([0, 0, 1.0]) + ray * dist
             scen = Scenario(
-                floor_size=(0.01, 0.01), noise={"enabled": True},
+                floor_size=(0.01, 0.01),
+                noise={"enabled": True},
                 boxes=[BoxSpec(size=(3, 0.02, 3), pose=PoseSpec(position=(0, 0.011, 1.0)))],
-                markers=[MarkerSpec(id=5, side_m=side, pose=PoseSpec(position=(0, 0, 1.0), normal=(0, -1, 0), up=(np.sin(np.radians(roll)), 0, np.cos(np.radians(roll)))))],
+                markers=[
+                    MarkerSpec(
+                        id=5,
+                        side_m=side,
+                        pose=PoseSpec(
+                            position=(0, 0, 1.0),
+                            normal=(0, -1, 0),
+                            up=(np.sin(np.radians(roll)), 0, np.cos(np.radians(roll))),
+                        ),
+                    )
+                ],
                 cameras=[CameraSpec(id="c", pose=PoseSpec(position=tuple(cam_pos), look_at=(0, 0, 1.0)))],
                 seed=i,
-            )  # fmt: skip
+            )
             f = SimCell(scen).render("c", 0.0, i)
             truth = invert_pose(f.world_T_camera) @ scen.world_T_marker(scen.markers[0], 0.0)
             for use_depth in (False, True):
@@ -132,7 +143,14 @@ def accuracy(quick: bool) -> dict[str, float]:
                     xi = gtsam.Pose3.Logmap(gtsam.Pose3(d.camera_T_marker).between(gtsam.Pose3(truth)))
                     e = np.concatenate([xi[3:], xi[:3]])
                     along = (d.camera_T_marker[:3, 3] - truth[:3, 3]) @ truth[:3, 3] / np.linalg.norm(truth[:3, 3])
-                    rows[use_depth].append((np.linalg.norm(xi[3:]), np.degrees(np.linalg.norm(xi[:3])), e @ np.linalg.solve(d.covariance, e), along))
+                    rows[use_depth].append(
+                        (
+                            np.linalg.norm(xi[3:]),
+                            np.degrees(np.linalg.norm(xi[:3])),
+                            e @ np.linalg.solve(d.covariance, e),
+                            along,
+                        )
+                    )
         for use_depth, name in ((False, "pnp"), (True, "depth")):
             a = np.array(rows[use_depth]) if rows[use_depth] else np.full((1, 4), np.nan)
             ok = a[:, 1] < 30

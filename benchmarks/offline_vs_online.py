@@ -31,7 +31,6 @@ import numpy as np
 
 from benchmarks.common import main
 from cellsight.config import CellConfig
-from schemas.geometry import pose_error
 from cellsight.resolve_report import ResolveRun, peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
 from drivers.config import MarkerConfig
@@ -44,6 +43,7 @@ from estimator.estimate import CameraEstimate, CameraState
 from estimator.graph import Estimator
 from estimator.observation import observation_rows, observations_of
 from schemas import codec, keys
+from schemas.geometry import pose_error
 from schemas.log import LogWriter
 
 CELL = "bench"
@@ -61,7 +61,9 @@ VARIANTS = {"links": ("links",), "keyframes": ("keyframes",), "links_keyframes":
 STAGGERED = "_staggered"
 
 
-def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[dict[str, dict[str, list[tuple[float, float]]]], dict[str, int]]:
+def write_log(
+    path: Path, seed: int, seconds: float, rate_hz: float
+) -> tuple[dict[str, dict[str, list[tuple[float, float]]]], dict[str, int]]:
     """Render, detect and estimate online, frame by frame in capture order, into one log. Beside
     it, an online estimator per ``VARIANTS`` is fed the same frames, and the default and every
     variant again on the staggered schedule (``STAGGERED``): per variant (and ``name + STAGGERED``)
@@ -71,8 +73,13 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
     scenario = load_scenario().model_copy(update={"seed": seed})
     cfg = cell_config_of(scenario, base=CellConfig.model_validate({"cell": {"name": CELL}}))
     cell = SimCell(scenario)
-    detector = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m,
-                                           sides_m={mk.id: scenario.side_of(mk) for mk in scenario.markers}))  # fmt: skip
+    detector = MarkerDetector(
+        MarkerConfig(
+            dictionary=scenario.dictionary,
+            side_m=scenario.marker_side_m,
+            sides_m={mk.id: scenario.side_of(mk) for mk in scenario.markers},
+        )
+    )
     e = with_options(cfg.estimator, ())
     online = Estimator(e)
     variants = {name: Estimator(with_options(e, parts)) for name, parts in VARIANTS.items()}
@@ -87,26 +94,39 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
         stamp = EPOCH_NS + round(t * 1e9)
         for i, cam in enumerate(scenario.cameras):
             f = cell.render(cam.id, t, k)
-            msg = observations_to_msg(cam.id, stamp, f.info, detector.detect(f.rgb, f.info, f.depth_mm), scenario.dictionary)
+            msg = observations_to_msg(
+                cam.id, stamp, f.info, detector.detect(f.rgb, f.info, f.depth_mm), scenario.dictionary
+            )
             w.write(keys.markers(CELL, cam.id), msg, stamp)
             obs = observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg)))
             for est in (online, *variants.values(), staggered_default, *staggered.values()):
                 est.add_frame(cam.id, stamp, obs)
             truth_now[cam.id] = f.world_T_camera
-            w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]), stamp)
+            w.write(
+                keys.truth(CELL, "cameras"),
+                codec.poses_to_msg(stamp, [codec.StampedPose("world", cam.id, stamp, f.world_T_camera)]),
+                stamp,
+            )
             if i == 0 and stamp >= next_staggered:
                 staggered_default.update(stamp)
                 ours = staggered_default.estimate(stamp, with_covariance=False).cameras
                 compare(ours, staggered, stamp, truth_now, paired)
                 next_staggered += UPDATE_NS
         if k == 0:
-            truth = [codec.StampedPose("world", keys.marker_frame(mk.id), stamp, scenario.world_T_marker(mk, 0.0)) for mk in scenario.markers if mk.object is None]
+            truth = [
+                codec.StampedPose("world", keys.marker_frame(mk.id), stamp, scenario.world_T_marker(mk, 0.0))
+                for mk in scenario.markers
+                if mk.object is None
+            ]
             w.write(keys.truth(CELL, "marker_poses"), codec.poses_to_msg(stamp, truth), stamp)
         if stamp >= next_update:
             online.update(stamp)
             est = online.estimate(stamp)
-            cams = [codec.StampedPose("world", c.camera_id, stamp, c.pose.T, c.pose.covariance)
-                    for c in est.cameras.values() if c.pose is not None and c.state is CameraState.LOCALIZED]  # fmt: skip
+            cams = [
+                codec.StampedPose("world", c.camera_id, stamp, c.pose.T, c.pose.covariance)
+                for c in est.cameras.values()
+                if c.pose is not None and c.state is CameraState.LOCALIZED
+            ]
             w.write(keys.estimate_cameras(CELL), codec.poses_to_msg(stamp, cams), stamp)
             compare(est.cameras, variants, stamp, truth_now, paired)
             next_update += UPDATE_NS
@@ -119,11 +139,18 @@ def write_log(path: Path, seed: int, seconds: float, rate_hz: float) -> tuple[di
 
 def with_options(e: EstimatorConfig, parts: tuple[str, ...]) -> EstimatorConfig:
     """``e`` with the online options named in ``parts`` on and the others off."""
-    return e.model_copy(update={part: getattr(e, part).model_copy(update={"online": part in parts}) for part in ("links", "keyframes")})
+    return e.model_copy(
+        update={part: getattr(e, part).model_copy(update={"online": part in parts}) for part in ("links", "keyframes")}
+    )
 
 
-def compare(ours: dict[str, CameraEstimate], variants: dict[str, Estimator], stamp: int, truth: dict[str, np.ndarray],
-            paired: dict[str, dict[str, list[tuple[float, float]]]]) -> None:  # fmt: skip
+def compare(
+    ours: dict[str, CameraEstimate],
+    variants: dict[str, Estimator],
+    stamp: int,
+    truth: dict[str, np.ndarray],
+    paired: dict[str, dict[str, list[tuple[float, float]]]],
+) -> None:
     """Update each variant at ``stamp`` (ns) and add, per camera localized in both it and the default
     estimate ``ours``, (default, variant) position errors (mm) against ``truth`` (world_T_camera)."""
     for name, v in variants.items():
@@ -131,9 +158,16 @@ def compare(ours: dict[str, CameraEstimate], variants: dict[str, Estimator], sta
         theirs = v.estimate(stamp, with_covariance=False).cameras
         for cid, c in ours.items():
             other = theirs.get(cid)
-            if c.pose is not None and c.state is CameraState.LOCALIZED and other is not None and other.pose is not None \
-                    and other.state is CameraState.LOCALIZED:
-                paired[name].setdefault(cid, []).append((pose_error(c.pose.T, truth[cid])[0], pose_error(other.pose.T, truth[cid])[0]))
+            if (
+                c.pose is not None
+                and c.state is CameraState.LOCALIZED
+                and other is not None
+                and other.pose is not None
+                and other.state is CameraState.LOCALIZED
+            ):
+                paired[name].setdefault(cid, []).append(
+                    (pose_error(c.pose.T, truth[cid])[0], pose_error(other.pose.T, truth[cid])[0])
+                )
 
 
 def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
@@ -144,7 +178,8 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
     per_segment: dict[str, list[tuple[float, float]]] = {}
     markers: list[float] = []
     variants: dict[str, dict[str, list[tuple[float, float]]]] = {  # camera -> per run (default, variant) median mm
-        name: {} for name in [*VARIANTS, *(n + STAGGERED for n in VARIANTS)]}
+        name: {} for name in [*VARIANTS, *(n + STAGGERED for n in VARIANTS)]
+    }
     for seed in range(1 if quick else seeds):
         with tempfile.TemporaryDirectory(prefix="offline-vs-online-") as d:
             log = Path(d) / "log.mcap"
@@ -162,7 +197,9 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
         markers.append(figures.marker_position_error_mm_p50)
         for cam, c in figures.cameras.items():
             p = c.paired
-            per_cam.setdefault(cam, []).append([*p.offline_mm_deg_p50, *p.online_mm_deg_p50, *p.offline_mm_deg_rms, *p.online_mm_deg_rms])
+            per_cam.setdefault(cam, []).append(
+                [*p.offline_mm_deg_p50, *p.online_mm_deg_p50, *p.offline_mm_deg_rms, *p.online_mm_deg_rms]
+            )
             moving.append(c.moving_frames)
     for cam, rows in sorted(per_cam.items()):
         a = np.array(rows)
@@ -179,7 +216,10 @@ def run(quick: bool, args: argparse.Namespace) -> dict[str, float]:
         for seed, d in enumerate(diff.tolist()):
             out[f"{cam}_offline_minus_online_mm_rms_seed{seed}"] = d
         # how much each side changes with the noise seed alone
-        out[f"{cam}_offline_mm_rms_spread"], out[f"{cam}_online_mm_rms_spread"] = float(np.ptp(a[:, 4])), float(np.ptp(a[:, 6]))
+        out[f"{cam}_offline_mm_rms_spread"], out[f"{cam}_online_mm_rms_spread"] = (
+            float(np.ptp(a[:, 4])),
+            float(np.ptp(a[:, 6])),
+        )
     for seg, rows in sorted(per_segment.items()):
         a = np.array(rows)
         out[f"{seg}_offline_mm"], out[f"{seg}_online_mm_p50"] = float(a[:, 0].mean()), float(a[:, 1].mean())

@@ -91,7 +91,7 @@ os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 import itertools  # noqa: E402
 import re  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -104,17 +104,30 @@ from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, apart, footprint, load_scenario  # noqa: E402
 from recognition import ppf  # noqa: E402
 from recognition.align import Surface, model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
-from recognition.cloud import camera_rays, depth_to_cloud, finite_points, read_cloud, read_coloured_cloud, voxel_downsample  # noqa: E402
+from recognition.cloud import (  # noqa: E402
+    camera_rays,
+    depth_to_cloud,
+    finite_points,
+    read_cloud,
+    read_coloured_cloud,
+    voxel_downsample,
+)
 from recognition.config import DescriptorConfig, RecognitionConfig  # noqa: E402
+from recognition.fusion import (  # noqa: E402
+    REFINE_VOXEL_M,
+    CameraPoints,
+    CameraView,
+    FusedObject,
+    WorldDetection,
+    cross_checked,
+    found_in_cloud,
+    refined_in_cloud,
+)
 from recognition.models import model_from_cloud  # noqa: E402
 from recognition.pipeline import Recognizer  # noqa: E402
 from recognition.verify import DepthView  # noqa: E402
-from recognition.fusion import (  # noqa: E402
-    REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, cross_checked, found_in_cloud, refined_in_cloud,
-)
 from schemas.geometry import invert_pose, make_pose  # noqa: E402
 from schemas.spec import PoseSpec  # noqa: E402
-
 
 TABLE_HALF = (0.45, 0.28)  # where object centres may go on the demo table, m
 WORKSPACE = ((-0.6, -0.4, 0.7), (0.6, 0.4, 1.3))
@@ -130,10 +143,12 @@ class PpfBaseline:
     trained: dict[str, ppf.PpfModel]
 
     @classmethod
-    def of(cls, rec: Recognizer) -> "PpfBaseline":
+    def of(cls, rec: Recognizer) -> PpfBaseline:
         return cls(rec, {oid: ppf.train(m.points, m.normals, m.diameter_m) for oid, m in rec.db.models.items()})
 
-    def __call__(self, cloud: np.ndarray, world_T_camera: np.ndarray | None, objects: set[str] | None = None) -> dict[str, np.ndarray]:
+    def __call__(
+        self, cloud: np.ndarray, world_T_camera: np.ndarray | None, objects: set[str] | None = None
+    ) -> dict[str, np.ndarray]:
         """Each model's (or only ``objects``') best pose in the frame."""
         scene = self.rec.prepare(cloud, world_T_camera)
         if len(scene.points) == 0:
@@ -144,8 +159,18 @@ class PpfBaseline:
             if objects is not None and oid not in objects:
                 continue
             model = self.rec.db.models[oid]
-            refined = [refine_icp(model.points, model.normals, target, h.camera_T_object, c.icp_distance_m, c.icp_iterations,
-                                  max_shift_m=model.diameter_m) for h in ppf.match(trained, scene.points, scene.normals)]  # fmt: skip
+            refined = [
+                refine_icp(
+                    model.points,
+                    model.normals,
+                    target,
+                    h.camera_T_object,
+                    c.icp_distance_m,
+                    c.icp_iterations,
+                    max_shift_m=model.diameter_m,
+                )
+                for h in ppf.match(trained, scene.points, scene.normals)
+            ]
             refined = [r for r in refined if r.fitness > 0]
             if refined:
                 out[oid] = max(refined, key=lambda r: (r.fitness, -r.rmse_m)).camera_T_object
@@ -242,8 +267,13 @@ def visible_share(cell: SimCell, s: Scenario, cam_id: str, obj: ObjectSpec) -> f
 
 #: PCL's real scenes (Kinect frames, one stereo): the one the milk carton is in, and ones holding none of the objects.
 MILK_SCENE = "milk_cartoon_all_small_clorox.pcd"
-EMPTY_SCENES = ("office1.pcd", "five_people.pcd", "sac_plane_test.pcd", "table_scene_mug_stereo_textured.pcd",
-                *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))))
+EMPTY_SCENES = (
+    "office1.pcd",
+    "five_people.pcd",
+    "sac_plane_test.pcd",
+    "table_scene_mug_stereo_textured.pcd",
+    *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL_DATA / "grabber_sequences" / "pcd").glob("*.pcd"))),
+)
 
 
 def scene_key(name: str) -> str:
@@ -272,24 +302,37 @@ def real_scenes() -> dict[str, float]:
     return out
 
 
-def searched(rec: Recognizer, published: list[FusedObject], views: list[CameraView], points: list[CameraPoints]) -> list[FusedObject]:
+def searched(
+    rec: Recognizer, published: list[FusedObject], views: list[CameraView], points: list[CameraPoints]
+) -> list[FusedObject]:
     """What the worker adds with ``search_fused_cloud``: the objects no camera found, recognised in
     all the cameras' points together seen from each camera in turn (the worker takes one a period),
     then cross-checked by the other cameras' frames."""
     missing = set(rec.db.models) - {o.object_id for o in published}
     added: list[WorldDetection] = []
     for cv in views:
-        added += found_in_cloud(missing - {a.detection.object_id for a in added}, cv, points,
-                                lambda cloud, W, view: rec.recognize(cloud, world_T_camera=W, view=view))  # fmt: skip
+        added += found_in_cloud(
+            missing - {a.detection.object_id for a in added},
+            cv,
+            points,
+            lambda cloud, W, view: rec.recognize(cloud, world_T_camera=W, view=view),
+        )
     return cross_checked(added, views, rec.seen_through, 10**9)[0]
 
 
 def distractor(rng: np.random.Generator, i: int) -> ObjectSpec:
     """An object of no database: a box or a cylinder of a random size (see the module docstring)."""
     if rng.random() < 0.5:
-        return ObjectSpec(id=f"distractor{i}", shape="box", size=tuple(rng.uniform([0.05, 0.05, 0.12], [0.12, 0.12, 0.30])), color=(0.5, 0.5, 0.5))
+        return ObjectSpec(
+            id=f"distractor{i}",
+            shape="box",
+            size=tuple(rng.uniform([0.05, 0.05, 0.12], [0.12, 0.12, 0.30])),
+            color=(0.5, 0.5, 0.5),
+        )
     r = float(rng.uniform(0.03, 0.06))
-    return ObjectSpec(id=f"distractor{i}", shape="cylinder", size=(r, r, float(rng.uniform(0.12, 0.30))), color=(0.4, 0.5, 0.4))
+    return ObjectSpec(
+        id=f"distractor{i}", shape="cylinder", size=(r, r, float(rng.uniform(0.12, 0.30))), color=(0.4, 0.5, 0.4)
+    )
 
 
 def distractors(rec: Recognizer, trials: int, colour: bool) -> dict[str, float]:
@@ -300,8 +343,12 @@ def distractors(rec: Recognizer, trials: int, colour: bool) -> dict[str, float]:
     published, per_camera, frames = 0, 0, 0
     for trial in range(trials):
         absent = base.objects[trial % len(base.objects)].id
-        s = base.model_copy(update={"objects": [o for o in base.objects if o.id != absent] + [distractor(rng, i) for i in range(4)],
-                                    "markers": [mk for mk in base.markers if mk.object != absent]})  # fmt: skip
+        s = base.model_copy(
+            update={
+                "objects": [o for o in base.objects if o.id != absent] + [distractor(rng, i) for i in range(4)],
+                "markers": [mk for mk in base.markers if mk.object != absent],
+            }
+        )
         s = random_layout(s, rng, tight=False)
         cell = SimCell(s)
         truth = {o.id: o.world_T_object(0.0) for o in s.objects if o.id in shapes}
@@ -315,18 +362,28 @@ def distractors(rec: Recognizer, trials: int, colour: bool) -> dict[str, float]:
             cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
             view = DepthView.of(cloud, frame.rgb if colour else None)
             views.append(CameraView(cam.id, 0, view, frame.world_T_camera))
-            points.append(CameraPoints(cam.id, 0, voxel_downsample(rec.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
-                                       frame.world_T_camera))  # fmt: skip
+            points.append(
+                CameraPoints(
+                    cam.id,
+                    0,
+                    voxel_downsample(rec.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
+                    frame.world_T_camera,
+                )
+            )
             for det in rec.recognize(cloud, world_T_camera=frame.world_T_camera, view=view):
-                found.append(WorldDetection(cam.id, 0, frame.world_T_camera @ det.camera_T_object, det, frame.world_T_camera))
+                found.append(
+                    WorldDetection(cam.id, 0, frame.world_T_camera @ det.camera_T_object, det, frame.world_T_camera)
+                )
                 per_camera += false(det.object_id, found[-1].world_T_object)
             frames += 1
         objects = cross_checked(found, views, rec.seen_through, 10**9)[0]
         objects += searched(rec, objects, views, points)  # the absent object is always searched for
         published += sum(false(f.object_id, f.world_T_object) for f in objects)
     suffix = "" if colour else "_depth_only"
-    return {f"false_positives_per_trial_distractors{suffix}": published / trials,
-            f"false_detections_per_frame_distractors{suffix}": per_camera / frames}  # fmt: skip
+    return {
+        f"false_positives_per_trial_distractors{suffix}": published / trials,
+        f"false_detections_per_frame_distractors{suffix}": per_camera / frames,
+    }
 
 
 def clutter(rec: Recognizer, trials: int) -> dict[str, float]:
@@ -338,8 +395,12 @@ def clutter(rec: Recognizer, trials: int) -> dict[str, float]:
     rows: list[tuple[str, bool]] = []
     false, frames = 0, 0
     for trial in range(trials):
-        s = base.model_copy(update={"objects": list(base.objects) + [distractor(rng, i) for i in range(4)],
-                                    "markers": [mk for mk in base.markers if mk.object is None]})  # fmt: skip
+        s = base.model_copy(
+            update={
+                "objects": list(base.objects) + [distractor(rng, i) for i in range(4)],
+                "markers": [mk for mk in base.markers if mk.object is None],
+            }
+        )
         s = random_layout(s, rng, tight=True, within=0.7)
         cell = SimCell(s)
         truth = {o.id: o.world_T_object(0.0) for o in s.objects if o.id in shapes}
@@ -356,9 +417,12 @@ def clutter(rec: Recognizer, trials: int) -> dict[str, float]:
 def _judged_frame(rec: Recognizer, frame: SimFrame, shapes: dict, truth: dict[str, np.ndarray]) -> tuple[set[str], int]:
     """One frame recognised with its camera's pose and colour: the objects found within ADD-S 0.1 d
     of their world pose in ``truth`` (object id -> (4, 4)), and how many were found away from it."""
-    found = {d.object_id: frame.world_T_camera @ d.camera_T_object
-             for d in rec.recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera,
-                                    rgb=frame.rgb)}  # fmt: skip
+    found = {
+        d.object_id: frame.world_T_camera @ d.camera_T_object
+        for d in rec.recognize(
+            depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera, rgb=frame.rgb
+        )
+    }
     right = {oid for oid, T in found.items() if adds(shapes[oid], T, truth[oid]) < 0.1 * shapes[oid].diameter_m}
     return right, len(found) - len(right)
 
@@ -400,7 +464,11 @@ def rough_sensor(rec: Recognizer, trials: int) -> dict[str, float]:
         cells = {"as_rendered": SimCell(s), "rough": SimCell(rough(s, trial))}
         truth = {o.id: o.world_T_object(0.0) for o in s.objects}
         for cam in s.cameras:
-            classes = {o.id: cls for o in s.objects if (cls := visibility_class(visible_share(cells["as_rendered"], s, cam.id, o))) is not None}
+            classes = {
+                o.id: cls
+                for o in s.objects
+                if (cls := visibility_class(visible_share(cells["as_rendered"], s, cam.id, o))) is not None
+            }
             frames += 1
             for sensor, cell in cells.items():
                 right, wrong = _judged_frame(rec, cell.render(cam.id, 0.0, trial), shapes, truth)
@@ -418,7 +486,9 @@ def run(quick: bool) -> dict[str, float]:
     shapes = {o.id: shape_of(o) for o in base.objects}
     recognisers = {}
     for binning in ("pcl", "pcl17"):
-        cfg = RecognitionConfig(descriptor=DescriptorConfig(binning=binning), workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1])
+        cfg = RecognitionConfig(
+            descriptor=DescriptorConfig(binning=binning), workspace_min=WORKSPACE[0], workspace_max=WORKSPACE[1]
+        )
         recognisers[binning] = Recognizer(database_from_scenario(base, cfg.descriptor), cfg)
     ppf_times: list[float] = []
     later: list[tuple[Scenario, SimFrame, dict[str, str]]] = []  # (layout, frame, classes) for the baseline's pass
@@ -468,7 +538,11 @@ def run(quick: bool) -> dict[str, float]:
                         gt = invert_pose(frame.world_T_camera) @ obj.world_T_object(0.0)
                         wrong = adds(shapes[oid], det.camera_T_object, gt) >= 0.1 * shapes[oid].diameter_m
                         false_detections += wrong
-                        in_world.append(WorldDetection(cam.id, 0, frame.world_T_camera @ det.camera_T_object, det, frame.world_T_camera))
+                        in_world.append(
+                            WorldDetection(
+                                cam.id, 0, frame.world_T_camera @ det.camera_T_object, det, frame.world_T_camera
+                            )
+                        )
                         if not wrong:
                             right_ones.append(in_world[-1])
                     partly_somewhere |= {oid for oid, cls in classes.items() if cls == "partly_occluded"}
@@ -479,8 +553,11 @@ def run(quick: bool) -> dict[str, float]:
                     sh = shapes[obj.id]
                     if obj.id in found:
                         est = found[obj.id].camera_T_object
-                        e = (adds(sh, est, gt) / sh.diameter_m, mssd(sh, est, gt) / sh.diameter_m,
-                             float(np.linalg.norm(est[:3, 3] - gt[:3, 3])))
+                        e = (
+                            adds(sh, est, gt) / sh.diameter_m,
+                            mssd(sh, est, gt) / sh.diameter_m,
+                            float(np.linalg.norm(est[:3, 3] - gt[:3, 3])),
+                        )
                     else:
                         e = (np.inf, np.inf, np.inf)
                     rows.append((binning, obj.id, classes[obj.id], *e))
@@ -493,25 +570,46 @@ def run(quick: bool) -> dict[str, float]:
         present = [o for o in s.objects if max(shares[c][o.id] for c in shares) >= SCORED]
         for cv in views:
             t0 = time.perf_counter()
-            in_cloud = {d.detection.object_id: d for d in found_in_cloud(set(shapes), cv, points,
-                        lambda cloud, W, view: rec.recognize(cloud, world_T_camera=W, view=view))}  # fmt: skip
+            in_cloud = {
+                d.detection.object_id: d
+                for d in found_in_cloud(
+                    set(shapes), cv, points, lambda cloud, W, view: rec.recognize(cloud, world_T_camera=W, view=view)
+                )
+            }
             cloud_times.append(time.perf_counter() - t0)
             for oid, d in in_cloud.items():
-                cloud_false += adds(shapes[oid], d.world_T_object, next(o for o in s.objects if o.id == oid).world_T_object(0.0)) >= 0.1 * shapes[oid].diameter_m
-            cloud_hits += [o.id in in_cloud and adds(shapes[o.id], in_cloud[o.id].world_T_object, o.world_T_object(0.0)) < 0.1 * shapes[o.id].diameter_m
-                           for o in present]  # fmt: skip
+                cloud_false += (
+                    adds(shapes[oid], d.world_T_object, next(o for o in s.objects if o.id == oid).world_T_object(0.0))
+                    >= 0.1 * shapes[oid].diameter_m
+                )
+            cloud_hits += [
+                o.id in in_cloud
+                and adds(shapes[o.id], in_cloud[o.id].world_T_object, o.world_T_object(0.0))
+                < 0.1 * shapes[o.id].diameter_m
+                for o in present
+            ]
         added = searched(rec, published, views, points)
         cloud_added += len(added)
         published = published + added
         cfg = recognisers["pcl"].config
-        refined = refined_in_cloud(published, points, recognisers["pcl"].db, cfg.icp_distance_m, cfg.descriptor.normal_radius_m, cfg.min_fitness)
+        refined = refined_in_cloud(
+            published,
+            points,
+            recognisers["pcl"].db,
+            cfg.icp_distance_m,
+            cfg.descriptor.normal_radius_m,
+            cfg.min_fitness,
+        )
         for before, after in zip(published, refined):
             truth = next(o for o in s.objects if o.id == before.object_id).world_T_object(0.0)
             fused_errors["unrefined"].append(1000 * float(np.linalg.norm(before.world_T_object[:3, 3] - truth[:3, 3])))
             fused_errors["refined"].append(1000 * float(np.linalg.norm(after.world_T_object[:3, 3] - truth[:3, 3])))
         fused = {f.object_id: f.world_T_object for f in refined}
         for obj in s.objects:
-            right = obj.id in fused and adds(shapes[obj.id], fused[obj.id], obj.world_T_object(0.0)) < 0.1 * shapes[obj.id].diameter_m
+            right = (
+                obj.id in fused
+                and adds(shapes[obj.id], fused[obj.id], obj.world_T_object(0.0)) < 0.1 * shapes[obj.id].diameter_m
+            )
             fused_false += obj.id in fused and not right
             if obj.id in partly_somewhere:
                 fused_hits.append(right)
@@ -522,17 +620,35 @@ def run(quick: bool) -> dict[str, float]:
             hard = [o for o in s.objects if SCORED <= max(shares[a][o.id], shares[b][o.id]) < UNOCCLUDED]
             if not hard:
                 continue
-            pair = {f.object_id: f.world_T_object for f in cross_checked(
-                [d for d in in_world if d.camera_id in (a, b)], [v for v in views if v.camera_id in (a, b)], judge, 10**9)[0]}
+            pair = {
+                f.object_id: f.world_T_object
+                for f in cross_checked(
+                    [d for d in in_world if d.camera_id in (a, b)],
+                    [v for v in views if v.camera_id in (a, b)],
+                    judge,
+                    10**9,
+                )[0]
+            }
             for oid, T in pair.items():
                 pair_false += adds(shapes[oid], T, truth_of[oid]) >= 0.1 * shapes[oid].diameter_m
-            pair_hits += [o.id in pair and adds(shapes[o.id], pair[o.id], truth_of[o.id]) < 0.1 * shapes[o.id].diameter_m for o in hard]
-        fused_held_right += sum(any(adds(shapes[h.object_id], d.world_T_object, truth_of[h.object_id]) < 0.1 * shapes[h.object_id].diameter_m
-                                    for d in in_world if d.detection.object_id == h.object_id and d.camera_id in h.detected_by)
-                                for h in held)  # fmt: skip
+            pair_hits += [
+                o.id in pair and adds(shapes[o.id], pair[o.id], truth_of[o.id]) < 0.1 * shapes[o.id].diameter_m
+                for o in hard
+            ]
+        fused_held_right += sum(
+            any(
+                adds(shapes[h.object_id], d.world_T_object, truth_of[h.object_id])
+                < 0.1 * shapes[h.object_id].diameter_m
+                for d in in_world
+                if d.detection.object_id == h.object_id and d.camera_id in h.detected_by
+            )
+            for h in held
+        )
         for d in right_ones:
             for shift in ((0.0, 0.0, 0.2), (0.2, 0.0, 0.0), (0.0, 0.2, 0.0)):
-                moved = WorldDetection(d.camera_id, 0, make_pose(np.eye(3), shift) @ d.world_T_object, d.detection, d.world_T_camera)
+                moved = WorldDetection(
+                    d.camera_id, 0, make_pose(np.eye(3), shift) @ d.world_T_object, d.detection, d.world_T_camera
+                )
                 moved_caught.append(not cross_checked([moved], views, judge, 10**9)[0])
     # The baseline in a pass of its own over the same frames, so that nothing it leaves behind
     # (large temporary arrays) is in our timings.

@@ -20,12 +20,12 @@ import numpy as np
 
 from benchmarks.common import main
 from benchmarks.estimator_scale import rss_mb
-from cellsight.synthetic import NoiseSettings, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.resolve_report import run_resolve
-from estimator.offline.solve import ResolveResult
 from cellsight.scenario_config import cell_config_of
+from cellsight.synthetic import NoiseSettings, frame_observations, observations_msg
 from drivers.sim.scenario import load_scenario
+from estimator.offline.solve import ResolveResult
 from schemas import keys
 from schemas import messages as m
 from schemas.log import LogWriter
@@ -41,7 +41,13 @@ def write_log(path: Path, seconds: float) -> tuple[CellConfig, int]:
     rng = np.random.default_rng(0)
     # Messages are built once per pool entry; per frame only the stamp changes (building each of
     # hundreds of thousands of messages through the codec made writing the log the slow part).
-    pools = {c.id: [observations_msg(c.id, 0, frame_observations(s, c.id, 0.0, 0, rng, NoiseSettings(flip_rate=0.02))) for _ in range(POOL)] for c in s.cameras}
+    pools = {
+        c.id: [
+            observations_msg(c.id, 0, frame_observations(s, c.id, 0.0, 0, rng, NoiseSettings(flip_rate=0.02)))
+            for _ in range(POOL)
+        ]
+        for c in s.cameras
+    }
     w = LogWriter(path, metadata={"config": cfg.to_toml()})
     n = 0
     msg = m.MarkerObservations()

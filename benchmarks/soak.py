@@ -149,8 +149,11 @@ def log_gaps(run_dir: Path, faults: list[Fault], t0_mono: float, t0_ns: int) -> 
     for part in parts:
         for msg in read_log(part, set(wanted), ReadReport()):
             seen[wanted[msg.key]].append(msg.log_time_ns)
-    down = [((f.at - t0_mono) * 1e9 + t0_ns, ((f.recovered_at or f.at + RECOVER_TIMEOUT_S) - t0_mono) * 1e9 + t0_ns)
-            for f in faults if f.process.split("/")[0] in ("driver", "router", "recorder")]  # fmt: skip
+    down = [
+        ((f.at - t0_mono) * 1e9 + t0_ns, ((f.recovered_at or f.at + RECOVER_TIMEOUT_S) - t0_mono) * 1e9 + t0_ns)
+        for f in faults
+        if f.process.split("/")[0] in ("driver", "router", "recorder")
+    ]
     gaps = unexplained = 0
     for stamps in seen.values():
         t = np.sort(np.array(stamps, dtype=np.int64))
@@ -184,7 +187,9 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
     shm: dict[str, list[tuple[float, float]]] = {}  # process name -> (s since start, shared-memory MiB)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        proc, run_dir, port = launch_demo_cell(tmp, CELL, sched.duration_s + 120)  # its camera motions happen in the warm-up
+        proc, run_dir, port = launch_demo_cell(
+            tmp, CELL, sched.duration_s + 120
+        )  # its camera motions happen in the warm-up
         bus = None
         try:
             t0, t0_ns = time.monotonic(), time.time_ns()
@@ -217,13 +222,23 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
                     elif time.monotonic() > fault.at + RECOVER_TIMEOUT_S:
                         pending.remove((fault, pid))
                         last = watch.states[-1][1] if watch.states else {}
-                        log.warning("%s at %.0f s: not recovered in %.0f s (camera states %s, processes %s)", fault.name,
-                                    fault.at - t0, RECOVER_TIMEOUT_S, last, processes(run_dir))  # fmt: skip
+                        log.warning(
+                            "%s at %.0f s: not recovered in %.0f s (camera states %s, processes %s)",
+                            fault.name,
+                            fault.at - t0,
+                            RECOVER_TIMEOUT_S,
+                            last,
+                            processes(run_dir),
+                        )
                 time.sleep(0.2)
             proc.send_signal(signal.SIGTERM)
             proc.wait(120)
             if args is not None and args.keep is not None:
-                keep(run_dir, args.keep, {"private_mb": rss, "shared_mb": shm, "faults": [(f.name, f.at - t0) for f in faults]})
+                keep(
+                    run_dir,
+                    args.keep,
+                    {"private_mb": rss, "shared_mb": shm, "faults": [(f.name, f.at - t0) for f in faults]},
+                )
         finally:
             if bus is not None:
                 bus.close()
@@ -272,14 +287,22 @@ def run(quick: bool, args: argparse.Namespace | None = None) -> dict[str, float]
         "log_parts": parts,
         "log_gaps": gaps,
         "log_gaps_unexplained": unexplained,
-        **{f"recovery_s_max_{name.replace(' ', '_')}": max((f.recovered_at - f.at if f.recovered_at else float("inf")) for f in faults if f.name == name)
-           for name in dict.fromkeys(f.name for f in faults)},
+        **{
+            f"recovery_s_max_{name.replace(' ', '_')}": max(
+                (f.recovered_at - f.at if f.recovered_at else float("inf")) for f in faults if f.name == name
+            )
+            for name in dict.fromkeys(f.name for f in faults)
+        },
     }
 
 
 def _args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--minutes", type=float, default=30.0, help="length of the full run (default 30)")
-    parser.add_argument("--keep", type=Path, help="copy the run folder here at the end (logs, config, state, memory series; not the recording)")
+    parser.add_argument(
+        "--keep",
+        type=Path,
+        help="copy the run folder here at the end (logs, config, state, memory series; not the recording)",
+    )
 
 
 if __name__ == "__main__":

@@ -43,7 +43,10 @@ def cpu_s() -> float:
 def publisher(endpoint: str, shm: bool, camera: str, seconds: float) -> None:
     """Publish ``seconds`` of frames at RATE_HZ; print CPU seconds, frames and how many went through shared memory."""
     with Bus(TransportConfig(mode="client", connect=[endpoint], shared_memory=shm), CELL) as bus:
-        color, depth = bus.publisher(keys.color(CELL, camera), frames=True), bus.publisher(keys.depth(CELL, camera), frames=True)
+        color, depth = (
+            bus.publisher(keys.color(CELL, camera), frames=True),
+            bus.publisher(keys.depth(CELL, camera), frames=True),
+        )
         rng = np.random.default_rng(0)
         c = codec.image_to_msg(rng.integers(0, 255, (480, 640, 3), dtype=np.uint8), 1, camera, "rgb8")
         d = codec.image_to_msg(rng.integers(0, 4000, (480, 640), dtype=np.uint16), 1, camera, "16UC1")
@@ -83,15 +86,22 @@ def one_run(shm: bool, seconds: float) -> dict[str, float]:
     flag = "1" if shm else "0"
     r = subprocess.Popen(me + ["router", endpoint, flag, str(seconds + 6)], stdout=subprocess.PIPE, text=True)
     time.sleep(1.0)
-    readers = [subprocess.Popen(me + ["reader", endpoint, flag, str(seconds + 3)], stdout=subprocess.PIPE, text=True) for _ in range(READERS)]
+    readers = [
+        subprocess.Popen(me + ["reader", endpoint, flag, str(seconds + 3)], stdout=subprocess.PIPE, text=True)
+        for _ in range(READERS)
+    ]
     time.sleep(0.5)
-    pubs = [subprocess.Popen(me + ["publisher", endpoint, flag, str(seconds), cam], stdout=subprocess.PIPE, text=True) for cam in CAMERAS]
+    pubs = [
+        subprocess.Popen(me + ["publisher", endpoint, flag, str(seconds), cam], stdout=subprocess.PIPE, text=True)
+        for cam in CAMERAS
+    ]
     pub_out = [p.communicate(timeout=seconds + 60)[0].split() for p in pubs]
     read_out = [p.communicate(timeout=seconds + 60)[0].split() for p in readers]
     router_cpu = float(r.communicate(timeout=seconds + 60)[0].split()[0])
     sent = sum(int(o[1]) for o in pub_out) * 2  # color + depth
     return {
-        "cpu_s_per_s_total": (sum(float(o[0]) for o in pub_out) + sum(float(o[0]) for o in read_out) + router_cpu) / seconds,
+        "cpu_s_per_s_total": (sum(float(o[0]) for o in pub_out) + sum(float(o[0]) for o in read_out) + router_cpu)
+        / seconds,
         "cpu_s_per_s_publishers": sum(float(o[0]) for o in pub_out) / seconds,
         "cpu_s_per_s_readers": sum(float(o[0]) for o in read_out) / seconds,
         "cpu_s_per_s_router": router_cpu / seconds,
@@ -112,28 +122,57 @@ def cross_host(seconds: float, settle_s: float) -> dict[str, float]:
     from tests.hosts import CELL_IP, can_make_hosts, in_ns, rx_bytes, stop_all, two_hosts
 
     if not can_make_hosts():
-        return dict.fromkeys(("cross_host_bytes_per_s_per_camera", "cross_host_recorded_bytes_per_s_per_camera",
-                              "cross_host_everything_bytes_per_s_per_camera"), float("nan"))  # fmt: skip
+        return dict.fromkeys(
+            (
+                "cross_host_bytes_per_s_per_camera",
+                "cross_host_recorded_bytes_per_s_per_camera",
+                "cross_host_everything_bytes_per_s_per_camera",
+            ),
+            float("nan"),
+        )
     endpoint = f"tcp/{CELL_IP}:7447"
     me = [sys.executable, "-m", "benchmarks.transport", "--role"]
     with two_hosts("csbench") as (cell, edge), tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
-        (tmp_path / "base.toml").write_text(f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\nshared_memory = false\n')
+        (tmp_path / "base.toml").write_text(
+            f'[cell]\nname = "{CELL}"\n[transport]\nconnect = ["{endpoint}"]\nshared_memory = false\n'
+        )
         # The edge camera must outlive the three windows: the demo scenario ends at 30 s.
         scenario = tmp_path / "scenario.toml"
         scenario.write_text(demo_cell_text(settle_s + 3 * seconds + 60))
         cfg = cell_config_of(load_scenario(scenario), scenario, load_config(tmp_path / "base.toml"))
         (tmp_path / "cell.toml").write_text(cfg.to_toml())
-        edge_cfg = cfg.model_copy(update={
-            "cell": cfg.cell.model_copy(update={"role": "edge", "upstream": [endpoint]}),
-            "transport": cfg.transport.model_copy(update={"connect": ["tcp/127.0.0.1:7447"], "shared_memory": True}),
-            "cameras": [c.model_copy(update={"prerender_frames": 30}) for c in cfg.cameras if c.id == "cam1"],
-        })  # fmt: skip
+        edge_cfg = cfg.model_copy(
+            update={
+                "cell": cfg.cell.model_copy(update={"role": "edge", "upstream": [endpoint]}),
+                "transport": cfg.transport.model_copy(
+                    update={"connect": ["tcp/127.0.0.1:7447"], "shared_memory": True}
+                ),
+                "cameras": [c.model_copy(update={"prerender_frames": 30}) for c in cfg.cameras if c.id == "cam1"],
+            }
+        )
         (tmp_path / "edge.toml").write_text(edge_cfg.to_toml())
         procs = [in_ns(cell, me + ["router", endpoint, "0", str(3 * seconds + 120)])]
         time.sleep(1.0)
-        procs.append(in_ns(cell, [sys.executable, "-m", "cellsight.cli", "estimator", "--cell-config", str(tmp_path / "cell.toml")]))
-        procs.append(in_ns(edge, [sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "edge.toml"), "--out", str(tmp_path / "edge")]))
+        procs.append(
+            in_ns(
+                cell, [sys.executable, "-m", "cellsight.cli", "estimator", "--cell-config", str(tmp_path / "cell.toml")]
+            )
+        )
+        procs.append(
+            in_ns(
+                edge,
+                [
+                    sys.executable,
+                    "-m",
+                    "cellsight.cli",
+                    "run",
+                    str(tmp_path / "edge.toml"),
+                    "--out",
+                    str(tmp_path / "edge"),
+                ],
+            )
+        )
         try:
             time.sleep(settle_s)  # pre-rendering, then the camera at its rate
 
@@ -143,8 +182,21 @@ def cross_host(seconds: float, settle_s: float) -> dict[str, float]:
                 return (rx_bytes(cell) - before) / (time.monotonic() - t0)
 
             kept = rate()
-            recorder = in_ns(cell, [sys.executable, "-m", "cellsight.cli", "record", "--out", str(tmp_path / "cell.mcap"),
-                                    "--max-image-hz", str(RECORDED_IMAGE_HZ), "--cell-config", str(tmp_path / "cell.toml")])  # fmt: skip
+            recorder = in_ns(
+                cell,
+                [
+                    sys.executable,
+                    "-m",
+                    "cellsight.cli",
+                    "record",
+                    "--out",
+                    str(tmp_path / "cell.mcap"),
+                    "--max-image-hz",
+                    str(RECORDED_IMAGE_HZ),
+                    "--cell-config",
+                    str(tmp_path / "cell.toml"),
+                ],
+            )
             time.sleep(2.0)
             recorded = rate()
             stop_all([recorder])
@@ -154,8 +206,12 @@ def cross_host(seconds: float, settle_s: float) -> dict[str, float]:
             everything.wait(seconds + 30)
         finally:
             stop_all(procs)
-    return {"cross_host_bytes_per_s_per_camera": kept, "cross_host_recorded_bytes_per_s_per_camera": recorded,
-            "cross_host_everything_bytes_per_s_per_camera": sent, "cross_host_everything_over_kept_ratio": sent / kept}  # fmt: skip
+    return {
+        "cross_host_bytes_per_s_per_camera": kept,
+        "cross_host_recorded_bytes_per_s_per_camera": recorded,
+        "cross_host_everything_bytes_per_s_per_camera": sent,
+        "cross_host_everything_over_kept_ratio": sent / kept,
+    }
 
 
 def run(quick: bool) -> dict[str, float]:

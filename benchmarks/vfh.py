@@ -38,18 +38,25 @@ def ensure_pcl() -> None:
     if PCL_HEADER.is_file() and shutil.which("g++"):
         return
     if os.geteuid() != 0 or not shutil.which("apt-get"):
-        raise SystemExit("benchmarks.vfh needs Debian's libpcl-dev and g++: run as root, or `apt-get install libpcl-dev g++`")
+        raise SystemExit(
+            "benchmarks.vfh needs Debian's libpcl-dev and g++: run as root, or `apt-get install libpcl-dev g++`"
+        )
     print("installing Debian's libpcl-dev (PCL 1.13) for the reference ...", flush=True)
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     subprocess.run(["apt-get", "update", "-q"], check=True, env=env, stdout=subprocess.DEVNULL)
-    subprocess.run(["apt-get", "install", "-y", "-q", "--no-install-recommends", "libpcl-dev", "g++", "pkg-config"],
-                   check=True, env=env, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        ["apt-get", "install", "-y", "-q", "--no-install-recommends", "libpcl-dev", "g++", "pkg-config"],
+        check=True,
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
 
 
 def build(workdir: Path) -> Path:
     """Compile pcl_vfh.cpp against the installed PCL; the executable's path."""
-    flags = subprocess.run(["pkg-config", "--cflags", "--libs", "pcl_features", "pcl_search"],
-                           check=True, capture_output=True, text=True).stdout.split()
+    flags = subprocess.run(
+        ["pkg-config", "--cflags", "--libs", "pcl_features", "pcl_search"], check=True, capture_output=True, text=True
+    ).stdout.split()
     exe = workdir / "pcl_vfh"
     cflags = [f for f in flags if not f.startswith(("-l", "-L"))]
     libs = [f for f in flags if f.startswith(("-l", "-L"))]
@@ -60,9 +67,14 @@ def build(workdir: Path) -> Path:
 def run_pcl(exe: Path, cloud_file: Path, reps: int, setting: str) -> tuple[list[float], list[float], np.ndarray]:
     """PCL's per-call times (ms; feature alone, and compute() with its own tree) and its histogram."""
     nd, size = SETTINGS[setting]
-    out = subprocess.run([str(exe), str(cloud_file), str(reps), str(int(nd)), str(int(size))],
-                         check=True, capture_output=True, text=True).stdout.splitlines()
-    return [float(t) for t in out[0].split()], [float(t) for t in out[1].split()], np.array(out[2].split(), dtype=np.float64)
+    out = subprocess.run(
+        [str(exe), str(cloud_file), str(reps), str(int(nd)), str(int(size))], check=True, capture_output=True, text=True
+    ).stdout.splitlines()
+    return (
+        [float(t) for t in out[0].split()],
+        [float(t) for t in out[1].split()],
+        np.array(out[2].split(), dtype=np.float64),
+    )
 
 
 def run_ours(points: np.ndarray, normals: np.ndarray, reps: int, setting: str) -> tuple[list[float], np.ndarray]:
@@ -78,13 +90,16 @@ def run_ours(points: np.ndarray, normals: np.ndarray, reps: int, setting: str) -
 def run(quick: bool) -> dict[str, float]:
     ensure_pcl()
     points = read_cloud(PCL_DATA / "milk.pcd")
-    normals = np.array(json.loads((PCL_DATA / "reference" / "milk_normals_pcl.json").read_text())["normals"],
-                       dtype=np.float32)[:, :3]
+    normals = np.array(
+        json.loads((PCL_DATA / "reference" / "milk_normals_pcl.json").read_text())["normals"], dtype=np.float32
+    )[:, :3]
     rounds, reps = (4, 20) if quick else (10, 50)
     with tempfile.TemporaryDirectory(prefix="cellsight-vfh-") as tmp:
         exe = build(Path(tmp))
         cloud_file = Path(tmp) / "milk.bin"
-        cloud_file.write_bytes(np.int32(len(points)).tobytes() + np.hstack([points, normals]).astype(np.float32).tobytes())
+        cloud_file.write_bytes(
+            np.int32(len(points)).tobytes() + np.hstack([points, normals]).astype(np.float32).tobytes()
+        )
         diff = 0.0
         for setting in SETTINGS:  # agreement, both parameter sets
             _, _, h_pcl = run_pcl(exe, cloud_file, 1, setting)

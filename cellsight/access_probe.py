@@ -60,6 +60,7 @@ def probe(profile: Profile, cell: str, edge_listen: str, timeout_s: float = 10.0
             def seen(key: str, payload: bytes, _ns: int) -> None:
                 with lock:
                     got[role].add((key, payload.decode(errors="replace")))
+
             return seen
 
         # A session's own puts and tokens reach its own subscribers without the router: every judgement

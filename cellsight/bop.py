@@ -106,7 +106,7 @@ class BopDataset:
     frames: list[BopFrame]
 
     @classmethod
-    def open(cls, root: str | Path, split: str = "test", models_dir: str | None = None) -> "BopDataset":
+    def open(cls, root: str | Path, split: str = "test", models_dir: str | None = None) -> BopDataset:
         """The dataset at ``root``: every model of ``models_dir`` (None: the first of MODEL_FOLDERS
         it has), the frames of every scene folder of ``split``. A DatasetError names the file and
         field that are missing or malformed."""
@@ -117,8 +117,10 @@ class BopDataset:
         if models_dir is None:
             models_dir = next((m for m in MODEL_FOLDERS if m in folders), None)
             if models_dir is None:
-                raise DatasetError(f"{root} has none of the model folders {', '.join(MODEL_FOLDERS)} "
-                                   f"(folders: {', '.join(folders) or 'none'}); name the one to use")
+                raise DatasetError(
+                    f"{root} has none of the model folders {', '.join(MODEL_FOLDERS)} "
+                    f"(folders: {', '.join(folders) or 'none'}); name the one to use"
+                )
             log.info("%s: models from %s/", root, models_dir)
         elif models_dir not in folders:
             raise DatasetError(f"{root} has no model folder {models_dir!r} (folders: {', '.join(folders) or 'none'})")
@@ -227,7 +229,10 @@ def _scene_frames(scene_dir: Path, models: dict[str, BopModel], targets: set[tup
         if depth is None:
             raise DatasetError(f"{scene_dir / 'depth'}: no image {image_id:06d}")
         truth = []
-        rows, shares = gt.get(key, []), [r.get("visib_fract") if isinstance(r, dict) else None for r in info.get(key, [])]
+        rows, shares = (
+            gt.get(key, []),
+            [r.get("visib_fract") if isinstance(r, dict) else None for r in info.get(key, [])],
+        )
         for i, row in enumerate(rows):
             if not isinstance(row, dict) or not str(row.get("obj_id", "")).isdigit():
                 raise DatasetError(f"{gt_path} image {image_id}: entry {i} has no obj_id")
@@ -235,10 +240,22 @@ def _scene_frames(scene_dir: Path, models: dict[str, BopModel], targets: set[tup
             if oid not in models:
                 raise DatasetError(f"{gt_path} image {image_id}: obj_id {row['obj_id']} has no model")
             share = shares[i] if len(shares) == len(rows) else None
-            truth.append(BopInstance(oid, _pose(row, f"{gt_path} image {image_id}"), None if share is None else float(share)))
+            truth.append(
+                BopInstance(oid, _pose(row, f"{gt_path} image {image_id}"), None if share is None else float(share))
+            )
         world_T_camera = invert_pose(_pose(cam, where, "cam_R_w2c", "cam_t_w2c")) if "cam_R_w2c" in cam else None
-        frames.append(BopFrame(scene_id, image_id, depth, _image(scene_dir / "rgb", image_id), K, depth_scale / 1000.0,
-                               tuple(truth), world_T_camera))  # fmt: skip
+        frames.append(
+            BopFrame(
+                scene_id,
+                image_id,
+                depth,
+                _image(scene_dir / "rgb", image_id),
+                K,
+                depth_scale / 1000.0,
+                tuple(truth),
+                world_T_camera,
+            )
+        )
     return frames
 
 
@@ -248,7 +265,11 @@ def adds_m(points: np.ndarray, camera_T_estimate: np.ndarray, camera_T_truth: np
     a = points @ camera_T_truth[:3, :3].T + camera_T_truth[:3, 3]
     b = points @ camera_T_estimate[:3, :3].T + camera_T_estimate[:3, 3]
     pa = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a.astype(np.float64)))
-    return float(np.mean(pa.compute_point_cloud_distance(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b.astype(np.float64))))))
+    return float(
+        np.mean(
+            pa.compute_point_cloud_distance(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b.astype(np.float64))))
+        )
+    )
 
 
 @dataclass
@@ -263,14 +284,26 @@ class FrameScore:
     false: list[str] = field(default_factory=list)
 
 
-def score(truth: tuple[BopInstance, ...], detections: list[tuple[str, np.ndarray]], points: dict[str, np.ndarray],
-          diameters: dict[str, float]) -> FrameScore:
+def score(
+    truth: tuple[BopInstance, ...],
+    detections: list[tuple[str, np.ndarray]],
+    points: dict[str, np.ndarray],
+    diameters: dict[str, float],
+) -> FrameScore:
     """Match detections (object id, camera_T_object) to annotated instances, each at most once.
     points: each object's surface samples (N, 3, m); diameters (m)."""
     result, used = FrameScore(), set()
     for inst in truth:
-        hit = next((j for j, (oid, T) in enumerate(detections) if j not in used and oid == inst.object_id
-                    and adds_m(points[oid], T, inst.camera_T_object) < ADDS_SHARE * diameters[oid]), None)  # fmt: skip
+        hit = next(
+            (
+                j
+                for j, (oid, T) in enumerate(detections)
+                if j not in used
+                and oid == inst.object_id
+                and adds_m(points[oid], T, inst.camera_T_object) < ADDS_SHARE * diameters[oid]
+            ),
+            None,
+        )
         result.found.append(hit is not None)
         result.matched.append(hit)
         if hit is not None:
@@ -287,7 +320,9 @@ def level_world_pose(recognizer: Recognizer, cloud: np.ndarray, world_T_camera: 
     turn every object down."""
     if world_T_camera is None:
         return None
-    return world_T_camera if support_plane(recognizer.prepare(cloud).planes, world_T_camera[2, :3]) is not None else None
+    return (
+        world_T_camera if support_plane(recognizer.prepare(cloud).planes, world_T_camera[2, :3]) is not None else None
+    )
 
 
 def depth_of_organised(cloud: np.ndarray, focal_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -314,13 +349,20 @@ class BopWriter:
         self._info: dict[str, dict] = {}
         self._scenes: dict[int, tuple[dict, dict, dict]] = {}  # scene -> (camera, gt, gt_info)
 
-    def add_model(self, obj_id: int, vertices_m: np.ndarray, triangles: np.ndarray | None = None,
-                  colours: np.ndarray | None = None) -> None:
+    def add_model(
+        self,
+        obj_id: int,
+        vertices_m: np.ndarray,
+        triangles: np.ndarray | None = None,
+        colours: np.ndarray | None = None,
+    ) -> None:
         """A mesh (vertices (V, 3) m, triangles (T, 3)) or, without triangles, a point model; colours (V, 3) rgb 0-1."""
         v = np.asarray(vertices_m, np.float64) * 1000.0
         path = self.root / "models" / f"{object_id(obj_id)}.ply"
         if triangles is not None and len(triangles):
-            geom = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)))
+            geom = o3d.geometry.TriangleMesh(
+                o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(np.asarray(triangles, np.int32))
+            )
             if colours is not None:
                 geom.vertex_colors = o3d.utility.Vector3dVector(np.asarray(colours, np.float64))
             o3d.io.write_triangle_mesh(str(path), geom)
@@ -332,12 +374,27 @@ class BopWriter:
         hull = v[np.unique(np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(v)).compute_convex_hull()[1]))]
         diameter = float(np.max(np.linalg.norm(hull[:, None] - hull[None], axis=-1)))
         lo, hi = v.min(axis=0), v.max(axis=0)
-        self._info[str(obj_id)] = {"diameter": diameter, "min_x": lo[0], "min_y": lo[1], "min_z": lo[2],
-                                   "size_x": hi[0] - lo[0], "size_y": hi[1] - lo[1], "size_z": hi[2] - lo[2]}  # fmt: skip
+        self._info[str(obj_id)] = {
+            "diameter": diameter,
+            "min_x": lo[0],
+            "min_y": lo[1],
+            "min_z": lo[2],
+            "size_x": hi[0] - lo[0],
+            "size_y": hi[1] - lo[1],
+            "size_z": hi[2] - lo[2],
+        }
 
-    def add_frame(self, scene_id: int, image_id: int, depth_m: np.ndarray, K: np.ndarray,
-                  truth: list[tuple[int, np.ndarray, float | None]], rgb: np.ndarray | None = None,
-                  depth_scale_mm: float = 0.2, world_T_camera: np.ndarray | None = None) -> None:
+    def add_frame(
+        self,
+        scene_id: int,
+        image_id: int,
+        depth_m: np.ndarray,
+        K: np.ndarray,
+        truth: list[tuple[int, np.ndarray, float | None]],
+        rgb: np.ndarray | None = None,
+        depth_scale_mm: float = 0.2,
+        world_T_camera: np.ndarray | None = None,
+    ) -> None:
         """depth_m (H, W, m; 0 or NaN: no return) stored as 16-bit units of depth_scale_mm; truth:
         (obj_id, camera_T_object (4, 4, m), visible share or None); rgb (H, W, 3) uint8;
         world_T_camera (4, 4, m) if the camera's pose in a world frame is known."""
@@ -346,7 +403,9 @@ class BopWriter:
             (scene / sub).mkdir(parents=True, exist_ok=True)
         units = np.nan_to_num(np.asarray(depth_m, np.float64) * 1000.0 / depth_scale_mm, nan=0.0)
         if units.max(initial=0) > np.iinfo(np.uint16).max:
-            raise DatasetError(f"depth up to {np.nanmax(depth_m):.2f} m overflows 16 bits at {depth_scale_mm} mm a unit")
+            raise DatasetError(
+                f"depth up to {np.nanmax(depth_m):.2f} m overflows 16 bits at {depth_scale_mm} mm a unit"
+            )
         cv2.imwrite(str(scene / "depth" / f"{image_id:06d}.png"), np.round(units).astype(np.uint16))
         if rgb is not None:
             cv2.imwrite(str(scene / "rgb" / f"{image_id:06d}.png"), np.ascontiguousarray(rgb[..., ::-1]))
@@ -354,10 +413,14 @@ class BopWriter:
         camera[str(image_id)] = {"cam_K": np.asarray(K, np.float64).reshape(-1).tolist(), "depth_scale": depth_scale_mm}
         if world_T_camera is not None:
             camera_T_world = invert_pose(world_T_camera)
-            camera[str(image_id)] |= {"cam_R_w2c": camera_T_world[:3, :3].reshape(-1).tolist(),
-                                      "cam_t_w2c": (camera_T_world[:3, 3] * 1000.0).tolist()}  # fmt: skip
-        gt[str(image_id)] = [{"obj_id": int(o), "cam_R_m2c": T[:3, :3].reshape(-1).tolist(), "cam_t_m2c": (T[:3, 3] * 1000.0).tolist()}
-                             for o, T, _ in truth]  # fmt: skip
+            camera[str(image_id)] |= {
+                "cam_R_w2c": camera_T_world[:3, :3].reshape(-1).tolist(),
+                "cam_t_w2c": (camera_T_world[:3, 3] * 1000.0).tolist(),
+            }
+        gt[str(image_id)] = [
+            {"obj_id": int(o), "cam_R_m2c": T[:3, :3].reshape(-1).tolist(), "cam_t_m2c": (T[:3, 3] * 1000.0).tolist()}
+            for o, T, _ in truth
+        ]
         info[str(image_id)] = [{"visib_fract": s} for _, _, s in truth if s is not None]
 
     def close(self) -> Path:

@@ -21,7 +21,6 @@ from typer.core import TyperGroup
 
 from cellsight.errors import CellsightError, ConfigError, RunError
 from cellsight.transport_flags import CellOpt, ConnectOpt, ListenOpt, TransportFlags, ZenohConfigOpt, transport_options
-
 from drivers.errors import DriverError  # noqa: E402  (the packages' exception roots: small modules)
 from estimator.errors import EstimatorError  # noqa: E402
 from recognition.errors import RecognitionError  # noqa: E402
@@ -62,7 +61,9 @@ class _Commands(TyperGroup):
             raise _fail(str(exc), code) from None
 
 
-app = typer.Typer(cls=_Commands, help="cellsight: self-aligning multi-camera work-cell monitoring.", no_args_is_help=True)
+app = typer.Typer(
+    cls=_Commands, help="cellsight: self-aligning multi-camera work-cell monitoring.", no_args_is_help=True
+)
 config_app = typer.Typer(help="Check and show cell configurations.", no_args_is_help=True)
 bus_app = typer.Typer(help="Look at the zenoh bus.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
@@ -73,7 +74,9 @@ app.add_typer(security_app, name="security")
 RECOGNITION_NICE = 5
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="debug logging")]
 DurationOpt = Annotated[Optional[float], typer.Option(help="stop after this many seconds")]
-CameraIdOpt = Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")]
+CameraIdOpt = Annotated[
+    str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id)")
+]
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -90,7 +93,9 @@ def _setup_logging(verbose: bool) -> None:
 def _stderr():
     from rich.console import Console
 
-    return Console(stderr=True)
+    # Wrapped at a terminal's width only on a terminal: a path in an error must stay one string
+    # for whoever reads the output (a log, a test, grep).
+    return Console(stderr=True, soft_wrap=not sys.stderr.isatty())
 
 
 def _fail(message: str, code: int) -> typer.Exit:
@@ -115,7 +120,9 @@ def _load_cell(cell_config: Path | None, scenario: Path | None = None):
     return complete(cfg)
 
 
-def _drive(cfg, publish_images: bool, camera: str, make_source, transport: TransportFlags, duration: float | None) -> None:
+def _drive(
+    cfg, publish_images: bool, camera: str, make_source, transport: TransportFlags, duration: float | None
+) -> None:
     """Serve one camera on the bus until its source ends, ``duration`` or Ctrl-C / SIGTERM.
     ``make_source(bus)`` gives the frame source (a ROS 2 camera's reads the same session)."""
     from drivers.service import DriverService, use_opencv_threads
@@ -166,7 +173,9 @@ def config_check(file: Annotated[Path, typer.Argument(help="cell config TOML")])
 
 
 @config_app.command("show")
-def config_show(file: Annotated[Optional[Path], typer.Argument(help="cell config TOML (default: built-in)")] = None) -> None:
+def config_show(
+    file: Annotated[Optional[Path], typer.Argument(help="cell config TOML (default: built-in)")] = None,
+) -> None:
     """Print the effective configuration (defaults + file + CELLSIGHT__* environment) as TOML."""
     typer.echo(_load(file).to_toml())
 
@@ -187,8 +196,21 @@ def security_init(
     directory: Annotated[Path, typer.Argument(help="new directory for the CA, certificates and zenoh configs")],
     cell: CellOpt = None,
     listen: Annotated[str, typer.Option("--listen", help="the router's TLS endpoint")] = "tls/127.0.0.1:7447",
-    host: Annotated[Optional[list[str]], typer.Option("--host", help="name or address clients reach the router by (repeatable; default 127.0.0.1 and localhost)")] = None,
-    ros2_domain: Annotated[Optional[int], typer.Option("--ros2-domain", min=0, max=232, help="let this ROS 2 domain's rmw_zenoh traffic through ([ros2] enabled); default: none")] = None,
+    host: Annotated[
+        Optional[list[str]],
+        typer.Option(
+            "--host", help="name or address clients reach the router by (repeatable; default 127.0.0.1 and localhost)"
+        ),
+    ] = None,
+    ros2_domain: Annotated[
+        Optional[int],
+        typer.Option(
+            "--ros2-domain",
+            min=0,
+            max=232,
+            help="let this ROS 2 domain's rmw_zenoh traffic through ([ros2] enabled); default: none",
+        ),
+    ] = None,
 ) -> None:
     """Make a certificate authority, certificates for the router and each role, and their zenoh configs.
 
@@ -198,13 +220,21 @@ def security_init(
     """
     from schemas.security import EDGE_LISTEN, PUBLISH, PUBLISH_ROS2, write_profile
 
-    profile = write_profile(directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"), ros2_domain)
+    profile = write_profile(
+        directory, cell or "demo", listen, tuple(host) if host else ("127.0.0.1", "localhost"), ros2_domain
+    )
     typer.echo(f"router:      cellsight router --config {profile.router_config}")
     for role, path in profile.role_configs.items():
-        topics = PUBLISH[role] + ([f"ROS 2 {ros2_domain}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else [])
-        typer.echo(f"{role + ':':12} --config {path}   publishes: {', '.join(topics) or 'nothing (subscribe and query only)'}")
-    typer.echo(f"edge host:   [cell] router_config = \"{profile.edge_router_config}\", its drivers --config {profile.role_configs['driver']} "
-               f"--connect {EDGE_LISTEN}   publishes: what a driver may")
+        topics = PUBLISH[role] + (
+            [f"ROS 2 {ros2_domain}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else []
+        )
+        typer.echo(
+            f"{role + ':':12} --config {path}   publishes: {', '.join(topics) or 'nothing (subscribe and query only)'}"
+        )
+    typer.echo(
+        f'edge host:   [cell] router_config = "{profile.edge_router_config}", its drivers --config {profile.role_configs["driver"]} '
+        f"--connect {EDGE_LISTEN}   publishes: what a driver may"
+    )
 
 
 # ---------------------------------------------------------------- bus
@@ -285,7 +315,13 @@ def router(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     config: ZenohConfigOpt = None,
-    shared_memory: Annotated[bool, typer.Option("--shared-memory/--no-shared-memory", help="pass frames between processes on this host through shared memory (off: a host that shares /dev/shm with another, e.g. a network namespace)")] = True,
+    shared_memory: Annotated[
+        bool,
+        typer.Option(
+            "--shared-memory/--no-shared-memory",
+            help="pass frames between processes on this host through shared memory (off: a host that shares /dev/shm with another, e.g. a network namespace)",
+        ),
+    ] = True,
     verbose: VerboseOpt = False,
 ) -> None:
     """Run a zenoh router (default: tcp/127.0.0.1:7447, loopback only) until Ctrl-C; with --connect,
@@ -294,10 +330,14 @@ def router(
 
     _setup_logging(verbose)
     # A config file (the secure profile's router.json5) brings its own listen endpoints.
-    transport = TransportConfig.router(list(listen) if listen else ([] if config else [DEFAULT_ROUTER]), list(connect or []))
+    transport = TransportConfig.router(
+        list(listen) if listen else ([] if config else [DEFAULT_ROUTER]), list(connect or [])
+    )
     transport = transport.model_copy(update={"zenoh_config": config, "shared_memory": shared_memory})
     session = open_session(transport)
-    logging.getLogger("cellsight.router").info("router listening on %s", ", ".join(transport.listen) or f"the endpoints of {config}")
+    logging.getLogger("cellsight.router").info(
+        "router listening on %s", ", ".join(transport.listen) or f"the endpoints of {config}"
+    )
     try:
         while True:
             time.sleep(1.0)
@@ -307,10 +347,16 @@ def router(
         session.close()
 
 
-FoxgloveOpt = Annotated[bool, typer.Option("--foxglove", help="serve the live bus to the Foxglove app over WebSocket (loopback)")]
+FoxgloveOpt = Annotated[
+    bool, typer.Option("--foxglove", help="serve the live bus to the Foxglove app over WebSocket (loopback)")
+]
 FoxglovePortOpt = Annotated[int, typer.Option(help="WebSocket port of the Foxglove live view")]
-CellConfigOpt = Annotated[Optional[Path], typer.Option("--cell-config", help="cell config TOML (default: the simulated demo cell)")]
-ScenarioOpt = Annotated[Optional[Path], typer.Option("--scenario", help="simulated cell scenario TOML (default: built-in demo cell)")]
+CellConfigOpt = Annotated[
+    Optional[Path], typer.Option("--cell-config", help="cell config TOML (default: the simulated demo cell)")
+]
+ScenarioOpt = Annotated[
+    Optional[Path], typer.Option("--scenario", help="simulated cell scenario TOML (default: built-in demo cell)")
+]
 driver_app = typer.Typer(help="Sensor driver processes.", no_args_is_help=True)
 sim_app = typer.Typer(help="The simulated work cell.", no_args_is_help=True)
 markers_app = typer.Typer(help="The marker front-end on single images.", no_args_is_help=True)
@@ -330,7 +376,9 @@ def driver_sim(
     scenario: ScenarioOpt = None,
     cell_config: CellConfigOpt = None,
     duration: DurationOpt = None,
-    epoch_ns: Annotated[Optional[int], typer.Option(help="Unix time (ns) of scenario time 0; share it between cameras")] = None,
+    epoch_ns: Annotated[
+        Optional[int], typer.Option(help="Unix time (ns) of scenario time 0; share it between cameras")
+    ] = None,
     transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
 ) -> None:
@@ -350,8 +398,13 @@ def driver_sim(
 @driver_app.command("openni2")
 @transport_options
 def driver_openni2(
-    camera: Annotated[str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id with --uri)")],
-    uri: Annotated[Optional[str], typer.Option("--uri", help="device URI, 'Dummy', a .oni file; default: the camera's uri in the config")] = None,
+    camera: Annotated[
+        str, typer.Option("--camera", help="camera id (a [[cameras]] entry of the cell config, or any id with --uri)")
+    ],
+    uri: Annotated[
+        Optional[str],
+        typer.Option("--uri", help="device URI, 'Dummy', a .oni file; default: the camera's uri in the config"),
+    ] = None,
     cell_config: CellConfigOpt = None,
     duration: DurationOpt = None,
     transport: TransportFlags = TransportFlags(),
@@ -373,7 +426,15 @@ def driver_openni2(
     if cam.intrinsics is not None:
         i = cam.intrinsics
         info = CameraInfo(cam.width, cam.height, [[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1]], list(i.distortion))
-    source = OpenNI2Source(camera, uri if uri is not None else cam.uri, width=cam.width, height=cam.height, rate_hz=cam.rate_hz, info=info, lib_dir=cam.openni2_path)
+    source = OpenNI2Source(
+        camera,
+        uri if uri is not None else cam.uri,
+        width=cam.width,
+        height=cam.height,
+        rate_hz=cam.rate_hz,
+        info=info,
+        lib_dir=cam.openni2_path,
+    )
     _drive(cfg, cam.publish_images, camera, lambda _bus: source, transport, duration)
     # libOpenNI2's native shutdown segfaults once a frame has been read (seen with the plain
     # bindings and Debian's Dummy device too), which would turn every clean stop into a crash
@@ -388,9 +449,16 @@ def driver_openni2(
 @transport_options
 def driver_realsense(
     camera: CameraIdOpt,
-    serial: Annotated[Optional[str], typer.Option("--serial", help="device serial number (default: the config's, else the first device)")] = None,
-    bag: Annotated[Optional[Path], typer.Option("--bag", help="play a RealSense recording (.bag or .db3) instead of a device")] = None,
-    record_to: Annotated[Optional[Path], typer.Option("--record-to", help="also record the device to this .db3 file")] = None,
+    serial: Annotated[
+        Optional[str],
+        typer.Option("--serial", help="device serial number (default: the config's, else the first device)"),
+    ] = None,
+    bag: Annotated[
+        Optional[Path], typer.Option("--bag", help="play a RealSense recording (.bag or .db3) instead of a device")
+    ] = None,
+    record_to: Annotated[
+        Optional[Path], typer.Option("--record-to", help="also record the device to this .db3 file")
+    ] = None,
     cell_config: CellConfigOpt = None,
     duration: DurationOpt = None,
     transport: TransportFlags = TransportFlags(),
@@ -401,8 +469,15 @@ def driver_realsense(
 
     cfg, cam = _camera_section(cell_config, camera, "realsense", verbose)
     recording = bag if bag is not None else cam.recording
-    source = RealSenseSource(camera, serial=serial or cam.serial or None, recording=recording, width=cam.width, height=cam.height,
-                             rate_hz=cam.rate_hz, record_to=record_to)  # fmt: skip
+    source = RealSenseSource(
+        camera,
+        serial=serial or cam.serial or None,
+        recording=recording,
+        width=cam.width,
+        height=cam.height,
+        rate_hz=cam.rate_hz,
+        record_to=record_to,
+    )
     _drive(cfg, cam.publish_images, camera, lambda _bus: source, transport, duration)
 
 
@@ -410,7 +485,10 @@ def driver_realsense(
 @transport_options
 def driver_ros2(
     camera: CameraIdOpt,
-    color: Annotated[Optional[str], typer.Option("--color", help="colour image topic (default: the config's, else realsense2_camera's)")] = None,
+    color: Annotated[
+        Optional[str],
+        typer.Option("--color", help="colour image topic (default: the config's, else realsense2_camera's)"),
+    ] = None,
     depth: Annotated[Optional[str], typer.Option("--depth", help="depth image topic, aligned to colour")] = None,
     info: Annotated[Optional[str], typer.Option("--info", help="the colour camera's CameraInfo topic")] = None,
     cell_config: CellConfigOpt = None,
@@ -425,8 +503,16 @@ def driver_ros2(
     cfg, cam = _camera_section(cell_config, camera, "ros2", verbose)
 
     def topics(bus):  # subscribes on the driver's own session
-        return Ros2TopicsSource(camera, bus.session, ros2_types(cfg.ros2.distro), color=color or cam.color_topic, depth=depth or cam.depth_topic,
-                                info=info or cam.info_topic, domain_id=cfg.ros2.domain_id, rate_hz=cam.rate_hz)  # fmt: skip
+        return Ros2TopicsSource(
+            camera,
+            bus.session,
+            ros2_types(cfg.ros2.distro),
+            color=color or cam.color_topic,
+            depth=depth or cam.depth_topic,
+            info=info or cam.info_topic,
+            domain_id=cfg.ros2.domain_id,
+            rate_hz=cam.rate_hz,
+        )
 
     _drive(cfg, cam.publish_images, camera, topics, transport, duration)
 
@@ -457,7 +543,12 @@ def estimator_cmd(
 def recognition_cmd(
     cell_config: CellConfigOpt = None,
     scenario: ScenarioOpt = None,
-    models: Annotated[Optional[Path], typer.Option("--models", help="model database folder (default: [recognition] models, or built from the scenario)")] = None,
+    models: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--models", help="model database folder (default: [recognition] models, or built from the scenario)"
+        ),
+    ] = None,
     duration: DurationOpt = None,
     transport: TransportFlags = TransportFlags(),
     verbose: VerboseOpt = False,
@@ -481,23 +572,44 @@ def model_build(
     out: Annotated[Path, typer.Option("--out", help="database folder to write")],
     scenario: Annotated[Optional[Path], typer.Option("--scenario", help="every object of this scenario TOML")] = None,
     demo: Annotated[bool, typer.Option("--demo", help="every object of the built-in demo cell")] = False,
-    mesh: Annotated[Optional[list[str]], typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres; coloured by its vertex colours or texture")] = None,
-    cloud: Annotated[Optional[list[str]], typer.Option("--cloud", help="ID=FILE: a point cloud (PCD/PLY), metres, captured from its origin")] = None,
-    points: Annotated[Optional[list[str]], typer.Option("--points", help="ID=FILE: points over the whole surface (PLY/PCD/XYZ), metres, object frame")] = None,
-    recording: Annotated[Optional[list[str]], typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board")] = None,
-    board: Annotated[Optional[Path], typer.Option("--board", help="marker board TOML of the recordings (see drivers/sim/capture_board.toml)")] = None,
-    distance: Annotated[Optional[list[float]], typer.Option(
-        help="virtual camera distance for the views of --mesh and --points models and the scenario's, m; repeat for "
-             "several (default: 2.0 and 0.8)")] = None,
-    scale: Annotated[float, typer.Option(help="metres per unit of the --mesh, --cloud and --points files (0.001: millimetres)")] = 1.0,
+    mesh: Annotated[
+        Optional[list[str]],
+        typer.Option("--mesh", help="ID=FILE: a mesh (PLY/OBJ/STL), metres; coloured by its vertex colours or texture"),
+    ] = None,
+    cloud: Annotated[
+        Optional[list[str]],
+        typer.Option("--cloud", help="ID=FILE: a point cloud (PCD/PLY), metres, captured from its origin"),
+    ] = None,
+    points: Annotated[
+        Optional[list[str]],
+        typer.Option("--points", help="ID=FILE: points over the whole surface (PLY/PCD/XYZ), metres, object frame"),
+    ] = None,
+    recording: Annotated[
+        Optional[list[str]],
+        typer.Option("--recording", help="ID=LOG.mcap: a camera walking round the object on the --board"),
+    ] = None,
+    board: Annotated[
+        Optional[Path],
+        typer.Option("--board", help="marker board TOML of the recordings (see drivers/sim/capture_board.toml)"),
+    ] = None,
+    distance: Annotated[
+        Optional[list[float]],
+        typer.Option(
+            help="virtual camera distance for the views of --mesh and --points models and the scenario's, m; repeat for "
+            "several (default: 2.0 and 0.8)"
+        ),
+    ] = None,
+    scale: Annotated[
+        float, typer.Option(help="metres per unit of the --mesh, --cloud and --points files (0.001: millimetres)")
+    ] = 1.0,
     cell_config: CellConfigOpt = None,
 ) -> None:
     """Build a recognition model database (views from a tessellated sphere; descriptors as configured)."""
     from rich.progress import Progress
 
     from cellsight.model_build import VIEWS_PER_OBJECT, build_database, load_board
-    from recognition.models import VIEW_DISTANCES_M
     from drivers.sim.scenario import load_scenario
+    from recognition.models import VIEW_DISTANCES_M
 
     def pairs(items: list[str] | None, what: str) -> dict[str, Path]:
         out_ = {}
@@ -511,7 +623,10 @@ def model_build(
     meshes, clouds, recordings = pairs(mesh, "mesh"), pairs(cloud, "cloud"), pairs(recording, "recording")
     surfaces = pairs(points, "points")
     if not (scenario or demo or meshes or clouds or surfaces or recordings):
-        raise _fail("nothing to build: give --demo, --scenario FILE, --mesh ID=FILE, --cloud ID=FILE, --points ID=FILE or --recording ID=LOG", 2)
+        raise _fail(
+            "nothing to build: give --demo, --scenario FILE, --mesh ID=FILE, --cloud ID=FILE, --points ID=FILE or --recording ID=LOG",
+            2,
+        )
     cfg = _load(cell_config)
     sc = load_scenario(scenario) if (scenario or demo) else None
     board_cfg = load_board(board) if board else None
@@ -522,31 +637,65 @@ def model_build(
     total = VIEWS_PER_OBJECT * (rendered + len(clouds) + len(recordings))
     with Progress(console=_stderr(), transient=True) as bar:
         task = bar.add_task("rendering and describing views", total=total)
-        db = build_database(cfg.recognition.descriptor, scenario=sc, meshes=meshes, clouds=clouds, points=surfaces, recordings=recordings,
-                            board=board_cfg, distances_m=distances, scale=scale, progress=lambda: bar.advance(task))
+        db = build_database(
+            cfg.recognition.descriptor,
+            scenario=sc,
+            meshes=meshes,
+            clouds=clouds,
+            points=surfaces,
+            recordings=recordings,
+            board=board_cfg,
+            distances_m=distances,
+            scale=scale,
+            progress=lambda: bar.advance(task),
+        )
     db.save(out)
     for oid, mdl in sorted(db.models.items()):
         colour = "in colour" if mdl.colours is not None else "no colour: verified on depth alone"
-        typer.echo(f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source}, {colour})")
+        typer.echo(
+            f"{oid}: {len(mdl.views)} views, {len(mdl.points)} model points, diameter {mdl.diameter_m:.3f} m ({mdl.source}, {colour})"
+        )
     typer.echo(f"wrote {out}/")
 
 
 @app.command("recognize")
 def recognize_cmd(
     models: Annotated[Path, typer.Option("--models", help="model database folder (cellsight model build)")],
-    scene: Annotated[Path, typer.Option("--scene", help="scene: PCD/PLY cloud (m), or 16-bit depth image (mm); see --scale")],
-    rgb: Annotated[Optional[Path], typer.Option("--rgb", help="colour image registered to a depth image scene (same size): verification then judges colour")] = None,
+    scene: Annotated[
+        Path, typer.Option("--scene", help="scene: PCD/PLY cloud (m), or 16-bit depth image (mm); see --scale")
+    ],
+    rgb: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--rgb", help="colour image registered to a depth image scene (same size): verification then judges colour"
+        ),
+    ] = None,
     fx: Annotated[Optional[float], typer.Option(help="depth image focal length x, px (default Kinect v1)")] = None,
     fy: Annotated[Optional[float], typer.Option(help="depth image focal length y, px")] = None,
     cx: Annotated[Optional[float], typer.Option(help="depth image principal point x, px")] = None,
     cy: Annotated[Optional[float], typer.Option(help="depth image principal point y, px")] = None,
-    scale: Annotated[Optional[float], typer.Option(
-        help="metres per unit of the scene (default: 1 for a cloud, 0.001 for a depth image in mm; 0.0001 for 0.1 mm depth)")] = None,
-    standing: Annotated[bool, typer.Option("--standing", help="every object stands on its base on the table or floor: "
-                                           "take that plane as level ([recognition] level_support)")] = False,
-    picture: Annotated[Optional[Path], typer.Option(
-        "--picture", help="write the scene (its colour, else its depth) with each object found drawn on it: its "
-        "visible points, outline, axes, id and fitness (.png or .jpg)")] = None,
+    scale: Annotated[
+        Optional[float],
+        typer.Option(
+            help="metres per unit of the scene (default: 1 for a cloud, 0.001 for a depth image in mm; 0.0001 for 0.1 mm depth)"
+        ),
+    ] = None,
+    standing: Annotated[
+        bool,
+        typer.Option(
+            "--standing",
+            help="every object stands on its base on the table or floor: "
+            "take that plane as level ([recognition] level_support)",
+        ),
+    ] = False,
+    picture: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--picture",
+            help="write the scene (its colour, else its depth) with each object found drawn on it: its "
+            "visible points, outline, axes, id and fitness (.png or .jpg)",
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
     cell_config: CellConfigOpt = None,
     verbose: VerboseOpt = False,
@@ -559,8 +708,18 @@ def recognize_cmd(
     cfg = _load(cell_config)
     db = ModelDatabase.load(models)
     update = {"descriptor": db.descriptor} | ({"level_support": True} if standing else {})
-    result = recognize_file(scene, db, cfg.recognition.model_copy(update=update),
-                            picture=picture, fx=fx, fy=fy, cx=cx, cy=cy, scale=scale, rgb=rgb)
+    result = recognize_file(
+        scene,
+        db,
+        cfg.recognition.model_copy(update=update),
+        picture=picture,
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        scale=scale,
+        rgb=rgb,
+    )
     typer.echo(result.to_json() if as_json else result.to_text())
     if not result.detections:
         raise typer.Exit(1)
@@ -584,12 +743,21 @@ def sim_snapshot(
 @markers_app.command("detect")
 def markers_detect(
     image: Annotated[Path, typer.Argument(help="image file (PNG, JPEG)")],
-    dictionary: Annotated[str, typer.Option("--dict", help="OpenCV dictionary name or a .yml file")] = "DICT_APRILTAG_36h11",
-    camera_info: Annotated[Optional[Path], typer.Option("--camera-info", help="OpenCV YAML with camera_matrix and distortion_coefficients (default: Kinect v1)")] = None,
+    dictionary: Annotated[
+        str, typer.Option("--dict", help="OpenCV dictionary name or a .yml file")
+    ] = "DICT_APRILTAG_36h11",
+    camera_info: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--camera-info", help="OpenCV YAML with camera_matrix and distortion_coefficients (default: Kinect v1)"
+        ),
+    ] = None,
     size: Annotated[float, typer.Option("--size", help="marker side length in metres")] = 0.15,
     depth: Annotated[Optional[Path], typer.Option("--depth", help="registered 16-bit depth PNG in millimetres")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
-    annotate: Annotated[Optional[Path], typer.Option("--annotate", help="write the image with markers and axes drawn")] = None,
+    annotate: Annotated[
+        Optional[Path], typer.Option("--annotate", help="write the image with markers and axes drawn")
+    ] = None,
 ) -> None:
     """Detect markers in one image and print ids, corners and poses."""
     from cellsight.detect import detect_file
@@ -601,8 +769,16 @@ def markers_detect(
 @app.command("record")
 @transport_options
 def record(
-    out: Annotated[Path, typer.Option("--out", help="MCAP file to write (never overwritten: if it exists, the recording goes to NAME.1.mcap, NAME.2.mcap, ...)")],
-    keys_: Annotated[Optional[list[str]], typer.Option("--keys", help="key expressions to record (default: the whole cell)")] = None,
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out",
+            help="MCAP file to write (never overwritten: if it exists, the recording goes to NAME.1.mcap, NAME.2.mcap, ...)",
+        ),
+    ],
+    keys_: Annotated[
+        Optional[list[str]], typer.Option("--keys", help="key expressions to record (default: the whole cell)")
+    ] = None,
     max_image_hz: Annotated[Optional[float], typer.Option(help="record images at most this often per camera")] = None,
     duration: DurationOpt = None,
     cell: CellOpt = None,
@@ -628,12 +804,23 @@ def record(
     for gap in rec.gaps:
         _stderr().print(f"[yellow]gap:[/] nothing from {gap.camera} for {gap.seconds:.1f} s (marked in the log)")
     if rec.failures:
-        raise _fail(f"recording interrupted {len(rec.failures)} time(s), {rec.lost} messages not recorded; last error: {rec.failures[-1]}", 1)
+        raise _fail(
+            f"recording interrupted {len(rec.failures)} time(s), {rec.lost} messages not recorded; last error: {rec.failures[-1]}",
+            1,
+        )
     if refused:
         raise _fail(f"{refused} messages refused (malformed or implausible, listed above); the log holds the rest", 1)
 
 
-def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_image_hz: float | None, live: bool, foxglove_port: int | None = None) -> None:
+def _run(
+    cfg,
+    run_dir: Path,
+    duration: float | None,
+    record: Path | None,
+    max_image_hz: float | None,
+    live: bool,
+    foxglove_port: int | None = None,
+) -> None:
     """Start the cell under the launcher with an optional live status table."""
     from rich.live import Live
 
@@ -666,9 +853,13 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
     try:
         if live:
             with Live(refresh_per_second=2, console=_stderr()) as live_view:
-                run_cell(cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick)
+                run_cell(
+                    cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick
+                )
         else:
-            run_cell(cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick)
+            run_cell(
+                cfg, run_dir, duration_s=duration, record=record, max_image_hz=max_image_hz, stop=stop, on_tick=tick
+            )
     finally:
         if bridge is not None:
             bridge.close()
@@ -680,11 +871,17 @@ def _run(cfg, run_dir: Path, duration: float | None, record: Path | None, max_im
 
 @app.command("run")
 def run_cmd(
-    cell_config: Annotated[Optional[Path], typer.Argument(help="cell config TOML (default: the simulated demo cell)")] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", help="run folder: config used, logs, state, recording")] = None,
+    cell_config: Annotated[
+        Optional[Path], typer.Argument(help="cell config TOML (default: the simulated demo cell)")
+    ] = None,
+    out: Annotated[
+        Optional[Path], typer.Option("--out", help="run folder: config used, logs, state, recording")
+    ] = None,
     record: Annotated[bool, typer.Option("--record/--no-record", help="record the cell to OUT/log.mcap")] = False,
     max_image_hz: Annotated[Optional[float], typer.Option(help="when recording: images per camera per second")] = 2.0,
-    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+    duration: Annotated[
+        Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")
+    ] = None,
     foxglove: FoxgloveOpt = False,
     foxglove_port: FoxglovePortOpt = 8765,
     verbose: VerboseOpt = False,
@@ -693,14 +890,24 @@ def run_cmd(
     _setup_logging(verbose)
     cfg = _load_cell(cell_config)
     run_dir = out or Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")
-    _run(cfg, run_dir, duration, run_dir / "log.mcap" if record else None, max_image_hz, sys.stderr.isatty(), foxglove_port if foxglove else None)
+    _run(
+        cfg,
+        run_dir,
+        duration,
+        run_dir / "log.mcap" if record else None,
+        max_image_hz,
+        sys.stderr.isatty(),
+        foxglove_port if foxglove else None,
+    )
     _stderr().print(f"run folder: {run_dir}")
 
 
 @app.command("demo")
 def demo(
     duration: Annotated[float, typer.Option(help="seconds of the demo cell's scenario to run")] = 30.0,
-    out: Annotated[Path, typer.Option("--out", help="folder for the log, config, summary and pictures")] = Path("runs/demo"),
+    out: Annotated[Path, typer.Option("--out", help="folder for the log, config, summary and pictures")] = Path(
+        "runs/demo"
+    ),
     max_image_hz: Annotated[float, typer.Option(help="images per camera per second in the log")] = 0.5,
     foxglove: FoxgloveOpt = False,
     foxglove_port: FoxglovePortOpt = 8765,
@@ -784,8 +991,13 @@ def replay_cmd(
 @app.command("resolve")
 def resolve_cmd(
     log_file: Annotated[Path, typer.Argument(help="MCAP log (cellsight record / demo / replay)")],
-    out: Annotated[Optional[Path], typer.Option("--out", help="output folder (default: LOG's name + _resolved)")] = None,
-    config: Annotated[Optional[Path], typer.Option("--config", help="cell config with the anchors (default: the one embedded in the log)")] = None,
+    out: Annotated[
+        Optional[Path], typer.Option("--out", help="output folder (default: LOG's name + _resolved)")
+    ] = None,
+    config: Annotated[
+        Optional[Path],
+        typer.Option("--config", help="cell config with the anchors (default: the one embedded in the log)"),
+    ] = None,
     verbose: VerboseOpt = False,
 ) -> None:
     """Re-solve a log in batch: resolved.mcap, TUM trajectories, report.html with figures."""
@@ -801,37 +1013,68 @@ def resolve_cmd(
     peeked = ReadReport()
     cfg = _load(config) if config is not None else peek_config(log_file, peeked)
     if cfg is None and peeked.stopped_early:
-        raise _fail(f"{log_file} is cut or damaged {peeked.stopped_early.removeprefix('cut or damaged ')}, before its cell config: "
-                    "nothing to solve there; give --config with the anchors to solve what precedes the damage", 2)  # fmt: skip
+        raise _fail(
+            f"{log_file} is cut or damaged {peeked.stopped_early.removeprefix('cut or damaged ')}, before its cell config: "
+            "nothing to solve there; give --config with the anchors to solve what precedes the damage",
+            2,
+        )
     if cfg is None:
-        raise _fail(f"{log_file} has no embedded cell config (not written by cellsight record?): give --config with the anchors", 2)
+        raise _fail(
+            f"{log_file} has no embedded cell config (not written by cellsight record?): give --config with the anchors",
+            2,
+        )
     if not cfg.estimator.anchors:
         from cellsight.scenario_config import complete
 
         cfg = complete(cfg)
     out = out or log_file.with_name(log_file.stem + "_resolved")
-    with Progress("[progress.description]{task.description}", BarColumn(), DownloadColumn(), TimeRemainingColumn(), console=_stderr()) as bar:
+    with Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        DownloadColumn(),
+        TimeRemainingColumn(),
+        console=_stderr(),
+    ) as bar:
         task = bar.add_task("reading and solving", total=log_file.stat().st_size)
         run = run_resolve(log_file, out, cfg, lambda done, total: bar.update(task, completed=done))
     r = run.result
-    typer.echo(f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers"
-               + (f", {r.object_links} object-marker instants linking cameras" if r.object_links else ""))
+    typer.echo(
+        f"{out}/: {r.frames} frames, {r.observations} observations, {len(r.segments)} segments, {len(r.markers)} markers"
+        + (f", {r.object_links} object-marker instants linking cameras" if r.object_links else "")
+    )
     if r.moving_frames_left_out:
-        typer.echo(f"  {r.moving_frames_left_out} moving frames left out: the still views fit {r.moving_frames_scale:.3g} times better "
-                   "than the moving ones, each against its covariances (keyframes.max_inflation)")
+        typer.echo(
+            f"  {r.moving_frames_left_out} moving frames left out: the still views fit {r.moving_frames_scale:.3g} times better "
+            "than the moving ones, each against its covariances (keyframes.max_inflation)"
+        )
     for cam, c in run.figures.cameras.items():
         off, on = c.offline_vs_truth_mm_deg, c.online_vs_truth_mm_deg
         if off is not None:
             moving = f"; {c.moving_frames} moving frames solved" if c.moving_frames else ""
-            paired = f" (RMS at the same instants {c.paired.offline_mm_deg_rms[0]:.2f} / {c.paired.online_mm_deg_rms[0]:.2f} mm)" if c.paired else ""
-            typer.echo(f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth" + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else "") + paired + moving)
+            paired = (
+                f" (RMS at the same instants {c.paired.offline_mm_deg_rms[0]:.2f} / {c.paired.online_mm_deg_rms[0]:.2f} mm)"
+                if c.paired
+                else ""
+            )
+            typer.echo(
+                f"  {cam}: offline {off[0]:.2f} mm / {off[1]:.3f} deg vs truth"
+                + (f", online {on[0]:.2f} mm / {on[1]:.3f} deg" if on else "")
+                + paired
+                + moving
+            )
     for child, o in run.figures.object_markers.items():
         off = o.offline_vs_truth_mm_deg
-        typer.echo(f"  {child}: {o.poses} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else ""))
+        typer.echo(
+            f"  {child}: {o.poses} poses" + (f", offline {off[0]:.2f} mm / {off[1]:.2f} deg vs truth" if off else "")
+        )
     for (key, reason), n in sorted(run.read.refused.items()):
-        _stderr().print(f"[yellow]skipped:[/] {n} messages on {key} ({reason}), as a running cell would have refused them")
+        _stderr().print(
+            f"[yellow]skipped:[/] {n} messages on {key} ({reason}), as a running cell would have refused them"
+        )
     if run.read.stopped_early:
-        _stderr().print(f"[yellow]warning:[/] the log is {run.read.stopped_early}; resolved from the {run.read.messages} messages before it")
+        _stderr().print(
+            f"[yellow]warning:[/] the log is {run.read.stopped_early}; resolved from the {run.read.messages} messages before it"
+        )
     if r.frames == 0:
         raise _fail(f"{log_file}: no marker frames to solve (nothing written to {out} is a solution)", 1)
 
@@ -856,7 +1099,9 @@ def export_ros2(
         typer.echo(f"{n:8d}  {topic}")
     typer.echo(f"wrote {result.bag}/ (ros2 bag play {result.bag})")
     if result.read.stopped_early:
-        _stderr().print(f"[yellow]warning:[/] the log ended early ({result.read.stopped_early}); exported what was readable")
+        _stderr().print(
+            f"[yellow]warning:[/] the log ended early ({result.read.stopped_early}); exported what was readable"
+        )
 
 
 @app.command("compare")
@@ -890,7 +1135,13 @@ def compare_cmd(
         t.add_column(col, no_wrap=True)
     for c in changes:
         style = "bold red" if c.verdict == "moved" else ""
-        t.add_row(c.frame, f"{c.position_mm:.2f}", f"{c.rotation_deg:.3f}", "-" if c.sigmas is None else f"{c.sigmas:.1f}", f"[{style}]{c.verdict}[/]" if style else c.verdict)
+        t.add_row(
+            c.frame,
+            f"{c.position_mm:.2f}",
+            f"{c.rotation_deg:.3f}",
+            "-" if c.sigmas is None else f"{c.sigmas:.1f}",
+            f"[{style}]{c.verdict}[/]" if style else c.verdict,
+        )
     Console(width=120).print(t)
 
 

@@ -62,7 +62,9 @@ def object_markers_of(report: ReadReport) -> list[int]:
     return [] if cfg is None else list(cfg.estimator.object_markers)
 
 
-def compare(a: dict[str, StampedPose], b: dict[str, StampedPose], min_mm: float = 1.0, min_deg: float = 0.05) -> list[Change]:
+def compare(
+    a: dict[str, StampedPose], b: dict[str, StampedPose], min_mm: float = 1.0, min_deg: float = 0.05
+) -> list[Change]:
     out = []
     for frame in sorted(set(a) | set(b)):
         if frame not in b or frame not in a:

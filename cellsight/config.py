@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -40,22 +41,29 @@ class CellSection(BaseModel):
     scenario: Path | None = Field(default=None, description="simulated cell scenario (TOML); None: built-in demo")
     record: Path | None = Field(default=None, description="record every key to this MCAP file")
     role: Literal["cell", "edge"] = Field(
-        default="cell", description="cell: the whole cell on this host; edge: this host's cameras beside a local router peered with `upstream`"
+        default="cell",
+        description="cell: the whole cell on this host; edge: this host's cameras beside a local router peered with `upstream`",
     )
-    upstream: list[str] = Field(default_factory=list, description="edge: the cell router(s) this host's router connects to, e.g. tcp/10.0.3.2:7447")
+    upstream: list[str] = Field(
+        default_factory=list,
+        description="edge: the cell router(s) this host's router connects to, e.g. tcp/10.0.3.2:7447",
+    )
     router_config: Path | None = Field(
-        default=None, description="edge: zenoh config of the router `cellsight run` starts here, e.g. the secure profile's "
+        default=None,
+        description="edge: zenoh config of the router `cellsight run` starts here, e.g. the secure profile's "
         "edge_router.json5 (TLS both ways); its drivers then take transport.zenoh_config = driver.json5 and "
-        "transport.connect = [\"tls/127.0.0.1:7447\"]. Unset: a plain TCP router on the loopback endpoint",
+        'transport.connect = ["tls/127.0.0.1:7447"]. Unset: a plain TCP router on the loopback endpoint',
     )
 
     @model_validator(mode="after")
-    def _edge_has_upstream(self) -> "CellSection":
+    def _edge_has_upstream(self) -> CellSection:
         if self.role == "edge" and not self.upstream:
             raise ValueError("an edge host needs [cell] upstream: the cell router(s) its router connects to")
         if self.router_config is not None and self.role != "edge":
-            raise ValueError("[cell] router_config is for edge hosts (role = \"edge\"); a cell host's secure router is "
-                             "started on its own: cellsight router --config ROUTER.json5")
+            raise ValueError(
+                '[cell] router_config is for edge hosts (role = "edge"); a cell host\'s secure router is '
+                "started on its own: cellsight router --config ROUTER.json5"
+            )
         return self
 
 
@@ -74,7 +82,7 @@ class CellConfig(BaseModel):
     wire: WireLimits = Field(default_factory=WireLimits)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "CellConfig":
+    def _consistent(self) -> CellConfig:
         check_name(self.cell.name, "cell name")
         ids = [c.id for c in self.cameras]
         dupes = sorted({i for i in ids if ids.count(i) > 1})
@@ -96,7 +104,7 @@ def apply_env(data: dict[str, Any], environ: Mapping[str, str]) -> dict[str, Any
     for name, raw in environ.items():
         if not name.startswith(ENV_PREFIX):
             continue
-        path = [p.lower() for p in name[len(ENV_PREFIX):].split("__") if p]
+        path = [p.lower() for p in name[len(ENV_PREFIX) :].split("__") if p]
         try:
             value = json.loads(raw)
         except json.JSONDecodeError:
@@ -110,7 +118,9 @@ def apply_env(data: dict[str, Any], environ: Mapping[str, str]) -> dict[str, Any
     return out
 
 
-def parse_config(data: dict[str, Any], source: str = "<config>", environ: Mapping[str, str] | None = None) -> CellConfig:
+def parse_config(
+    data: dict[str, Any], source: str = "<config>", environ: Mapping[str, str] | None = None
+) -> CellConfig:
     """Validate a dict (e.g. parsed TOML) with environment overrides; raise ``ConfigError``."""
     data = apply_env(data, os.environ if environ is None else environ)
     try:

@@ -18,7 +18,10 @@ from schemas.geometry import quat_from_matrix
 
 def pose_json(T: np.ndarray) -> dict[str, list[float]]:
     """A 4x4 pose as the JSON the one-shot commands print: position (m) and quaternion (x y z w)."""
-    return {"position_m": np.round(T[:3, 3], 4).tolist(), "quaternion_xyzw": np.round(quat_from_matrix(T[:3, :3]), 5).tolist()}
+    return {
+        "position_m": np.round(T[:3, 3], 4).tolist(),
+        "quaternion_xyzw": np.round(quat_from_matrix(T[:3, :3]), 5).tolist(),
+    }
 
 
 @dataclass(frozen=True)
@@ -33,15 +36,17 @@ class DetectResult:
     def rows(self) -> list[dict]:
         out = []
         for d in self.detections:
-            out.append({
-                "id": d.marker_id,
-                "corners_px": np.round(d.corners_px, 2).tolist(),
-                **pose_json(d.camera_T_marker),
-                "reprojection_error_px": [round(d.error_a_px, 3), round(d.error_b_px, 3)],
-                "depth_refined": d.depth_refined,
-                "ambiguous": d.ambiguous,
-                "sigma_position_m": np.round(np.sqrt(np.diag(d.covariance)[:3]), 4).tolist(),
-            })  # fmt: skip
+            out.append(
+                {
+                    "id": d.marker_id,
+                    "corners_px": np.round(d.corners_px, 2).tolist(),
+                    **pose_json(d.camera_T_marker),
+                    "reprojection_error_px": [round(d.error_a_px, 3), round(d.error_b_px, 3)],
+                    "depth_refined": d.depth_refined,
+                    "ambiguous": d.ambiguous,
+                    "sigma_position_m": np.round(np.sqrt(np.diag(d.covariance)[:3]), 4).tolist(),
+                }
+            )
         return out
 
     def to_json(self) -> str:
@@ -52,7 +57,9 @@ class DetectResult:
         for r in self.rows():
             x, y, z = r["position_m"]
             flag = " depth" if r["depth_refined"] else (" ambiguous" if r["ambiguous"] else "")
-            lines.append(f"  id {r['id']:4d}  at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  reproj {r['reprojection_error_px'][0]:.2f} px{flag}")
+            lines.append(
+                f"  id {r['id']:4d}  at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  reproj {r['reprojection_error_px'][0]:.2f} px{flag}"
+            )
         return "\n".join(lines)
 
 
@@ -67,7 +74,9 @@ def read_camera_info(path: Path, width: int, height: int) -> CameraInfo:
     return CameraInfo(width, height, K, np.zeros(5) if D is None else D.ravel())
 
 
-def detect_file(image: Path, dictionary: str, camera_info: Path | None, size_m: float, depth: Path | None, annotate: Path | None) -> DetectResult:
+def detect_file(
+    image: Path, dictionary: str, camera_info: Path | None, size_m: float, depth: Path | None, annotate: Path | None
+) -> DetectResult:
     bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
     if bgr is None:
         raise DriverError(f"{image}: not a readable image")
@@ -91,7 +100,11 @@ def draw_detections(bgr: np.ndarray, info: CameraInfo, dets: list[MarkerDetectio
     """The image with marker outlines, ids and pose axes drawn (BGR in, BGR out)."""
     out = bgr.copy()
     if dets:
-        cv2.aruco.drawDetectedMarkers(out, [d.corners_px.reshape(1, 4, 2).astype(np.float32) for d in dets], np.array([[d.marker_id] for d in dets]))
+        cv2.aruco.drawDetectedMarkers(
+            out,
+            [d.corners_px.reshape(1, 4, 2).astype(np.float32) for d in dets],
+            np.array([[d.marker_id] for d in dets]),
+        )
     for d in dets:
         rvec, _ = cv2.Rodrigues(d.camera_T_marker[:3, :3])
         cv2.drawFrameAxes(out, info.K, info.D, rvec, d.camera_T_marker[:3, 3], d.side_m * 0.5, 2)

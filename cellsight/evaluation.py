@@ -9,17 +9,17 @@ from __future__ import annotations
 import bisect
 import math
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from estimator.offline.outputs import segment_at
+from estimator.offline.solve import ResolveResult, SegmentResult
 from schemas import codec, keys
 from schemas.codec import StampedPose
 from schemas.geometry import angle_between, interpolate_pose, pose_error, position_sigma
-from estimator.offline.outputs import segment_at
-from estimator.offline.solve import ResolveResult, SegmentResult
 from schemas.log import LogMessage, ReadReport, read_log
 
 TRUTH_MIN_GAP_NS = 100_000_000  # offline evaluation keeps ground truth and online estimates at <= 10 Hz per frame
@@ -71,7 +71,7 @@ class Timeline:
     poses: dict[str, list[StampedPose]]
 
     @classmethod
-    def empty(cls) -> "Timeline":
+    def empty(cls) -> Timeline:
         return cls(defaultdict(list), defaultdict(list))
 
     def add(self, msg) -> None:
@@ -127,10 +127,12 @@ class RunData:
 def load_run(log_path: Path, cell: str) -> RunData:
     d = RunData(*(Timeline.empty() for _ in range(6)), defaultdict(list), ReadReport())
     routes = {
-        keys.estimate_cameras(cell): d.est_cameras, keys.estimate_markers(cell): d.est_markers,
-        keys.truth(cell, "cameras"): d.truth_cameras, keys.truth(cell, "marker_poses"): d.truth_markers,
+        keys.estimate_cameras(cell): d.est_cameras,
+        keys.estimate_markers(cell): d.est_markers,
+        keys.truth(cell, "cameras"): d.truth_cameras,
+        keys.truth(cell, "marker_poses"): d.truth_markers,
         keys.truth(cell, "objects"): d.truth_objects,
-    }  # fmt: skip
+    }
     wanted = set(routes) | {keys.estimate_status(cell), keys.objects(cell)}
     for lm in read_log(log_path, wanted, d.read):
         if lm.key in routes:
@@ -168,7 +170,13 @@ def object_errors(d: RunData, frame: str) -> tuple[np.ndarray, np.ndarray, np.nd
     for p in d.est_objects.poses.get(frame, []):
         t = d.truth_objects.near(frame, p.stamp_ns)
         if t is not None:
-            rows.append((p.stamp_ns, np.linalg.norm(p.T[:3, 3] - t.T[:3, 3]) * 1000, math.degrees(angle_between(p.T[:3, 2], t.T[:3, 2]))))
+            rows.append(
+                (
+                    p.stamp_ns,
+                    np.linalg.norm(p.T[:3, 3] - t.T[:3, 3]) * 1000,
+                    math.degrees(angle_between(p.T[:3, 2], t.T[:3, 2])),
+                )
+            )
     a = np.array(rows) if rows else np.zeros((0, 3))
     return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
 
@@ -178,12 +186,16 @@ def summarize_objects(d: RunData) -> list[ObjectSummary]:
     out = []
     for frame in sorted(d.truth_objects.stamps):
         stamps, pe, te = object_errors(d, frame)
-        out.append(ObjectSummary(
-            frame.removeprefix("object_"), len(d.est_objects.stamps.get(frame, [])),
-            max(0.0, (int(stamps[0]) - t0) / 1e9) if len(stamps) else None,
-            float(pe[-1]) if len(pe) else None, float(np.median(pe)) if len(pe) else None,
-            float(np.median(te)) if len(te) else None,
-        ))  # fmt: skip
+        out.append(
+            ObjectSummary(
+                frame.removeprefix("object_"),
+                len(d.est_objects.stamps.get(frame, [])),
+                max(0.0, (int(stamps[0]) - t0) / 1e9) if len(stamps) else None,
+                float(pe[-1]) if len(pe) else None,
+                float(np.median(pe)) if len(pe) else None,
+                float(np.median(te)) if len(te) else None,
+            )
+        )
     return out
 
 
@@ -200,19 +212,24 @@ def summarize(d: RunData) -> tuple[list[CameraSummary], list[MarkerSummary]]:
         sigma = None
         if final is not None and final.covariance is not None:
             sigma = position_sigma(final.covariance) * 1000
-        cams.append(CameraSummary(
-            cam, final_state, None if first is None else (first - t0) / 1e9,
-            float(pe[-1]) if len(pe) else None, float(re[-1]) if len(re) else None,
-            float(np.median(pe[last5])) if last5.any() else None, float(np.median(re[last5])) if last5.any() else None, sigma,
-        ))  # fmt: skip
+        cams.append(
+            CameraSummary(
+                cam,
+                final_state,
+                None if first is None else (first - t0) / 1e9,
+                float(pe[-1]) if len(pe) else None,
+                float(re[-1]) if len(re) else None,
+                float(np.median(pe[last5])) if last5.any() else None,
+                float(np.median(re[last5])) if last5.any() else None,
+                sigma,
+            )
+        )
     markers = []
     for child, poses in sorted(d.est_markers.poses.items()):
         t = d.truth_markers.at(child, poses[-1].stamp_ns)
         if t is not None:
             markers.append(MarkerSummary(child, *pose_error(poses[-1].T, t.T)))
     return cams, markers
-
-
 
 
 # ---------------------------------------------------------------- offline solve vs online vs truth
@@ -354,12 +371,20 @@ def evaluate_offline(result: ResolveResult, side: LogEvidence) -> dict[str, Came
             if seg is not None:
                 off_truth.append(pose_error(seg.world_T_camera, t.T))
         moving = [k for k in result.keyframes if k.camera_id == cam]
-        cams[cam] = CameraFigures(_median_pair(off_truth), _median_pair(on_truth), _median_pair(on_off), _paired(paired),
-                                  len(moving), _median_pair([e for _, e in moving_vs_truth(result, side, cam)]))  # fmt: skip
+        cams[cam] = CameraFigures(
+            _median_pair(off_truth),
+            _median_pair(on_truth),
+            _median_pair(on_off),
+            _paired(paired),
+            len(moving),
+            _median_pair([e for _, e in moving_vs_truth(result, side, cam)]),
+        )
     return cams
 
 
-def at_online_stamps(result: ResolveResult, side: LogEvidence, cam: str) -> Iterator[tuple[StampedPose, SegmentResult | None, StampedPose | None]]:
+def at_online_stamps(
+    result: ResolveResult, side: LogEvidence, cam: str
+) -> Iterator[tuple[StampedPose, SegmentResult | None, StampedPose | None]]:
     """Each online estimate of ``cam`` with the solved segment covering its stamp and the ground
     truth within ``MATCH_GAP_NS`` of it (either None where there is none)."""
     for p in side.online.poses.get(cam, []):
@@ -378,5 +403,9 @@ def moving_vs_truth(result: ResolveResult, side: LogEvidence, cam: str) -> list[
 
 def marker_error_p50(result: ResolveResult, side: LogEvidence) -> float | None:
     """Median position error (mm) of the solved static markers that ground truth has."""
-    err = [pose_error(T, t.T)[0] for k, (T, _) in result.markers.items() if (t := side.truth_markers.get(keys.marker_frame(k))) is not None]
+    err = [
+        pose_error(T, t.T)[0]
+        for k, (T, _) in result.markers.items()
+        if (t := side.truth_markers.get(keys.marker_frame(k))) is not None
+    ]
     return float(np.median(err)) if err else None

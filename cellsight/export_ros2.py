@@ -19,9 +19,9 @@ moving frames, object markers at every instant, static markers at the end.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 from estimator.offline.outputs import RESOLVE_SOURCE
 from schemas import codec, keys
@@ -42,7 +42,9 @@ class Export:
     read: ReadReport
 
 
-def export_bag(log_path: Path, out: Path, distro: str = "jazzy", progress: Callable[[int, int], None] | None = None) -> Export:
+def export_bag(
+    log_path: Path, out: Path, distro: str = "jazzy", progress: Callable[[int, int], None] | None = None
+) -> Export:
     """Write the log at ``log_path`` as a ROS 2 bag in the new folder ``out``."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -61,7 +63,9 @@ def export_bag(log_path: Path, out: Path, distro: str = "jazzy", progress: Calla
 
         for lm in read_log(log_path, None, report, progress):
             parsed = keys.parse(lm.key)
-            resolved = report.metadata.get("cellsight", {}).get("source") == RESOLVE_SOURCE  # written before any message
+            resolved = (
+                report.metadata.get("cellsight", {}).get("source") == RESOLVE_SOURCE
+            )  # written before any message
             for topic, typename, msg in _convert(types, parsed.camera, parsed.topic, lm.msg, resolved):
                 put(topic, typename, msg, lm.log_time_ns)
     return Export(out, dict(counts), report)
@@ -72,7 +76,9 @@ def _tf(types: Ros2Types, poses) -> Iterator[tuple[str, str, object]]:
         yield TF, TF_TYPE, types.tf_message(p.stamp_ns, [(p.parent, ros_frame(p.child), p.T)])
 
 
-def _convert(types: Ros2Types, camera: str | None, topic: str, msg, resolved: bool = False) -> Iterator[tuple[str, str, object]]:
+def _convert(
+    types: Ros2Types, camera: str | None, topic: str, msg, resolved: bool = False
+) -> Iterator[tuple[str, str, object]]:
     """(ROS topic, type name, message) for one of our messages; nothing for what is not exported.
     ``resolved``: the log is resolve's solution, whose estimates are the tf over time."""
     if topic == "tf" and resolved:
@@ -83,27 +89,64 @@ def _convert(types: Ros2Types, camera: str | None, topic: str, msg, resolved: bo
         poses = codec.transforms_from_msg(msg)
         for tr in msg.transforms:  # one TFMessage per transform, each with its own stamp
             T = poses[(tr.parent_frame_id, tr.child_frame_id)]
-            yield TF, TF_TYPE, types.tf_message(codec.timestamp_to_stamp(tr.timestamp), [(tr.parent_frame_id, ros_frame(tr.child_frame_id), T)])
+            yield (
+                TF,
+                TF_TYPE,
+                types.tf_message(
+                    codec.timestamp_to_stamp(tr.timestamp), [(tr.parent_frame_id, ros_frame(tr.child_frame_id), T)]
+                ),
+            )
     elif topic == "estimate/cameras":
         for p in codec.poses_from_msg(msg).values():
-            yield f"/cellsight/{p.child}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", types.pose_with_covariance(p.stamp_ns, WORLD, p.T, p.covariance)
+            yield (
+                f"/cellsight/{p.child}/pose",
+                "geometry_msgs/msg/PoseWithCovarianceStamped",
+                types.pose_with_covariance(p.stamp_ns, WORLD, p.T, p.covariance),
+            )
     elif topic == "estimate/markers":
         poses = codec.poses_from_msg(msg)
         if poses:
-            yield MARKER_POSES, "geometry_msgs/msg/PoseArray", types.pose_array(msg.stamp_ns, WORLD, [p.T for p in poses.values()])
+            yield (
+                MARKER_POSES,
+                "geometry_msgs/msg/PoseArray",
+                types.pose_array(msg.stamp_ns, WORLD, [p.T for p in poses.values()]),
+            )
     elif topic == "objects":
         yield OBJECTS, DETECTIONS, types.detections(msg)
         for o in msg.objects:
-            yield TF, TF_TYPE, types.tf_message(o.stamp_ns, [(WORLD, keys.object_frame(o.object_id), codec.pose_from_msg(o.world_T_object))])
+            yield (
+                TF,
+                TF_TYPE,
+                types.tf_message(
+                    o.stamp_ns, [(WORLD, keys.object_frame(o.object_id), codec.pose_from_msg(o.world_T_object))]
+                ),
+            )
     elif topic == "points":
-        yield POINTS, CLOUD, types.point_cloud(codec.timestamp_to_stamp(msg.timestamp), msg.frame_id, *codec.points_from_msg(msg))
+        yield (
+            POINTS,
+            CLOUD,
+            types.point_cloud(codec.timestamp_to_stamp(msg.timestamp), msg.frame_id, *codec.points_from_msg(msg)),
+        )
     elif topic == "markers":
         a = codec.marker_arrays(msg, check=False)  # read_log validated it
-        yield f"/{camera}/markers", "geometry_msgs/msg/PoseArray", types.pose_array(msg.stamp_ns, optical_frame(camera), list(a.poses))
+        yield (
+            f"/{camera}/markers",
+            "geometry_msgs/msg/PoseArray",
+            types.pose_array(msg.stamp_ns, optical_frame(camera), list(a.poses)),
+        )
     elif topic in ("color/image_raw", "depth/image_raw"):
         frame = optical_frame(camera)  # depth is registered to colour
-        yield f"/{camera}/{topic}", "sensor_msgs/msg/Image", types.image(codec.timestamp_to_stamp(msg.timestamp), frame, codec.image_from_msg(msg), msg.encoding)
+        yield (
+            f"/{camera}/{topic}",
+            "sensor_msgs/msg/Image",
+            types.image(codec.timestamp_to_stamp(msg.timestamp), frame, codec.image_from_msg(msg), msg.encoding),
+        )
     elif topic == "camera_info":
         info = codec.CameraInfo.from_msg(msg)
-        yield f"/{camera}/color/camera_info", "sensor_msgs/msg/CameraInfo", types.camera_info(
-            codec.timestamp_to_stamp(msg.timestamp), optical_frame(camera), info.width, info.height, info.K, info.D)
+        yield (
+            f"/{camera}/color/camera_info",
+            "sensor_msgs/msg/CameraInfo",
+            types.camera_info(
+                codec.timestamp_to_stamp(msg.timestamp), optical_frame(camera), info.width, info.height, info.K, info.D
+            ),
+        )

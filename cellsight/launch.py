@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cellsight.config import CellConfig, save_used
-from schemas.errors import BusError
 from schemas.bus import DEFAULT_ROUTER
+from schemas.errors import BusError
 
 log = logging.getLogger(__name__)
 CLI = [sys.executable, "-m", "cellsight.cli"]
@@ -57,7 +57,9 @@ class Child:
     def start(self) -> None:
         log_file = open(self.log_path, "ab")
         env = {**os.environ, "CELLSIGHT__TRANSPORT__SHARED_MEMORY": "false"} if self.plain_bytes else None
-        self.proc = subprocess.Popen(self.argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True, env=env)
+        self.proc = subprocess.Popen(
+            self.argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True, env=env
+        )
         log_file.close()
         self.started = time.monotonic()
         self.restart_at = None
@@ -82,7 +84,10 @@ class Supervisor:
         """``processes.json`` in the run folder: name, pid, restarts of every process (atomic)."""
         if self.manifest is None:
             return
-        rows = [{"name": c.name, "pid": c.pid, "restarts": c.restarts, "argv": c.argv} for c in (all_children or self.children)]
+        rows = [
+            {"name": c.name, "pid": c.pid, "restarts": c.restarts, "argv": c.argv}
+            for c in (all_children or self.children)
+        ]
         tmp = self.manifest.with_suffix(".tmp")
         tmp.write_text(json.dumps(rows, indent=1))
         os.replace(tmp, self.manifest)
@@ -114,7 +119,11 @@ class Supervisor:
             elif now >= child.restart_at:
                 child.restarts += 1
                 child.start()
-                plain = ", frames as plain bytes: each new shared-memory pool stays mapped in every reader" if child.plain_bytes else ""
+                plain = (
+                    ", frames as plain bytes: each new shared-memory pool stays mapped in every reader"
+                    if child.plain_bytes
+                    else ""
+                )
                 events.append(f"{child.name} restarted (pid {child.pid}, restart {child.restarts}{plain})")
                 self.write_manifest()
         for e in events:
@@ -125,8 +134,10 @@ class Supervisor:
         """Stop the children in STOP_ORDER: SIGTERM each group, then SIGKILL (the whole process group)
         what is left of it after the grace period."""
         self.stopping = True
-        rank = {c.name: next((i for i, p in enumerate(STOP_ORDER) if c.name.startswith(p)), len(STOP_ORDER))
-                for c in self.children}
+        rank = {
+            c.name: next((i for i, p in enumerate(STOP_ORDER) if c.name.startswith(p)), len(STOP_ORDER))
+            for c in self.children
+        }
         for stage in sorted(set(rank.values())):
             self._stop_group([c for c in self.children if rank[c.name] == stage])
 
@@ -156,8 +167,11 @@ def router_endpoint(cfg: CellConfig) -> str | None:
     secure_edge = cfg.cell.role == "edge" and cfg.cell.router_config is not None
     if t.mode not in (None, "client") or (t.zenoh_config is not None and not secure_edge):
         return None
-    loopback = [e for e in (t.connect if t.connect is not None else [DEFAULT_ROUTER])
-                if "127.0.0.1" in e or "localhost" in e or "[::1]" in e]
+    loopback = [
+        e
+        for e in (t.connect if t.connect is not None else [DEFAULT_ROUTER])
+        if "127.0.0.1" in e or "localhost" in e or "[::1]" in e
+    ]
     return loopback[0] if loopback else None
 
 
@@ -179,11 +193,15 @@ def plan(cfg: CellConfig, run_dir: Path, record: Path | None, max_image_hz: floa
             argv = CLI + ["driver", "sim", "--camera", cam.id, "--epoch-ns", str(epoch_ns)] + common
         else:  # openni2 | realsense: the driver reads the rest of its camera section from the config
             argv = CLI + ["driver", cam.source, "--camera", cam.id] + common
-        children.append(Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log", shm_starts=cfg.transport.shm_driver_starts))
+        children.append(
+            Child(f"driver/{cam.id}", argv, logs / f"driver_{cam.id}.log", shm_starts=cfg.transport.shm_driver_starts)
+        )
     if edge:  # the cameras only: their markers and status cross to the cell, images stay unless asked for
         return children
     state = cfg.estimator.state_file or run_dir / "estimator_state.json"
-    children.append(Child("estimator", CLI + ["estimator", "--state-file", str(state)] + common, logs / "estimator.log"))
+    children.append(
+        Child("estimator", CLI + ["estimator", "--state-file", str(state)] + common, logs / "estimator.log")
+    )
     if cfg.recognition.enabled:
         children.append(Child("recognition", CLI + ["recognition"] + common, logs / "recognition.log"))
     if record is not None:
@@ -265,9 +283,10 @@ def run_cell(
             stop.wait(0.2)
     finally:
         # Stop the producers first and the router last, so the recorder sees everything.
-        order = [c for c in children if c.name.startswith("driver")] + [c for c in children if c.name in ("estimator", "recognition")]
+        order = [c for c in children if c.name.startswith("driver")] + [
+            c for c in children if c.name in ("estimator", "recognition")
+        ]
         order += [c for c in children if c.name == "recorder"] + [c for c in children if c.name == "router"]
         for group in ([c for c in order if c.name != "router"], [c for c in order if c.name == "router"]):
             Supervisor(group).stop()
     return sup
-

@@ -34,7 +34,11 @@ class FoxgloveBridge:
         self._schemas: dict[str, foxglove.Schema] = {}
         self._lock = threading.Lock()
         self.forwarded = 0
-        self._sub = bus.tap_cell(self._on_sample, max_image_hz) if max_image_hz else bus.subscribe_raw(keys.everything(bus.cell), self._on_sample)
+        self._sub = (
+            bus.tap_cell(self._on_sample, max_image_hz)
+            if max_image_hz
+            else bus.subscribe_raw(keys.everything(bus.cell), self._on_sample)
+        )
         log.info("Foxglove live view on ws://%s:%d (open it in the Foxglove app)", host, self.port)
 
     def _channel(self, key: str, msg_type) -> foxglove.Channel:
@@ -42,7 +46,9 @@ class FoxgloveBridge:
         if ch is None:
             name = msg_type.DESCRIPTOR.full_name
             if name not in self._schemas:
-                self._schemas[name] = foxglove.Schema(name=name, encoding="protobuf", data=build_file_descriptor_set(msg_type).SerializeToString())
+                self._schemas[name] = foxglove.Schema(
+                    name=name, encoding="protobuf", data=build_file_descriptor_set(msg_type).SerializeToString()
+                )
             ch = self._channels[key] = foxglove.Channel(key, schema=self._schemas[name], message_encoding="protobuf")
         return ch
 

@@ -15,7 +15,12 @@ from recognition.cloud import read_coloured_cloud
 from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
 from recognition.models import (
-    VIEW_DISTANCES_M, ModelDatabase, model_from_cloud, model_from_mesh, model_from_points, read_mesh,
+    VIEW_DISTANCES_M,
+    ModelDatabase,
+    model_from_cloud,
+    model_from_mesh,
+    model_from_points,
+    read_mesh,
 )
 from recognition.recording import model_from_recording
 
@@ -25,7 +30,9 @@ VIEWS_PER_OBJECT = 42
 
 
 def database_from_scenario(
-    scenario: Scenario, params: DescriptorConfig, progress: Callable[[], None] | None = None,
+    scenario: Scenario,
+    params: DescriptorConfig,
+    progress: Callable[[], None] | None = None,
     distances_m: Sequence[float] = VIEW_DISTANCES_M,
 ) -> ModelDatabase:
     """Every object of a scenario, rendered from its shape (box, cylinder, sphere or mesh file), in
@@ -58,7 +65,11 @@ def build_database(
     db = database_from_scenario(scenario, params, progress, distances_m) if scenario else ModelDatabase(params, {})
     for oid, path in (meshes or {}).items():
         _check_new(db, oid)
-        db.add(model_from_mesh(oid, read_mesh(path).scale(scale, np.zeros(3)), params, distances_m=distances_m, progress=progress))
+        db.add(
+            model_from_mesh(
+                oid, read_mesh(path).scale(scale, np.zeros(3)), params, distances_m=distances_m, progress=progress
+            )
+        )
     for oid, path in (clouds or {}).items():
         _check_new(db, oid)
         pts, rgb = read_coloured_cloud(path)
@@ -109,5 +120,6 @@ def models_for(cfg, models: Path | None = None) -> ModelDatabase:
     if any(c.source == "sim" for c in cfg.cameras):
         log.info("no model database given: building one from the scenario's objects (about 5 s)")
         return database_from_scenario(load_scenario(cfg.cell.scenario), cfg.recognition.descriptor)
-    raise ModelError("no model database: build one with `cellsight model build` and give it as --models or "
-                     "[recognition] models")
+    raise ModelError(
+        "no model database: build one with `cellsight model build` and give it as --models or [recognition] models"
+    )

@@ -21,8 +21,16 @@ from recognition.verify import VIRTUAL_K, fit_intrinsics, project, virtual_image
 
 #: Each object's colour in a recognition picture (BGR), by its place among the database's ids: none
 #: of them the pure red, green or blue of the axes.
-OBJECT_COLOURS = ((0, 165, 255), (255, 0, 255), (255, 255, 0), (0, 255, 255), (180, 105, 255), (255, 128, 0),
-                  (128, 255, 128), (0, 90, 200))
+OBJECT_COLOURS = (
+    (0, 165, 255),
+    (255, 0, 255),
+    (255, 255, 0),
+    (0, 255, 255),
+    (180, 105, 255),
+    (255, 128, 0),
+    (128, 255, 128),
+    (0, 90, 200),
+)
 #: A model point further than this behind the measured depth on its pixel is hidden by what the
 #: sensor saw in front of it, and not drawn (m).
 HIDDEN_M = 0.03
@@ -40,7 +48,9 @@ def write_snapshot(scenario: Scenario, out: Path, t_s: float) -> list[Path]:
     (16-bit millimetres, for tools) and ``<id>_markers.png`` (detections drawn)."""
     out.mkdir(parents=True, exist_ok=True)
     cell = SimCell(scenario)
-    det = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, sides_m={m.id: scenario.side_of(m) for m in scenario.markers}))
+    det = MarkerDetector(
+        MarkerConfig(dictionary=scenario.dictionary, sides_m={m.id: scenario.side_of(m) for m in scenario.markers})
+    )
     written = []
     for cam in scenario.cameras:
         f = cell.render(cam.id, t_s, 0)
@@ -54,8 +64,13 @@ def write_snapshot(scenario: Scenario, out: Path, t_s: float) -> list[Path]:
     return written
 
 
-def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequence[Detection],
-                     database: ModelDatabase, truth: Sequence[tuple[str, np.ndarray]] = ()) -> np.ndarray:  # fmt: skip
+def draw_recognition(
+    cloud: np.ndarray,
+    rgb: np.ndarray | None,
+    detections: Sequence[Detection],
+    database: ModelDatabase,
+    truth: Sequence[tuple[str, np.ndarray]] = (),
+) -> np.ndarray:
     """The scene as a picture (BGR): its colour, else its depth in false colour, with each detection's
     model points that the camera would see drawn in the object's colour (``OBJECT_COLOURS``), the
     outline they make, the object's axes (x red, y green, z blue; at its origin, when that lies on
@@ -118,8 +133,9 @@ def draw_recognition(cloud: np.ndarray, rgb: np.ndarray | None, detections: Sequ
     return out
 
 
-def _silhouette(database: ModelDatabase, object_id: str, camera_T_object: np.ndarray, K: np.ndarray,
-                z: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, Sequence[np.ndarray]] | None:  # fmt: skip
+def _silhouette(
+    database: ModelDatabase, object_id: str, camera_T_object: np.ndarray, K: np.ndarray, z: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, Sequence[np.ndarray]] | None:
     """Where a posed model shows in an image of depth z (H, W, m; NaN: none) seen through K: the
     pixels (columns, rows) of its points that face the camera and are not behind the measured depth
     by more than HIDDEN_M, the mask (H, W) they fill closed over the gaps between them (one voxel

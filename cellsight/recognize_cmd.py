@@ -14,11 +14,10 @@ from cellsight.errors import RunError
 from recognition.cloud import depth_to_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
 from recognition.errors import CloudError
-from recognition.models import ModelDatabase
 from recognition.hypotheses import Detection
+from recognition.models import ModelDatabase
 from recognition.pipeline import Recognizer
 from schemas.codec import CameraInfo
-
 
 PICTURE_SUFFIXES = (".png", ".jpg")
 MAX_SCENE_RANGE_M = 20.0  # a scene cloud's median range beyond this is in other units (millimetres)
@@ -55,15 +54,24 @@ class RecognizeResult:
         lines = [f"{self.scene}: {self.points} points, {len(self.detections)} object(s) (camera frame)"]
         for r in self.rows():
             x, y, z = r["position_m"]
-            lines.append(f"  {r['object_id']:<12} at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  q {r['quaternion_xyzw']}  "
-                         f"fitness {r['fitness']:.2f}  coverage {r['coverage']:.2f}  rmse {1000 * r['rmse_m']:.1f} mm")
+            lines.append(
+                f"  {r['object_id']:<12} at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m  q {r['quaternion_xyzw']}  "
+                f"fitness {r['fitness']:.2f}  coverage {r['coverage']:.2f}  rmse {1000 * r['rmse_m']:.1f} mm"
+            )
         if self.picture is not None:
             lines.append(f"  picture: {self.picture}")
         return "\n".join(lines)
 
 
-def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx: float | None = None,
-               cy: float | None = None, scale: float | None = None, rgb: Path | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def load_scene(
+    scene: Path,
+    fx: float | None = None,
+    fy: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+    scale: float | None = None,
+    rgb: Path | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """A camera-frame cloud (m) from a PCD/PLY, or from a 16-bit depth PNG/TIFF with intrinsics
     (Kinect v1 defaults for any that are not given), and its points' colours (uint8 rgb, the
     cloud's layout) when the file has them, or from ``rgb``: a colour image registered to the depth
@@ -81,8 +89,10 @@ def load_scene(scene: Path, fx: float | None = None, fy: float | None = None, cx
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         median = float(np.median(np.linalg.norm(pts, axis=1))) if len(pts) else 0.0
         if median > MAX_SCENE_RANGE_M:
-            raise CloudError(f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
-                             f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? give --scale 0.001")
+            raise CloudError(
+                f"{scene}: its points lie {median:.4g} from the camera (median) and scenes are in metres "
+                f"(a depth camera sees up to {MAX_SCENE_RANGE_M:g} m): in millimetres? give --scale 0.001"
+            )
         return cloud, colours
     depth = read_depth_image(scene)
     colours = None if rgb is None else read_registered_rgb(rgb, scene, depth.shape)
@@ -108,13 +118,16 @@ def read_registered_rgb(path: Path, depth_path: Path, shape: tuple[int, int]) ->
     if bgr is None:
         raise CloudError(f"{path}: not a colour image (PNG, JPEG)")
     if bgr.shape[:2] != shape:
-        raise CloudError(f"{path} is {bgr.shape[1]}x{bgr.shape[0]} but the depth image {depth_path} is "
-                         f"{shape[1]}x{shape[0]}: the colour must be registered to the depth")
+        raise CloudError(
+            f"{path} is {bgr.shape[1]}x{bgr.shape[0]} but the depth image {depth_path} is "
+            f"{shape[1]}x{shape[0]}: the colour must be registered to the depth"
+        )
     return np.ascontiguousarray(bgr[..., ::-1])
 
 
-def recognize_file(scene: Path, db: ModelDatabase, config: RecognitionConfig, picture: Path | None = None,
-                   **intrinsics) -> RecognizeResult:  # fmt: skip
+def recognize_file(
+    scene: Path, db: ModelDatabase, config: RecognitionConfig, picture: Path | None = None, **intrinsics
+) -> RecognizeResult:
     """The database's objects in one scene file (``load_scene``'s ``intrinsics``); with ``picture``
     (.png or .jpg), the scene with them drawn (``cellsight.pictures.draw_recognition``) written there."""
     if picture is not None and picture.suffix.lower() not in PICTURE_SUFFIXES:

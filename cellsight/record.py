@@ -53,8 +53,16 @@ def free_part(path: Path) -> Path:
 class Recorder:
     """Records bus traffic into ``parts`` (the first at ``path`` or the next free name)."""
 
-    def __init__(self, bus: Bus, path: Path, key_exprs: list[str] | None = None, max_image_hz: float | None = None,
-                 metadata: dict[str, str] | None = None, retry_s: float = RETRY_S, gap_after_s: float = GAP_AFTER_S) -> None:  # fmt: skip
+    def __init__(
+        self,
+        bus: Bus,
+        path: Path,
+        key_exprs: list[str] | None = None,
+        max_image_hz: float | None = None,
+        metadata: dict[str, str] | None = None,
+        retry_s: float = RETRY_S,
+        gap_after_s: float = GAP_AFTER_S,
+    ) -> None:
         self.path = path
         self.max_image_hz = max_image_hz
         self.retry_s = retry_s
@@ -139,8 +147,13 @@ class Recorder:
                 self.failures.append(str(exc))
                 self._retry_at = time.monotonic() + self.retry_s
                 self.lost += 1
-                log.error("recording to %s stopped: %s (readable up to its last complete chunk; a new part is tried "
-                          "every %.0f s)", self.parts[-1], exc, self.retry_s)  # fmt: skip
+                log.error(
+                    "recording to %s stopped: %s (readable up to its last complete chunk; a new part is tried "
+                    "every %.0f s)",
+                    self.parts[-1],
+                    exc,
+                    self.retry_s,
+                )
 
     def _refuse(self, key: str, exc: SchemaError) -> None:
         reason = exc.reason if isinstance(exc, DecodeError) else "malformed"

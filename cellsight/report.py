@@ -11,8 +11,17 @@ from pathlib import Path
 import numpy as np
 
 from cellsight.evaluation import (
-    CameraSummary, MarkerSummary, ObjectSummary, RunData, camera_errors, load_run, object_errors, summarize, summarize_objects,
-)  # fmt: skip
+    CameraSummary,
+    MarkerSummary,
+    ObjectSummary,
+    RunData,
+    camera_errors,
+    load_run,
+    object_errors,
+    summarize,
+    summarize_objects,
+)
+
 
 @dataclass(frozen=True)
 class RunSummary:
@@ -80,19 +89,35 @@ def plot_top_view(d: RunData, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(7, 7))
     for child, poses in d.truth_markers.poses.items():
         T = poses[-1].T
-        ax.plot(T[0, 3], T[1, 3], "s", ms=5, mfc="none", mec="0.5", label="marker (truth)" if child == next(iter(d.truth_markers.poses)) else None)
-    for child, poses in d.est_markers.poses.items():
+        ax.plot(
+            T[0, 3],
+            T[1, 3],
+            "s",
+            ms=5,
+            mfc="none",
+            mec="0.5",
+            label="marker (truth)" if child == next(iter(d.truth_markers.poses)) else None,
+        )
+    for poses in d.est_markers.poses.values():
         T, cov = poses[-1].T, poses[-1].covariance
         ax.plot(T[0, 3], T[1, 3], "s", ms=3, color="tab:blue")
         draw_ellipse(ax, T, cov, "tab:blue")
     for child, poses in d.truth_objects.poses.items():
         T = poses[-1].T
         ax.plot(T[0, 3], T[1, 3], "o", ms=9, mfc="none", mec="tab:orange")
-        ax.annotate(child.replace("object_", ""), (T[0, 3], T[1, 3]), textcoords="offset points", xytext=(6, -10), fontsize=8, color="tab:orange")
-    for child, poses in d.est_objects.poses.items():
+        ax.annotate(
+            child.replace("object_", ""),
+            (T[0, 3], T[1, 3]),
+            textcoords="offset points",
+            xytext=(6, -10),
+            fontsize=8,
+            color="tab:orange",
+        )
+    for poses in d.est_objects.poses.values():
         T = poses[-1].T
         ax.plot(T[0, 3], T[1, 3], "o", ms=5, color="tab:orange")
     for cam, poses in d.truth_cameras.poses.items():
@@ -101,7 +126,7 @@ def plot_top_view(d: RunData, path: Path) -> None:
         fwd = T[:3, 2] * 0.4
         ax.arrow(T[0, 3], T[1, 3], fwd[0], fwd[1], head_width=0.05, color="k", alpha=0.5)
         ax.annotate(cam, (T[0, 3], T[1, 3]), textcoords="offset points", xytext=(8, 4))
-    for cam, poses in d.est_cameras.poses.items():
+    for poses in d.est_cameras.poses.values():
         T, cov = poses[-1].T, poses[-1].covariance
         ax.plot(T[0, 3], T[1, 3], "^", ms=6, color="tab:red")
         draw_ellipse(ax, T, cov, "tab:red")

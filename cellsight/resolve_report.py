@@ -14,17 +14,26 @@ from __future__ import annotations
 
 import html
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from cellsight.config import CellConfig, parse_config, save_used
 from cellsight.evaluation import (
-    MATCH_GAP_NS, CameraFigures, LogEvidence, MmDeg, ObjectErrors, ObjectFigures, Paired, at_online_stamps,
-    evaluate_offline, marker_error_p50, moving_vs_truth,
-)  # fmt: skip
+    MATCH_GAP_NS,
+    CameraFigures,
+    LogEvidence,
+    MmDeg,
+    ObjectErrors,
+    ObjectFigures,
+    Paired,
+    at_online_stamps,
+    evaluate_offline,
+    marker_error_p50,
+    moving_vs_truth,
+)
 from cellsight.report import draw_ellipse
 from estimator.offline.outputs import segment_at
 from estimator.offline.pipeline import resolve_log
@@ -50,7 +59,9 @@ class ResolveFigures:
     flagged_anchors: list[int]
     lm_iterations: int
     object_links: int  # instants at which an object marker linked two or more cameras
-    moving_frames_covariance_scale: float  # how the moving frames were weighed against the still views (``estimator.variance``)
+    moving_frames_covariance_scale: (
+        float  # how the moving frames were weighed against the still views (``estimator.variance``)
+    )
     moving_frames_left_out: int  # moving frames left out for it (``keyframes.max_inflation``)
 
     def to_json(self) -> str:
@@ -70,7 +81,11 @@ class ResolveRun:
 
 
 def run_resolve(
-    log_path: Path, out: Path, cfg: CellConfig, progress: Callable[[int, int], None] | None = None, background: bool = True,
+    log_path: Path,
+    out: Path,
+    cfg: CellConfig,
+    progress: Callable[[int, int], None] | None = None,
+    background: bool = True,
 ) -> ResolveRun:
     """Solve the log (``estimator.offline.resolve_log``; ``background``: read it in a child process),
     then write the config used, the figures and the report beside the solution in ``out``."""
@@ -78,16 +93,33 @@ def run_resolve(
     save_used(cfg, out)
     evidence = LogEvidence(object_frames=frozenset(keys.marker_frame(k) for k in cfg.estimator.object_markers))
     objects = ObjectErrors()
-    run = resolve_log(log_path, out, cfg.estimator, cfg.cell.name, progress, evidence.take, lambda p: objects.add(p, evidence), background)
+    run = resolve_log(
+        log_path,
+        out,
+        cfg.estimator,
+        cfg.cell.name,
+        progress,
+        evidence.take,
+        lambda p: objects.add(p, evidence),
+        background,
+    )
     result, report = run.result, run.read
     figures = ResolveFigures(
-        cameras=evaluate_offline(result, evidence), marker_position_error_mm_p50=marker_error_p50(result, evidence),
-        object_markers=objects.summary(evidence), observations=result.observations, frames=result.frames,
-        messages_read=report.messages, log_complete=report.stopped_early is None, stopped_early=report.stopped_early,
-        unanchored=result.unanchored, flagged_anchors=result.flagged_anchors, lm_iterations=result.iterations,
-        object_links=result.object_links, moving_frames_covariance_scale=result.moving_frames_scale,
+        cameras=evaluate_offline(result, evidence),
+        marker_position_error_mm_p50=marker_error_p50(result, evidence),
+        object_markers=objects.summary(evidence),
+        observations=result.observations,
+        frames=result.frames,
+        messages_read=report.messages,
+        log_complete=report.stopped_early is None,
+        stopped_early=report.stopped_early,
+        unanchored=result.unanchored,
+        flagged_anchors=result.flagged_anchors,
+        lm_iterations=result.iterations,
+        object_links=result.object_links,
+        moving_frames_covariance_scale=result.moving_frames_scale,
         moving_frames_left_out=result.moving_frames_left_out,
-    )  # fmt: skip
+    )
     (out / "resolve.json").write_text(figures.to_json())
     plots(result, evidence, out)
     (out / "report.html").write_text(html_report(result, figures))
@@ -122,15 +154,17 @@ def plots(result: ResolveResult, side: LogEvidence, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 7))
-    for child, p in side.truth_markers.items():
+    for _child, p in side.truth_markers.items():
         ax.plot(p.T[0, 3], p.T[1, 3], "s", ms=6, mfc="none", mec="0.6")
-    for k, (T, C) in result.markers.items():
+    for _k, (T, C) in result.markers.items():
         ax.plot(T[0, 3], T[1, 3], "s", ms=3, color="tab:blue")
         draw_ellipse(ax, T, C, "tab:blue")
     for s in result.segments:
         ax.plot(s.world_T_camera[0, 3], s.world_T_camera[1, 3], "^", ms=7, color="tab:red")
         draw_ellipse(ax, s.world_T_camera, s.covariance, "tab:red")
-        ax.annotate(f"{s.camera_id}.{s.segment}", s.world_T_camera[:2, 3], textcoords="offset points", xytext=(6, 4), fontsize=8)
+        ax.annotate(
+            f"{s.camera_id}.{s.segment}", s.world_T_camera[:2, 3], textcoords="offset points", xytext=(6, 4), fontsize=8
+        )
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
     ax.set_title("Resolved cameras (segment) and markers, 2-sigma ellipses x10")
@@ -165,18 +199,38 @@ def plots(result: ResolveResult, side: LogEvidence, out: Path) -> None:
     truth_cams = [cam for cam in sorted({s.camera_id for s in result.segments}) if side.truth_cameras.poses.get(cam)]
     t0 = min((s[0] for s in side.online.stamps.values() if s), default=0)
     if truth_cams:  # simulator logs: both solutions against ground truth, over time
-        fig, axes = plt.subplots(len(truth_cams), 1, figsize=(8, 1.9 * len(truth_cams) + 0.6), sharex=True, squeeze=False)
+        fig, axes = plt.subplots(
+            len(truth_cams), 1, figsize=(8, 1.9 * len(truth_cams) + 0.6), sharex=True, squeeze=False
+        )
         for ax, cam in zip(axes[:, 0], truth_cams):
-            online = [((p.stamp_ns - t0) / 1e9, pose_error(p.T, t.T)[0]) for p, _, t in at_online_stamps(result, side, cam) if t is not None]
+            online = [
+                ((p.stamp_ns - t0) / 1e9, pose_error(p.T, t.T)[0])
+                for p, _, t in at_online_stamps(result, side, cam)
+                if t is not None
+            ]
             if online:
                 ax.plot(*zip(*_gaps_broken(online, MATCH_GAP_NS / 1e9)), "-", lw=0.9, color="tab:gray", label="online")
             # NaN where no segment covers the stamp: the line breaks while the camera moves
-            offline = [((t.stamp_ns - t0) / 1e9, np.nan if (seg := segment_at(result, cam, t.stamp_ns)) is None else pose_error(seg.world_T_camera, t.T)[0])
-                       for t in side.truth_cameras.poses[cam]]  # fmt: skip
+            offline = [
+                (
+                    (t.stamp_ns - t0) / 1e9,
+                    np.nan
+                    if (seg := segment_at(result, cam, t.stamp_ns)) is None
+                    else pose_error(seg.world_T_camera, t.T)[0],
+                )
+                for t in side.truth_cameras.poses[cam]
+            ]
             ax.plot(*zip(*offline), "-", lw=1.6, color="tab:blue", label="offline (segment)")
             moving = moving_vs_truth(result, side, cam)
             if moving:
-                ax.plot([(s - t0) / 1e9 for s, _ in moving], [e[0] for _, e in moving], ".", ms=4, color="tab:red", label="offline (moving frame)")
+                ax.plot(
+                    [(s - t0) / 1e9 for s, _ in moving],
+                    [e[0] for _, e in moving],
+                    ".",
+                    ms=4,
+                    color="tab:red",
+                    label="offline (moving frame)",
+                )
             ax.set_ylabel(f"{cam} (mm)")
             ax.grid(alpha=0.3)
         axes[0, 0].set_title("Position error against ground truth")
@@ -188,7 +242,11 @@ def plots(result: ResolveResult, side: LogEvidence, out: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 3.5))
     for cam, poses in sorted(side.online.poses.items()):
-        rows = [((p.stamp_ns - t0) / 1e9, pose_error(p.T, seg.world_T_camera)[0]) for p in poses if (seg := segment_at(result, cam, p.stamp_ns)) is not None]
+        rows = [
+            ((p.stamp_ns - t0) / 1e9, pose_error(p.T, seg.world_T_camera)[0])
+            for p in poses
+            if (seg := segment_at(result, cam, p.stamp_ns)) is not None
+        ]
         if rows:
             ax.plot(*zip(*rows), ".-", ms=2, lw=0.8, label=cam)
     ax.set_yscale("log")
@@ -236,22 +294,41 @@ def html_report(result: ResolveResult, fig: ResolveFigures) -> str:
         for c, v in fig.object_markers.items()
     )
     objects_html = (
-        "<h2>Object markers (placed through the solved cameras, at most 10 Hz; median errors)</h2>"
-        f"<table><tr><th>marker</th><th>poses</th><th>offline vs truth</th><th>online vs truth</th></tr>{objects}</table>"
-    ) if objects else ""
-    truth_img = '<h2>Against ground truth</h2><img src="errors_vs_truth.png">' if any(c.offline_vs_truth_mm_deg for c in fig.cameras.values()) else ""
-    warn = "" if fig.log_complete else f"<p class=warn>The log was not complete ({html.escape(str(fig.stopped_early))}); this covers what was readable.</p>"
+        (
+            "<h2>Object markers (placed through the solved cameras, at most 10 Hz; median errors)</h2>"
+            f"<table><tr><th>marker</th><th>poses</th><th>offline vs truth</th><th>online vs truth</th></tr>{objects}</table>"
+        )
+        if objects
+        else ""
+    )
+    truth_img = (
+        '<h2>Against ground truth</h2><img src="errors_vs_truth.png">'
+        if any(c.offline_vs_truth_mm_deg for c in fig.cameras.values())
+        else ""
+    )
+    warn = (
+        ""
+        if fig.log_complete
+        else f"<p class=warn>The log was not complete ({html.escape(str(fig.stopped_early))}); this covers what was readable.</p>"
+    )
     scale = fig.moving_frames_covariance_scale
-    weighed = "" if scale == 1.0 else (
-        f" ({fig.moving_frames_left_out} moving frames left out" if fig.moving_frames_left_out else " (the moving frames weighed down"
-    ) + f": the still views fit {scale:.3g} times better than the moving ones, each against its covariances)"
+    weighed = (
+        ""
+        if scale == 1.0
+        else (
+            f" ({fig.moving_frames_left_out} moving frames left out"
+            if fig.moving_frames_left_out
+            else " (the moving frames weighed down"
+        )
+        + f": the still views fit {scale:.3g} times better than the moving ones, each against its covariances)"
+    )
     return f"""<!doctype html><html><head><meta charset=utf-8><title>cellsight resolve</title>
 <style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;padding:3px 8px}} .warn{{color:#a40}}</style></head><body>
 <h1>Offline re-solve</h1>{warn}
 <p>{fig.frames} frames, {fig.observations} marker observations, {len(result.segments)} camera segments, {len(result.markers)} markers;
 Levenberg-Marquardt {fig.lm_iterations} iterations; {sum(c.moving_frames for c in fig.cameras.values())} moving frames and
-{fig.object_links} object-marker instants seen by several cameras solved as poses of their own{weighed}. Unanchored cameras: {', '.join(fig.unanchored) or 'none'}.
-Anchors flagged as moved: {', '.join(map(str, fig.flagged_anchors)) or 'none'}.</p>
+{fig.object_links} object-marker instants seen by several cameras solved as poses of their own{weighed}. Unanchored cameras: {", ".join(fig.unanchored) or "none"}.
+Anchors flagged as moved: {", ".join(map(str, fig.flagged_anchors)) or "none"}.</p>
 <h2>Cameras (median errors; truth only in simulator logs)</h2>
 <table><tr><th>camera</th><th>offline vs truth</th><th>online vs truth</th><th>RMS at the same instants, offline / online (instants)</th><th>online vs offline</th><th>moving frames solved</th><th>their error vs truth</th></tr>{rows}</table>
 {objects_html}

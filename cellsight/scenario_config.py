@@ -22,7 +22,9 @@ from schemas.spec import PoseSpec
 
 def pose_spec(T: np.ndarray) -> PoseSpec:
     """A 4x4 pose as a config PoseSpec (position + quaternion)."""
-    return PoseSpec(position=tuple(float(v) for v in T[:3, 3]), quaternion=tuple(float(v) for v in quat_from_matrix(T[:3, :3])))
+    return PoseSpec(
+        position=tuple(float(v) for v in T[:3, 3]), quaternion=tuple(float(v) for v in quat_from_matrix(T[:3, :3]))
+    )
 
 
 def anchors_of(scenario: Scenario) -> list[AnchorConfig]:
@@ -30,7 +32,14 @@ def anchors_of(scenario: Scenario) -> list[AnchorConfig]:
     for mk in scenario.markers:
         if mk.role != "anchor":
             continue
-        out.append(AnchorConfig(marker_id=mk.id, world_T_marker=pose_spec(mk.pose.matrix()), sigma_position_m=mk.sigma_position_m, sigma_rotation_deg=mk.sigma_rotation_deg))
+        out.append(
+            AnchorConfig(
+                marker_id=mk.id,
+                world_T_marker=pose_spec(mk.pose.matrix()),
+                sigma_position_m=mk.sigma_position_m,
+                sigma_rotation_deg=mk.sigma_rotation_deg,
+            )
+        )
     return out
 
 
@@ -48,7 +57,9 @@ def recognition_config_of(scenario: Scenario, base: RecognitionConfig) -> Recogn
     markers = []
     for mk in scenario.markers:
         if mk.role == "object" and mk.object is not None:
-            markers.append(ObjectMarkerConfig(marker_id=mk.id, object_id=mk.object, object_T_marker=pose_spec(mk.pose.matrix())))
+            markers.append(
+                ObjectMarkerConfig(marker_id=mk.id, object_id=mk.object, object_T_marker=pose_spec(mk.pose.matrix()))
+            )
     update: dict = {"object_markers": markers}
     if scenario.workspace is not None and base.workspace_min is None:
         update |= {"workspace_min": scenario.workspace[0], "workspace_max": scenario.workspace[1]}
@@ -62,9 +73,15 @@ def cell_config_of(scenario: Scenario, scenario_path: Path | None = None, base: 
     for c in scenario.cameras:
         i = c.camera_info()
         intr = IntrinsicsConfig(fx=i.K[0, 0], fy=i.K[1, 1], cx=i.K[0, 2], cy=i.K[1, 2], distortion=tuple(i.D.tolist()))
-        cameras.append(CameraConfig(id=c.id, source="sim", width=c.width, height=c.height, rate_hz=c.rate_hz, intrinsics=intr))
+        cameras.append(
+            CameraConfig(id=c.id, source="sim", width=c.width, height=c.height, rate_hz=c.rate_hz, intrinsics=intr)
+        )
     markers = base.markers.model_copy(
-        update={"dictionary": scenario.dictionary, "side_m": scenario.marker_side_m, "sides_m": {mk.id: scenario.side_of(mk) for mk in scenario.markers}}
+        update={
+            "dictionary": scenario.dictionary,
+            "side_m": scenario.marker_side_m,
+            "sides_m": {mk.id: scenario.side_of(mk) for mk in scenario.markers},
+        }
     )
     tuning = base.estimator.model_dump(exclude={"anchors", "object_markers", "known_markers"})
     return base.model_copy(

@@ -33,8 +33,14 @@ class StatusBoard:
         self._cameras_msg: m.PosesWithCovariance | None = None
         cell = bus.cell
         self._subs = [
-            bus.subscribe(keys.all_cameras(cell, "status"), m.DriverStatus, callback=lambda r: self.drivers.__setitem__(r.msg.camera_id, r.msg)),
-            bus.subscribe(keys.estimate_status(cell), m.EstimatorStatus, callback=lambda r: setattr(self, "estimator", r.msg)),
+            bus.subscribe(
+                keys.all_cameras(cell, "status"),
+                m.DriverStatus,
+                callback=lambda r: self.drivers.__setitem__(r.msg.camera_id, r.msg),
+            ),
+            bus.subscribe(
+                keys.estimate_status(cell), m.EstimatorStatus, callback=lambda r: setattr(self, "estimator", r.msg)
+            ),
             bus.subscribe(keys.estimate_cameras(cell), m.PosesWithCovariance, callback=self._on_cameras),
             bus.subscribe(keys.objects(cell), m.ObjectDetections, callback=lambda r: setattr(self, "objects", r.msg)),
         ]
@@ -51,7 +57,18 @@ class StatusBoard:
             except DecodeError as exc:  # one bad message must not take the table down
                 log.warning("camera poses skipped: %s", exc)
         t = Table(title=f"cellsight cell {self.bus.cell}")
-        for col in ("camera", "driver", "rate (Hz)", "frames", "dropped", "state", "segment", "markers", "x, y, z (m)", "sigma (mm)"):
+        for col in (
+            "camera",
+            "driver",
+            "rate (Hz)",
+            "frames",
+            "dropped",
+            "state",
+            "segment",
+            "markers",
+            "x, y, z (m)",
+            "sigma (mm)",
+        ):
             t.add_column(col, no_wrap=True)
         est = {c.camera_id: c for c in self.estimator.cameras} if self.estimator else {}
         for cid in sorted(set(self.drivers) | set(est)):
@@ -89,7 +106,9 @@ class StatusBoard:
             o.add_column(col, no_wrap=True)
         for det in self.objects.objects:
             T = codec.pose_from_msg(det.world_T_object, det.object_id)
-            o.add_row(det.object_id, _xyz(T), ", ".join(det.camera_ids), f"{det.fitness:.2f}", f"{det.rmse_m * 1000:.1f}")
+            o.add_row(
+                det.object_id, _xyz(T), ", ".join(det.camera_ids), f"{det.fitness:.2f}", f"{det.rmse_m * 1000:.1f}"
+            )
         return Group(*tables, o)
 
     def refused(self) -> Counter[tuple[str, str]]:

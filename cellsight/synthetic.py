@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from drivers.markers import covariance_model, PlaneFit
+from drivers.markers import PlaneFit, covariance_model
 from drivers.sim.scenario import Scenario, load_scenario
 from estimator.config import EstimatorConfig
 from estimator.observation import Observation
@@ -75,7 +75,12 @@ def perturb(T: np.ndarray, cov_ros: np.ndarray, rng: np.random.Generator) -> np.
 
 
 def frame_observations(
-    scenario: Scenario, camera_id: str, t_s: float, stamp_ns: int, rng: np.random.Generator, noise: NoiseSettings,
+    scenario: Scenario,
+    camera_id: str,
+    t_s: float,
+    stamp_ns: int,
+    rng: np.random.Generator,
+    noise: NoiseSettings,
     world_T_camera: np.ndarray | None = None,
 ) -> list[Observation]:
     """Noisy observations of every visible marker by one camera at scenario time ``t_s``."""
@@ -119,8 +124,11 @@ class ViewBiases:
     def apply(self, o: Observation, view: np.ndarray, rng: np.random.Generator) -> Observation:
         """``o`` with its view's bias, ``view`` the true camera_T_marker (4, 4)."""
         drawn = self._drawn.get((o.camera_id, o.marker_id))
-        if drawn is None or np.linalg.norm(drawn[0][:3, 3] - view[:3, 3]) > self.new_view_m or \
-                rotation_angle(drawn[0][:3, :3], view[:3, :3]) > self.new_view_rad:
+        if (
+            drawn is None
+            or np.linalg.norm(drawn[0][:3, 3] - view[:3, 3]) > self.new_view_m
+            or rotation_angle(drawn[0][:3, :3], view[:3, :3]) > self.new_view_rad
+        ):
             cov = o.covariance / self.max_fused
             cov[3:, 3:] += np.eye(3) * self.floor_rad**2
             drawn = self._drawn[(o.camera_id, o.marker_id)] = (view, perturb(np.eye(4), cov, rng))
@@ -148,7 +156,9 @@ def observations_msg(camera_id: str, stamp_ns: int, obs: list[Observation], side
     msg = m.MarkerObservations(camera_id=camera_id, stamp_ns=stamp_ns, image_width=640, image_height=480)
     items = []
     for o in obs:
-        item = msg.markers.add(marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=side_m, depth_refined=True)
+        item = msg.markers.add(
+            marker_id=o.marker_id, dictionary="DICT_APRILTAG_36h11", side_m=side_m, depth_refined=True
+        )
         item.corners_px.extend([0.0] * 8)
         item.covariance.extend(codec.covariance_to_list(o.covariance))
         items.append(item)

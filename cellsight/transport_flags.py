@@ -9,20 +9,37 @@ from __future__ import annotations
 
 import functools
 import inspect
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Callable, Optional
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 if TYPE_CHECKING:
     from schemas.bus import TransportConfig
 
-ModeOpt = Annotated[Optional[str], typer.Option("--mode", help="zenoh mode: client, peer or router", rich_help_panel="Transport")]
-ConnectOpt = Annotated[Optional[list[str]], typer.Option("--connect", "-e", help="endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447", rich_help_panel="Transport")]
-ListenOpt = Annotated[Optional[list[str]], typer.Option("--listen", "-l", help="endpoint to listen on (repeatable)", rich_help_panel="Transport")]
-ZenohConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="zenoh JSON5 config file (TLS, mTLS, access control)", rich_help_panel="Transport")]
-CellOpt = Annotated[Optional[str], typer.Option("--cell", help="cell name (default: from the cell config, else 'demo')")]
+ModeOpt = Annotated[
+    str | None, typer.Option("--mode", help="zenoh mode: client, peer or router", rich_help_panel="Transport")
+]
+ConnectOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--connect",
+        "-e",
+        help="endpoint to connect to (repeatable), e.g. tcp/127.0.0.1:7447",
+        rich_help_panel="Transport",
+    ),
+]
+ListenOpt = Annotated[
+    list[str] | None,
+    typer.Option("--listen", "-l", help="endpoint to listen on (repeatable)", rich_help_panel="Transport"),
+]
+ZenohConfigOpt = Annotated[
+    Path | None,
+    typer.Option("--config", help="zenoh JSON5 config file (TLS, mTLS, access control)", rich_help_panel="Transport"),
+]
+CellOpt = Annotated[str | None, typer.Option("--cell", help="cell name (default: from the cell config, else 'demo')")]
 
 
 @dataclass(frozen=True)
@@ -34,7 +51,7 @@ class TransportFlags:
     listen: list[str] | None = None
     zenoh_config: Path | None = None
 
-    def apply(self, base: "TransportConfig | None") -> "TransportConfig":
+    def apply(self, base: TransportConfig | None) -> TransportConfig:
         """``base`` (from the cell config, or defaults) with the given flags on top."""
         from schemas.bus import TransportConfig  # lazy: keeps --help instant
 
@@ -58,7 +75,9 @@ def transport_options(command: Callable[..., Any]) -> Callable[..., Any]:
     ``transport: TransportFlags``; typer sees the flags, the command one object."""
     sig = inspect.signature(command, eval_str=True)
     kept = [p for name, p in sig.parameters.items() if name != "transport"]
-    flags = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=ann) for name, ann in _FLAGS]
+    flags = [
+        inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=ann) for name, ann in _FLAGS
+    ]
 
     @functools.wraps(command)
     def with_flags(*args: Any, mode=None, connect=None, listen=None, zenoh_config=None, **kwargs: Any) -> Any:

@@ -36,8 +36,12 @@ class FrameSource(Protocol):
     def close(self) -> None: ...
 
 
-def observations_to_msg(camera_id: str, stamp_ns: int, info: codec.CameraInfo, detections: list[MarkerDetection], dictionary: str) -> m.MarkerObservations:
-    msg = m.MarkerObservations(camera_id=camera_id, stamp_ns=int(stamp_ns), image_width=info.width, image_height=info.height)
+def observations_to_msg(
+    camera_id: str, stamp_ns: int, info: codec.CameraInfo, detections: list[MarkerDetection], dictionary: str
+) -> m.MarkerObservations:
+    msg = m.MarkerObservations(
+        camera_id=camera_id, stamp_ns=int(stamp_ns), image_width=info.width, image_height=info.height
+    )
     outs = []
     for d in detections:
         o = msg.markers.add(
@@ -53,5 +57,7 @@ def observations_to_msg(camera_id: str, stamp_ns: int, info: codec.CameraInfo, d
         outs += [o.candidate_a, o.candidate_b, o.camera_T_marker]
         o.covariance.extend(codec.covariance_to_list(d.covariance))
     if detections:
-        codec.poses_to_msgs(np.stack([T for d in detections for T in (d.candidate_a, d.candidate_b, d.camera_T_marker)]), outs)
+        codec.poses_to_msgs(
+            np.stack([T for d in detections for T in (d.candidate_a, d.candidate_b, d.camera_T_marker)]), outs
+        )
     return msg

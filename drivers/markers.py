@@ -77,7 +77,9 @@ def load_dictionary(name_or_path: str) -> cv2.aruco.Dictionary:
         if ok:
             return d
         raise DriverError(f"{path}: not an OpenCV aruco dictionary file")
-    raise DriverError(f"unknown marker dictionary {name_or_path!r}: give an OpenCV name (DICT_APRILTAG_36h11, DICT_6X6_250, ...) or a .yml file")
+    raise DriverError(
+        f"unknown marker dictionary {name_or_path!r}: give an OpenCV name (DICT_APRILTAG_36h11, DICT_6X6_250, ...) or a .yml file"
+    )
 
 
 def marker_object_points(side_m: float) -> np.ndarray:
@@ -127,7 +129,7 @@ class PlaneFits:
     ok: np.ndarray  # (M,) bool
 
     @staticmethod
-    def of(planes: list[PlaneFit | None]) -> "PlaneFits":
+    def of(planes: list[PlaneFit | None]) -> PlaneFits:
         """Single fits (None: no plane) stacked; a missing plane's row holds placeholders."""
         fits = [p or PlaneFit(np.array([0.0, 0.0, -1.0]), -1.0, 0, 0.0, 0.0) for p in planes]
         return PlaneFits(
@@ -142,13 +144,17 @@ class PlaneFits:
     def __getitem__(self, i: int) -> PlaneFit | None:
         if not self.ok[i]:
             return None
-        return PlaneFit(self.normal[i], float(self.d[i]), int(self.n_points[i]), float(self.rms_m[i]), float(self.extent_m[i]))
+        return PlaneFit(
+            self.normal[i], float(self.d[i]), int(self.n_points[i]), float(self.rms_m[i]), float(self.extent_m[i])
+        )
 
-    def take(self, idx: np.ndarray) -> "PlaneFits":
+    def take(self, idx: np.ndarray) -> PlaneFits:
         """The planes of quads ``idx`` (indices or a mask), in that order."""
-        return PlaneFits(self.normal[idx], self.d[idx], self.n_points[idx], self.rms_m[idx], self.extent_m[idx], self.ok[idx])
+        return PlaneFits(
+            self.normal[idx], self.d[idx], self.n_points[idx], self.rms_m[idx], self.extent_m[idx], self.ok[idx]
+        )
 
-    def where(self, keep: np.ndarray) -> "PlaneFits":
+    def where(self, keep: np.ndarray) -> PlaneFits:
         """The same planes, those where ``keep`` (M,) is False dropped."""
         return PlaneFits(self.normal, self.d, self.n_points, self.rms_m, self.extent_m, self.ok & keep)
 
@@ -158,7 +164,9 @@ def fit_plane(depth_mm: np.ndarray, corners: np.ndarray, info: CameraInfo, shrin
     return fit_planes(depth_mm, [corners], info, shrink)[0]
 
 
-def _quad_pixels(depth_mm: np.ndarray, corners: np.ndarray, shrink: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _quad_pixels(
+    depth_mm: np.ndarray, corners: np.ndarray, shrink: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Columns, rows (int) and depths (m) of the measured pixels inside each shrunken quad of corners
     (M, 4, 2), quad after quad, and how many each quad has (M,)."""
     centre = corners.mean(1, keepdims=True)
@@ -452,8 +460,11 @@ def refine_corners_on_edges(gray: np.ndarray, corners: list[np.ndarray], modules
     r = m1 - m0
     a = (r[..., 1] * t1[..., 0] - r[..., 0] * t1[..., 1]) / np.where(np.abs(det) < 0.1, 1.0, det)
     Q = m0 + a[..., None] * t0
-    good = ((kept >= 4).reshape(-1, 4).all(axis=1) & (np.abs(det) >= 0.1).all(axis=1)  # edges found, not parallel
-            & (np.abs(Q - C).max(axis=(1, 2)) <= 3.0))  # beyond that an edge fit went astray  # fmt: skip
+    good = (
+        (kept >= 4).reshape(-1, 4).all(axis=1)
+        & (np.abs(det) >= 0.1).all(axis=1)  # edges found, not parallel
+        & (np.abs(Q - C).max(axis=(1, 2)) <= 3.0)
+    )  # beyond that an edge fit went astray
     return [q if g else c for q, c, g in zip(Q, corners, good)]
 
 
@@ -516,9 +527,13 @@ class MarkerDetector:
         ``config.use_depth``; images must match ``info``'s size.
         """
         if image.shape[:2] != (info.height, info.width):
-            raise DriverError(f"image is {image.shape[1]}x{image.shape[0]} but camera info says {info.width}x{info.height}")
+            raise DriverError(
+                f"image is {image.shape[1]}x{image.shape[0]} but camera info says {info.width}x{info.height}"
+            )
         if depth_mm is not None and depth_mm.shape[:2] != image.shape[:2]:
-            raise DriverError(f"depth {depth_mm.shape[1]}x{depth_mm.shape[0]} does not match the image {image.shape[1]}x{image.shape[0]}")
+            raise DriverError(
+                f"depth {depth_mm.shape[1]}x{depth_mm.shape[0]} does not match the image {image.shape[1]}x{image.shape[0]}"
+            )
         if depth_mm is not None and depth_mm.dtype != np.uint16:
             raise DriverError(f"depth is {depth_mm.dtype}, expected uint16 millimetres")
         ids, corners = self.find(image)
@@ -528,13 +543,17 @@ class MarkerDetector:
         planes = fit_planes(depth_mm, corners, info) if use_depth else PlaneFits.of([None] * len(ids))
         return self._poses(ids, corners, info, planes)
 
-    def _poses(self, ids: np.ndarray, corners: list[np.ndarray], info: CameraInfo, planes: PlaneFits) -> list[MarkerDetection]:
+    def _poses(
+        self, ids: np.ndarray, corners: list[np.ndarray], info: CameraInfo, planes: PlaneFits
+    ) -> list[MarkerDetection]:
         """Both IPPE solutions of every marker (the better first), the depth refinement where its plane
         is usable, covariances; numpy over the frame's markers (per-marker Python cost more than the sums)."""
         sides = np.array([self.config.side_for(int(i)) for i in ids])
         solved, rvecs, tvecs, errs = [], [], [], []
         for k, (c, side) in enumerate(zip(corners, sides)):
-            n, r, t, e = cv2.solvePnPGeneric(marker_object_points(side), c, info.K, info.D, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            n, r, t, e = cv2.solvePnPGeneric(
+                marker_object_points(side), c, info.K, info.D, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            )
             if n == 0:
                 continue
             e = np.asarray(e, float).ravel()
@@ -558,17 +577,30 @@ class MarkerDetector:
         ambiguous = ~planes.ok & (err[:, 1] < np.maximum(2.0 * err[:, 0], err[:, 0] + self.config.pixel_sigma))
         cov = covariance_models(chosen, sides, info, self.config.pixel_sigma, planes)
         return [
-            MarkerDetection(int(ids[k]), float(sides[i]), corners[k], Ta[i], float(err[i, 0]), Tb[i], float(err[i, 1]),
-                            chosen[i], cov[i], bool(planes.ok[i]), bool(ambiguous[i]))
+            MarkerDetection(
+                int(ids[k]),
+                float(sides[i]),
+                corners[k],
+                Ta[i],
+                float(err[i, 0]),
+                Tb[i],
+                float(err[i, 1]),
+                chosen[i],
+                cov[i],
+                bool(planes.ok[i]),
+                bool(ambiguous[i]),
+            )
             for i, k in enumerate(keep)
-        ]  # fmt: skip
+        ]
 
     def _refine(
         self, Ta: np.ndarray, Tb: np.ndarray, C: np.ndarray, sides: np.ndarray, info: CameraInfo, planes: PlaneFits
     ) -> np.ndarray:
         """Poses (M, 4, 4): for each marker the IPPE solution its depth plane agrees with, the tilt
         fused with the plane's, the range from the plane (meaningful where ``planes.ok``)."""
-        nearer_a = np.einsum("mi,mi->m", Ta[:, :3, 2], planes.normal) >= np.einsum("mi,mi->m", Tb[:, :3, 2], planes.normal)
+        nearer_a = np.einsum("mi,mi->m", Ta[:, :3, 2], planes.normal) >= np.einsum(
+            "mi,mi->m", Tb[:, :3, 2], planes.normal
+        )
         chosen = np.where(nearer_a[:, None, None], Ta, Tb)
         f = 0.5 * (info.K[0, 0] + info.K[1, 1])
         pnp = pnp_sigmas(chosen, sides, f, self.config.pixel_sigma)
@@ -578,7 +610,9 @@ class MarkerDetector:
         a, b = chosen[:, :3, 2], planes.normal
         axis = np.cross(a, b)
         sin = np.linalg.norm(axis, axis=1)  # under 90 deg: the chosen solution is the one nearer the plane's normal
-        scale = np.where(sin > 1e-12, weight * np.arctan2(sin, np.einsum("mi,mi->m", a, b)) / np.maximum(sin, 1e-12), 0.0)
+        scale = np.where(
+            sin > 1e-12, weight * np.arctan2(sin, np.einsum("mi,mi->m", a, b)) / np.maximum(sin, 1e-12), 0.0
+        )
         out = chosen.copy()
         out[:, :3, :3] = so3_exp(axis * scale[:, None]) @ chosen[:, :3, :3]
         # Range: intersect the ray through the marker centre's image with the plane.

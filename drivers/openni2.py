@@ -32,7 +32,11 @@ def _initialize(lib_dir: Path | None):
 
     if openni2.is_initialized():  # initialising twice in one process crashes the library
         return openni2
-    tried = [str(lib_dir)] if lib_dir else [d for d in DEFAULT_LIB_DIRS if Path(d, "libOpenNI2.so").exists() or Path(d, "libOpenNI2.so.0").exists()]
+    tried = (
+        [str(lib_dir)]
+        if lib_dir
+        else [d for d in DEFAULT_LIB_DIRS if Path(d, "libOpenNI2.so").exists() or Path(d, "libOpenNI2.so.0").exists()]
+    )
     errors = []
     for d in tried or list(DEFAULT_LIB_DIRS):
         try:
@@ -46,8 +50,17 @@ def _initialize(lib_dir: Path | None):
 class OpenNI2Source:
     """Frames from one OpenNI2 device. ``read`` blocks for the next depth+colour pair."""
 
-    def __init__(self, camera_id: str, uri: str = "", *, width: int = 640, height: int = 480, rate_hz: float = 30.0,
-                 info: CameraInfo | None = None, lib_dir: Path | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        camera_id: str,
+        uri: str = "",
+        *,
+        width: int = 640,
+        height: int = 480,
+        rate_hz: float = 30.0,
+        info: CameraInfo | None = None,
+        lib_dir: Path | None = None,
+    ) -> None:
         self.camera_id = camera_id
         self.name = f"openni2:{uri or 'first device'}"
         self.dropped = 0
@@ -61,9 +74,15 @@ class OpenNI2Source:
                 self.device = openni2.Device.open_any()
         except Exception as exc:
             available = [u.decode() for u in openni2.Device.enumerate_uris()]
-            raise NoDeviceError(f"cannot open OpenNI2 device {uri or '(first device)'!r}: {exc}; devices found: {available or 'none'}; {CHECKLIST}") from exc
+            raise NoDeviceError(
+                f"cannot open OpenNI2 device {uri or '(first device)'!r}: {exc}; devices found: {available or 'none'}; {CHECKLIST}"
+            ) from exc
         self.depth = self._start(openni2.SENSOR_DEPTH, width, height, rate_hz)
-        self.color = self._start(openni2.SENSOR_COLOR, width, height, rate_hz) if self.device.has_sensor(openni2.SENSOR_COLOR) else None
+        self.color = (
+            self._start(openni2.SENSOR_COLOR, width, height, rate_hz)
+            if self.device.has_sensor(openni2.SENSOR_COLOR)
+            else None
+        )
         if self.color is not None:
             if self.device.is_image_registration_mode_supported(openni2.IMAGE_REGISTRATION_DEPTH_TO_COLOR):
                 self.device.set_image_registration_mode(openni2.IMAGE_REGISTRATION_DEPTH_TO_COLOR)
@@ -80,8 +99,16 @@ class OpenNI2Source:
         self._last_stamp = -1
 
     def _start(self, sensor, width: int, height: int, rate_hz: float):
-        stream = self.device.create_depth_stream() if sensor == self._openni2.SENSOR_DEPTH else self.device.create_color_stream()
-        wanted = [m for m in stream.get_sensor_info().videoModes if m.resolutionX == width and m.resolutionY == height and abs(m.fps - rate_hz) < 1]
+        stream = (
+            self.device.create_depth_stream()
+            if sensor == self._openni2.SENSOR_DEPTH
+            else self.device.create_color_stream()
+        )
+        wanted = [
+            m
+            for m in stream.get_sensor_info().videoModes
+            if m.resolutionX == width and m.resolutionY == height and abs(m.fps - rate_hz) < 1
+        ]
         if wanted:
             stream.set_video_mode(wanted[0])
         stream.start()

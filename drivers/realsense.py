@@ -67,8 +67,18 @@ class RealSenseSource:
     None when a recording has ended. ``real_time=False`` plays a recording frame by frame as fast as
     it is read (nothing skipped), for tests and offline work."""
 
-    def __init__(self, camera_id: str, *, serial: str | None = None, recording: Path | None = None, width: int = 640,
-                 height: int = 480, rate_hz: float = 30.0, record_to: Path | None = None, real_time: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        camera_id: str,
+        *,
+        serial: str | None = None,
+        recording: Path | None = None,
+        width: int = 640,
+        height: int = 480,
+        rate_hz: float = 30.0,
+        record_to: Path | None = None,
+        real_time: bool = True,
+    ) -> None:
         rs = self._rs = _rs()
         self.camera_id = camera_id
         self.dropped = 0
@@ -89,12 +99,16 @@ class RealSenseSource:
         if recording is None:  # say at once what is there, rather than after the pipeline's own time-out
             found = [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
             if not found or (serial and serial not in found):
-                raise NoDeviceError(f"no RealSense {serial or 'device'} on this host; devices found: {found or 'none'}; {CHECKLIST}")
+                raise NoDeviceError(
+                    f"no RealSense {serial or 'device'} on this host; devices found: {found or 'none'}; {CHECKLIST}"
+                )
         self.pipeline = rs.pipeline()
         try:
             profile = self.pipeline.start(config)
         except RuntimeError as exc:
-            raise NoDeviceError(f"cannot open RealSense {recording or serial or '(first device)'}: {exc}; {CHECKLIST}") from exc
+            raise NoDeviceError(
+                f"cannot open RealSense {recording or serial or '(first device)'}: {exc}; {CHECKLIST}"
+            ) from exc
         device = profile.get_device()
         self._playback = device.as_playback() if recording is not None else None
         if self._playback is not None:  # real time: paced like the camera; else every frame, as fast as it is read
@@ -102,7 +116,9 @@ class RealSenseSource:
         color = profile.get_stream(rs.stream.color).as_video_stream_profile()
         self.info = camera_info(color.get_intrinsics())
         self.depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
-        self.serial = device.get_info(rs.camera_info.serial_number) if device.supports(rs.camera_info.serial_number) else ""
+        self.serial = (
+            device.get_info(rs.camera_info.serial_number) if device.supports(rs.camera_info.serial_number) else ""
+        )
         self.period_ms = 1000.0 / max(color.fps(), 1)
         self._align = rs.align(rs.stream.color)
         self._offset_ns: int | None = None
@@ -172,7 +188,9 @@ def write_recording(path: Path, frames: list[Frame], *, serial: str = "000000000
     device.register_info(rs.camera_info.serial_number, serial)
     device.register_info(rs.camera_info.name, "cellsight software D4xx")
     sensors, profiles = {}, {}
-    for uid, (kind, fmt, bpp, name) in enumerate(((rs.stream.depth, rs.format.z16, 2, "Depth"), (rs.stream.color, rs.format.rgb8, 3, "Color"))):
+    for uid, (kind, fmt, bpp, name) in enumerate(
+        ((rs.stream.depth, rs.format.z16, 2, "Depth"), (rs.stream.color, rs.format.rgb8, 3, "Color"))
+    ):
         stream = rs.video_stream()
         stream.type, stream.index, stream.uid, stream.fmt, stream.bpp = kind, 0, uid, fmt, bpp
         stream.width, stream.height, stream.fps, stream.intrinsics = info.width, info.height, int(round(rate_hz)), intr
@@ -193,7 +211,11 @@ def write_recording(path: Path, frames: list[Frame], *, serial: str = "000000000
         for name, pixels, bpp in (("Depth", frame.depth_mm, 2), ("Color", frame.rgb, 3)):
             f = rs.software_video_frame()
             f.pixels, f.stride, f.bpp = np.ascontiguousarray(pixels), info.width * bpp, bpp
-            f.timestamp, f.domain, f.frame_number = (frame.stamp_ns - t0) / 1e6, rs.timestamp_domain.hardware_clock, max(k - 1, 0)
+            f.timestamp, f.domain, f.frame_number = (
+                (frame.stamp_ns - t0) / 1e6,
+                rs.timestamp_domain.hardware_clock,
+                max(k - 1, 0),
+            )
             f.profile = profiles[name].as_video_stream_profile()
             if name == "Depth":
                 f.depth_units = 0.001

@@ -37,7 +37,9 @@ def is_sensor_key(key: str) -> bool:
     return parsed.camera is not None or parsed.topic.startswith("truth/")
 
 
-def replay(bus: Bus, path: Path, rate: float = 1.0, all_keys: bool = False, stop: threading.Event | None = None) -> ReplayResult:
+def replay(
+    bus: Bus, path: Path, rate: float = 1.0, all_keys: bool = False, stop: threading.Event | None = None
+) -> ReplayResult:
     """Publish the log's messages at ``rate`` times their recorded pace (log_time); returns counts."""
     if not rate > 0:
         raise ValueError(f"replay rate must be positive, got {rate}")

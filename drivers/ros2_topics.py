@@ -38,7 +38,13 @@ def image_array(msg: Any) -> tuple[np.ndarray, str]:
     """(pixels, kind) of a sensor_msgs/Image: rgb8 (H, W, 3) uint8 from rgb8/bgr8, or depth (H, W)
     uint16 millimetres from 16UC1/mono16 or 32FC1 metres. Raises ``DriverError`` otherwise."""
     h, w, step, data = int(msg.height), int(msg.width), int(msg.step), np.asarray(msg.data, dtype=np.uint8)
-    layouts = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "16UC1": ("<u2", 1), "mono16": ("<u2", 1), "32FC1": ("<f4", 1)}
+    layouts = {
+        "rgb8": (np.uint8, 3),
+        "bgr8": (np.uint8, 3),
+        "16UC1": ("<u2", 1),
+        "mono16": ("<u2", 1),
+        "32FC1": ("<f4", 1),
+    }
     if msg.encoding not in layouts:
         raise DriverError(f"image encoding {msg.encoding!r} is not supported; use one of {sorted(layouts)}")
     dtype, channels = layouts[msg.encoding]
@@ -59,8 +65,18 @@ def image_array(msg: Any) -> tuple[np.ndarray, str]:
 class Ros2TopicsSource:
     """Frames from a ROS 2 camera's colour, depth and camera-info topics on ``session``."""
 
-    def __init__(self, camera_id: str, session: zenoh.Session, types: Ros2Types, *, color: str, depth: str, info: str,
-                 domain_id: int = 0, rate_hz: float = 30.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        camera_id: str,
+        session: zenoh.Session,
+        types: Ros2Types,
+        *,
+        color: str,
+        depth: str,
+        info: str,
+        domain_id: int = 0,
+        rate_hz: float = 30.0,
+    ) -> None:
         self.camera_id = camera_id
         self.name = f"ros2:{color}"
         self.types = types
@@ -91,7 +107,12 @@ class Ros2TopicsSource:
         if msg is None:
             return
         try:
-            info = CameraInfo(int(msg.width), int(msg.height), np.asarray(msg.k, dtype=np.float64), np.asarray(msg.d, dtype=np.float64)[:5])
+            info = CameraInfo(
+                int(msg.width),
+                int(msg.height),
+                np.asarray(msg.k, dtype=np.float64),
+                np.asarray(msg.d, dtype=np.float64)[:5],
+            )
         except Exception as exc:
             log.warning("%s: camera info refused: %s", self.camera_id, exc)
             return
@@ -124,14 +145,18 @@ class Ros2TopicsSource:
     def read(self) -> Frame | None:
         with self._cond:
             if not self._cond.wait_for(lambda: self._pair is not None and self._info is not None, timeout=WAIT_S):
-                raise NoDeviceError(f"{self.name}: no colour+depth pair with camera info for {WAIT_S:.0f} s "
-                                    "(is the ROS 2 camera driver running, on this router, with these topics?)")  # fmt: skip
+                raise NoDeviceError(
+                    f"{self.name}: no colour+depth pair with camera info for {WAIT_S:.0f} s "
+                    "(is the ROS 2 camera driver running, on this router, with these topics?)"
+                )
             stamp, color, depth = self._pair
             self._pair = None
             info = self._info
         if depth.shape != color.shape[:2] or (info.width, info.height) != (color.shape[1], color.shape[0]):
-            raise DriverError(f"{self.name}: colour {color.shape[1]}x{color.shape[0]}, depth {depth.shape[::-1]} and camera info "
-                              f"{info.width}x{info.height} differ: depth must be aligned to colour")  # fmt: skip
+            raise DriverError(
+                f"{self.name}: colour {color.shape[1]}x{color.shape[0]}, depth {depth.shape[::-1]} and camera info "
+                f"{info.width}x{info.height} differ: depth must be aligned to colour"
+            )
         return Frame(self.camera_id, stamp, color, depth, info)
 
     def close(self) -> None:

@@ -34,7 +34,9 @@ def use_opencv_threads(n: int) -> None:
 class DriverService:
     """Publishes one camera. ``truth`` (sim only) is a callable t_s -> (cameras, markers, objects)."""
 
-    def __init__(self, bus: Bus, source: FrameSource, camera_id: str, markers: MarkerConfig, *, publish_images: bool = True) -> None:
+    def __init__(
+        self, bus: Bus, source: FrameSource, camera_id: str, markers: MarkerConfig, *, publish_images: bool = True
+    ) -> None:
         self.bus = bus
         self.source = source
         self.camera_id = keys.check_name(camera_id, "camera id")
@@ -114,10 +116,16 @@ class DriverService:
         rate = len(self._window) / (STATUS_PERIOD_S * 2)
         self._pub["status"].put(
             m.DriverStatus(
-                camera_id=self.camera_id, stamp_ns=time.time_ns(), state=state, source=self.source.name,
-                rate_hz=rate, frames=self.frames, dropped=getattr(self.source, "dropped", 0) + self.failed, message=message,
+                camera_id=self.camera_id,
+                stamp_ns=time.time_ns(),
+                state=state,
+                source=self.source.name,
+                rate_hz=rate,
+                frames=self.frames,
+                dropped=getattr(self.source, "dropped", 0) + self.failed,
+                message=message,
             )
-        )  # fmt: skip
+        )
 
     def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
         """Publish until the source ends, ``stop`` is set or ``duration_s`` has passed."""

@@ -69,7 +69,9 @@ class BestView(Generic[K, V]):
         return self._best.pop(key)[1]
 
 
-def through_camera(world_T_camera: np.ndarray, camera_cov: np.ndarray, camera_T_marker: np.ndarray, marker_cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def through_camera(
+    world_T_camera: np.ndarray, camera_cov: np.ndarray, camera_T_marker: np.ndarray, marker_cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """world_T_marker (..., 4, 4) and its covariance (..., 6, 6; ROS order, marker frame) from a
     camera pose with its covariance (camera frame) and an observation with its own (marker frame).
 

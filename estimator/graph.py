@@ -65,7 +65,9 @@ HOLD_MAX_NS = 2_000_000_000  # a segment whose pairs do not settle (markers seen
 ANCHOR_CHECK_NS = 1_000_000_000
 STATIC_FIT_NS = 30_000_000_000  # how often the static pairs' fit is recomputed while moving frames enter (ns)
 UNKNOWN_IDS_LOGGED = 10  # unknown marker ids named in the log; the rest are counted
-RELINEARIZE_SKIP = 10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
+RELINEARIZE_SKIP = (
+    10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
+)
 
 
 @dataclass
@@ -107,11 +109,14 @@ class Counters:
 def moving_frame(camera_id: str, stamp_ns: int, static: list[Observation], move: int) -> MovingFrame:
     """A moving camera's frame of static-marker observations, as ``LiveKeyframes`` holds it."""
     return MovingFrame(
-        camera_id, stamp_ns, np.array([o.marker_id for o in static], dtype=np.int64),
+        camera_id,
+        stamp_ns,
+        np.array([o.marker_id for o in static], dtype=np.int64),
         np.array([o.camera_T_marker for o in static]).reshape(-1, 4, 4),
         np.array([o.alternative if o.alternative is not None else o.camera_T_marker for o in static]).reshape(-1, 4, 4),
-        np.array([o.covariance for o in static]).reshape(-1, 6, 6), move,
-    )  # fmt: skip
+        np.array([o.covariance for o in static]).reshape(-1, 6, 6),
+        move,
+    )
 
 
 class Estimator:
@@ -133,8 +138,10 @@ class Estimator:
             params.adaptiveReorderThreshold = config.reorder_fill
         self.isam = gtsam.ISAM2(params)
         self.anchors = {a.marker_id: a.world_T_marker.matrix() for a in config.anchors}
-        self._anchor_cov = {a.marker_id: np.diag([a.sigma_position_m**2] * 3 + [math.radians(a.sigma_rotation_deg) ** 2] * 3)
-                            for a in config.anchors}  # ROS order  # fmt: skip
+        self._anchor_cov = {
+            a.marker_id: np.diag([a.sigma_position_m**2] * 3 + [math.radians(a.sigma_rotation_deg) ** 2] * 3)
+            for a in config.anchors
+        }  # ROS order
         self.object_markers = set(config.object_markers)
         known = config.known_markers
         self.known = None if known is None else set(known) | set(self.anchors) | self.object_markers
@@ -191,7 +198,11 @@ class Estimator:
         for a in self.config.anchors:
             sig = [math.radians(a.sigma_rotation_deg)] * 3 + [a.sigma_position_m] * 3
             key = marker_symbol(a.marker_id)
-            graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(self.anchors[a.marker_id]), gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
+            graph.add(
+                gtsam.PriorFactorPose3(
+                    key, gtsam.Pose3(self.anchors[a.marker_id]), gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))
+                )
+            )
             values.insert(key, gtsam.Pose3(self.anchors[a.marker_id]))
         return graph, values
 
@@ -207,7 +218,9 @@ class Estimator:
             for o in observations:
                 if o.marker_id in self.object_markers:
                     alt = o.alternative if o.alternative is not None else o.camera_T_marker
-                    sighting = Sighting(camera_id, segment, stamp_ns, o.camera_T_marker.copy(), alt.copy(), o.covariance.copy())
+                    sighting = Sighting(
+                        camera_id, segment, stamp_ns, o.camera_T_marker.copy(), alt.copy(), o.covariance.copy()
+                    )
                     self.live_links.gather.add(o.marker_id, sighting)
         return joined
 
@@ -217,8 +230,12 @@ class Estimator:
             self.counters.rejected += len(observations)
             track.backwards += 1
             if track.backwards == 1:  # once per camera: a flood of stale frames must not flood the log
-                log.warning("%s: frame stamp went backwards (%d < %d); frame ignored (further ones only counted)",
-                            camera_id, stamp_ns, track.last_stamp_ns)  # fmt: skip
+                log.warning(
+                    "%s: frame stamp went backwards (%d < %d); frame ignored (further ones only counted)",
+                    camera_id,
+                    stamp_ns,
+                    track.last_stamp_ns,
+                )
             return False
         track.last_stamp_ns = stamp_ns
         static: list[Observation] = []
@@ -230,9 +247,14 @@ class Estimator:
                     self.unknown_ids.add(obs.marker_id)
                     # A few ids by name; past that a stray pattern or a fuzzing peer would fill the log.
                     if len(self.unknown_ids) <= UNKNOWN_IDS_LOGGED:
-                        log.warning("marker %d seen by %s is not in the configuration; ignored%s", obs.marker_id, camera_id,
-                                    " (further unknown ids only counted: status unknown_markers)"
-                                    if len(self.unknown_ids) == UNKNOWN_IDS_LOGGED else "")  # fmt: skip
+                        log.warning(
+                            "marker %d seen by %s is not in the configuration; ignored%s",
+                            obs.marker_id,
+                            camera_id,
+                            " (further unknown ids only counted: status unknown_markers)"
+                            if len(self.unknown_ids) == UNKNOWN_IDS_LOGGED
+                            else "",
+                        )
                 continue
             track.latest[obs.marker_id] = obs
             if obs.marker_id not in self.object_markers:
@@ -241,13 +263,17 @@ class Estimator:
         if not self._camera_is_still(track, static):
             if self.live_keyframes is not None and track.moving and self.live_keyframes.due(camera_id, stamp_ns):
                 frame = moving_frame(camera_id, stamp_ns, static, track.segment)
-                self.live_keyframes.hold(replace(frame, placed=place_frame(frame, self._mapped(frame.ids), self.rotation_floor_rad)))
+                self.live_keyframes.hold(
+                    replace(frame, placed=place_frame(frame, self._mapped(frame.ids), self.rotation_floor_rad))
+                )
             return False
         seg = (camera_id, track.segment)
         for obs in static:
             pair = self.pairs.get((seg, obs.marker_id))
             if pair is None:
-                pair = self.pairs[(seg, obs.marker_id)] = self._segment_pairs.setdefault(seg, {})[obs.marker_id] = Pair()
+                pair = self.pairs[(seg, obs.marker_id)] = self._segment_pairs.setdefault(seg, {})[obs.marker_id] = (
+                    Pair()
+                )
                 self._unplaced.add((seg, obs.marker_id))
             if pair.add(obs):
                 self.counters.observations += 1
@@ -274,11 +300,15 @@ class Estimator:
         marker_ids, row_pair = np.unique(sa.ids, return_inverse=True)
         pairs = [self.pairs.get((seg_key, int(mk))) for mk in marker_ids]
         fast = (
-            track is not None and not track.moving and track.suspect == 0 and len(stamps) > 0
-            and stamps[0] >= track.last_stamp_ns and bool(np.all(np.diff(stamps) >= 0))
+            track is not None
+            and not track.moving
+            and track.suspect == 0
+            and len(stamps) > 0
+            and stamps[0] >= track.last_stamp_ns
+            and bool(np.all(np.diff(stamps) >= 0))
             and (self.known is None or self.known.issuperset(ids))
             and all(p is not None and p.n >= YOUNG_PAIR for p in pairs)
-        )  # fmt: skip
+        )
         expected = np.stack([p.mean() for p in pairs])[row_pair] if fast and pairs else None
         if expected is not None:
             moved, track.screen = any_frame_moved(sa, expected, len(stamps), track.screen, self.config.bump_position_m)
@@ -286,15 +316,22 @@ class Estimator:
         if not fast:
             out = []
             for f, stamp in enumerate(stamps):
-                joined = self._add_frame(camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f)))
+                joined = self._add_frame(
+                    camera_id, int(stamp), observations_of(camera_id, int(stamp), a.rows(a.frame == f))
+                )
                 out.append(self.tracks[camera_id].segment if joined else None)
             self._sight(camera_id, stamps, a, out)
             return out
-        folded = fold_rows(expected, row_pair, len(pairs), sa) if pairs else None  # past the fast test, expected exists iff pairs do
+        folded = (
+            fold_rows(expected, row_pair, len(pairs), sa) if pairs else None
+        )  # past the fast test, expected exists iff pairs do
         for j, pair in enumerate(pairs):
             if pair.rejected + folded.rejected[j] > pair.n:  # would trip the restart rule: exact, one by one
                 rows = row_pair == j
-                k = sum(pair.add_pose(T, A, C) for T, A, C in zip(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows]))
+                k = sum(
+                    pair.add_pose(T, A, C)
+                    for T, A, C in zip(sa.poses[rows], sa.alternatives[rows], sa.covariances[rows])
+                )
                 self.counters.observations += k
                 self.counters.rejected += int(rows.sum()) - k
                 if pair.n < YOUNG_PAIR:
@@ -372,7 +409,9 @@ class Estimator:
         track.suspect = track.suspect + 1 if moved else 0
         if track.suspect >= self.config.bump_frames:
             track.moving, track.still = True, 0
-            log.info("%s moved (marker shift %.1f mm): leaving the graph until it is still", track.camera_id, 1000 * shift_m)
+            log.info(
+                "%s moved (marker shift %.1f mm): leaving the graph until it is still", track.camera_id, 1000 * shift_m
+            )
             return False
         return track.suspect == 0  # hold back suspicious frames
 
@@ -413,7 +452,9 @@ class Estimator:
             track = self.tracks[cam[0]]
             if cam[1] < track.segment:
                 current = self.camera_index.get((cam[0], track.segment))
-                if now_ns - track.segment_start_ns >= after or (current is not None and camera_symbol(current) in self.in_graph):
+                if now_ns - track.segment_start_ns >= after or (
+                    current is not None and camera_symbol(current) in self.in_graph
+                ):
                     out.append(cam)
         return out
 
@@ -444,7 +485,9 @@ class Estimator:
             return  # never reached the graph (no path to an anchor): nothing to keep
         # Pairs with observations since their factor was built get their final mean (one batched
         # build); the other factors stay in their slots.
-        final = [(mk, p) for mk, p in pairs if p.n > 0 and marker_symbol(mk) in self.in_graph and (p.dirty or p.slot is None)]
+        final = [
+            (mk, p) for mk, p in pairs if p.n > 0 and marker_symbol(mk) in self.in_graph and (p.dirty or p.slot is None)
+        ]
         self._pair_factors([(ck, marker_symbol(mk), p) for mk, p in final])  # each pair now holds its final mean
         built = {mk for mk, _ in final}
         factors: dict[int, HistoryFactor] = {}
@@ -476,7 +519,9 @@ class Estimator:
 
     def _fixed_factor(self, ck: int, mk: int, mean: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
         """A robust between factor camera -> marker holding ``mean`` (4x4) with ``covariance`` (ROS order)."""
-        noise = gtsam.noiseModel.Robust.Create(self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(covariance)))
+        noise = gtsam.noiseModel.Robust.Create(
+            self._robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(covariance))
+        )
         return gtsam.BetweenFactorPose3(ck, mk, gtsam.Pose3(mean), noise)
 
     def update(self, now_ns: int, refresh_all: bool = False) -> None:
@@ -533,7 +578,9 @@ class Estimator:
         # A segment entering from its resected pose with settled pairs is not young: its pose is
         # already where the solve will put it.
         fresh = [k for k in new_values.keys() if k not in entering_keys and k not in placed_keys]
-        params.force_relinearize = bool(fresh) or any(p.n < YOUNG_PAIR for ck, _, p in rebuild if ck not in entering_keys)
+        params.force_relinearize = bool(fresh) or any(
+            p.n < YOUNG_PAIR for ck, _, p in rebuild if ck not in entering_keys
+        )
         result = self.isam.update(graph, new_values, params)
         self.counters.reorders += int(result.getBatchReorderTriggered())
         if len(fresh) > 1:
@@ -551,14 +598,20 @@ class Estimator:
         self.counters.factors_rebuilt += refreshed
         self._timed(t0, c0)
 
-    def _link(self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int], slotted: list) -> set[int]:
+    def _link(
+        self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int], slotted: list
+    ) -> set[int]:
         """Complete object-marker instants into the graph against the cameras' current estimates,
         the oldest beyond ``max_live`` out (``LiveLinks``); returns the new instants' keys."""
         links, added = self.live_links, set()
         for mk, sightings in links.complete(now_ns):
             current = [s for s in sightings if s.segment == self.tracks[s.camera_id].segment]
-            solved = [s for s in current if (s.camera_id, s.segment) in self.camera_index
-                      and self._camera_key((s.camera_id, s.segment)) in self.in_graph]  # fmt: skip
+            solved = [
+                s
+                for s in current
+                if (s.camera_id, s.segment) in self.camera_index
+                and self._camera_key((s.camera_id, s.segment)) in self.in_graph
+            ]
             keys = [self._camera_key((s.camera_id, s.segment)) for s in solved]
             repeats = [(links.repeats[(s.camera_id, mk)] + 1) / self.config.max_fused for s in solved]
             key = links.new_key()
@@ -568,9 +621,13 @@ class Estimator:
             if links.min_gain > 0:
                 index = {id(s): i for i, s in enumerate(solved)}
                 chosen = [index[id(s)] for s, _ in made[1]]
-                gain = self._instant_gain([solved[i] for i in chosen], [keys[i] for i in chosen], [repeats[i] for i in chosen])
+                gain = self._instant_gain(
+                    [solved[i] for i in chosen], [keys[i] for i in chosen], [repeats[i] for i in chosen]
+                )
                 if gain < links.min_gain:
-                    log.debug("marker %d: an instant left out, it would remove %.2f of what the graph does not know", mk, gain)
+                    log.debug(
+                        "marker %d: an instant left out, it would remove %.2f of what the graph does not know", mk, gain
+                    )
                     self.counters.links_refused += 1
                     links.judged(mk, made[0])
                     continue
@@ -593,8 +650,9 @@ class Estimator:
         full = np.block([[joint.at(a, b) for b in keys] for a in keys])
         return instant_gain(np.stack([self._pose(k) for k in keys]), sightings, repeats, full)
 
-    def _keyframes(self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int],
-                   slotted: list) -> set[int]:  # fmt: skip
+    def _keyframes(
+        self, now_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: list[int], slotted: list
+    ) -> set[int]:
         """A move's frames into the graph (``LiveKeyframes``): a finished move's once its camera's
         new segment is in it, a camera still moving those ``lag_s`` old (``min_frames`` at least);
         placed against the current markers, new views against the camera's current and folded
@@ -617,19 +675,38 @@ class Estimator:
                 continue
             world_T_marker = self._mapped(np.unique(np.concatenate([f.ids for f in frames])))
             own = ([camera_symbol(current)] if placed else []) + (
-                [self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else [])
+                [self.history[cid].key] if cid in self.history and self.history[cid].key in self.in_graph else []
+            )
             if static is None:
                 static = self._recent_static_fit(now_ns) if live.config.weigh_by_fit else Fit()
             refused = live.refused
-            owners, entered = live.enter(graph, values, list(frames), world_T_marker, {cid: [self._pose(k) for k in own]},
-                                         self.rotation_floor_rad, self._robust, static)  # fmt: skip
+            owners, entered = live.enter(
+                graph,
+                values,
+                list(frames),
+                world_T_marker,
+                {cid: [self._pose(k) for k in own]},
+                self.rotation_floor_rad,
+                self._robust,
+                static,
+            )
             slotted += owners
             if live.refused > refused:
-                log.info("%s: %d of its move's held frames left out: the static pairs fit %.3g times better than the frames "
-                         "against what each claims (keyframes.max_inflation)", cid, live.refused - refused, live.inflation)  # fmt: skip
+                log.info(
+                    "%s: %d of its move's held frames left out: the static pairs fit %.3g times better than the frames "
+                    "against what each claims (keyframes.max_inflation)",
+                    cid,
+                    live.refused - refused,
+                    live.inflation,
+                )
             else:
-                log.info("%s: %d of its move's %d held frames entered the graph, covariances x %.3g", cid, len(entered), len(frames),
-                         live.inflation)  # fmt: skip
+                log.info(
+                    "%s: %d of its move's %d held frames entered the graph, covariances x %.3g",
+                    cid,
+                    len(entered),
+                    len(frames),
+                    live.inflation,
+                )
             added.update(entered)
         self.counters.keyframes += len(added)
         self.counters.keyframe_inflation, self.counters.keyframes_refused = live.inflation, live.refused
@@ -651,8 +728,11 @@ class Estimator:
         estimate, or ``values`` (``estimator.variance``): their redundancy is their rows less the
         cameras' and markers' they tie."""
         pose = self._pose if values is None else (lambda key: values.atPose3(key).matrix())
-        pairs = [(self.camera_index[cam], mk, p) for (cam, mk), p in self.pairs.items()
-                 if p.slot is not None and p.factor_mean is not None and mk not in self.object_markers]  # fmt: skip
+        pairs = [
+            (self.camera_index[cam], mk, p)
+            for (cam, mk), p in self.pairs.items()
+            if p.slot is not None and p.factor_mean is not None and mk not in self.object_markers
+        ]
         if not pairs:
             return Fit()
         cameras = sorted({c for c, _, _ in pairs})
@@ -709,7 +789,11 @@ class Estimator:
 
     def _mapped_pairs(self, cam: CameraKey) -> list[tuple[int, Pair]]:
         """The segment's pairs with observations whose marker is in the graph."""
-        return [(mk, p) for mk, p in self._segment_pairs.get(cam, {}).items() if p.n > 0 and marker_symbol(mk) in self.in_graph]
+        return [
+            (mk, p)
+            for mk, p in self._segment_pairs.get(cam, {}).items()
+            if p.n > 0 and marker_symbol(mk) in self.in_graph
+        ]
 
     def _resect(self, mapped: list[tuple[int, Pair]]) -> tuple[np.ndarray, np.ndarray]:
         """world_T_camera and its covariance (ROS order) from a segment's pairs with mapped markers."""
@@ -718,11 +802,12 @@ class Estimator:
             if key not in self._cov:
                 self._cov[key] = self._covariance(key)
         return resect(
-            np.stack([self._pose(k) for k in keys]), np.stack([self._cov[k] for k in keys]),
+            np.stack([self._pose(k) for k in keys]),
+            np.stack([self._cov[k] for k in keys]),
             np.stack([p.mean() for _, p in mapped]),
             np.stack([p.factor_covariance(self.config.max_fused, self.rotation_floor_rad) for _, p in mapped]),
             self.config.huber_k,
-        )  # fmt: skip
+        )
 
     def _young_again(self, key: tuple[CameraKey, int], pair: Pair) -> None:
         """Schedule a pair with fewer than YOUNG_PAIR observations (new or restarted) as young."""
@@ -752,7 +837,10 @@ class Estimator:
         # A large cell does not rebuild its share of every pair each update: each rebuilt factor costs
         # iSAM2 a re-elimination, and settled pairs change slowly. Past MAX_MATURE_PER_UPDATE they are
         # looked at less often than refresh_s (64 cameras x 32 markers: every ~4 s).
-        share = min(max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0))), MAX_MATURE_PER_UPDATE)
+        share = min(
+            max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0))),
+            MAX_MATURE_PER_UPDATE,
+        )
         # At most 2 x share looked at per update (a look costs a Mahalanobis test): the rest wait
         # at the front, so looks spread over the updates too. A pair with nothing new since its
         # last refresh counts as looked at.
@@ -761,7 +849,9 @@ class Estimator:
             if now_ns - pair.refreshed_ns < refresh_ns or len(looked) == 2 * share:
                 break
             (looked if pair.dirty else idle).append((key, pair))
-        current = factors_current([p for _, p in looked], self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad)
+        current = factors_current(
+            [p for _, p in looked], self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad
+        )
         mature: list[tuple[tuple[CameraKey, int], Pair]] = []
         for (key, pair), ok in zip(looked, current):
             if ok:
@@ -796,9 +886,10 @@ class Estimator:
         # Only pairs that appeared since everything they touch was placed are looked at (a pass
         # over every pair cost a large cell ~10 ms after each move).
         unplaced = [
-            (cam, mk) for (cam, mk) in self._unplaced
+            (cam, mk)
+            for (cam, mk) in self._unplaced
             if self._camera_key(cam) not in self.in_graph or marker_symbol(mk) not in self.in_graph
-        ]  # fmt: skip
+        ]
         self._unplaced = set(unplaced)  # kept until placed: a camera may reach an anchor only later
         unplaced = [(cam, mk) for cam, mk in unplaced if cam not in held]
         if not unplaced:
@@ -806,7 +897,9 @@ class Estimator:
         # Only what touches an unplaced camera or marker can place it: the rest is not looked up.
         cams_needed = {cam for cam, _ in unplaced}
         means = {k: p.mean() for k, p in self.pairs.items() if k[0] in cams_needed and p.n > 0}
-        placed_cams = {cam: self._pose(self._camera_key(cam)) for cam in cams_needed if self._camera_key(cam) in self.in_graph}
+        placed_cams = {
+            cam: self._pose(self._camera_key(cam)) for cam in cams_needed if self._camera_key(cam) in self.in_graph
+        }
         placed_cams |= {cam: T for cam, T in entering.items() if cam in cams_needed}
         placed_marks = {mk: self._pose(marker_symbol(mk)) for _, mk in means if marker_symbol(mk) in self.in_graph}
         cams, marks = place(self.anchors, means, placed_cams, placed_marks | self._pending_seed_poses(new_values))
@@ -821,7 +914,11 @@ class Estimator:
 
     def _pending_seed_poses(self, new_values: gtsam.Values) -> dict[int, np.ndarray]:
         """Seeded markers entering the graph in this update (their priors are in ``new_values``)."""
-        return {mk: new_values.atPose3(marker_symbol(mk)).matrix() for mk in self.seeded if new_values.exists(marker_symbol(mk))}
+        return {
+            mk: new_values.atPose3(marker_symbol(mk)).matrix()
+            for mk in self.seeded
+            if new_values.exists(marker_symbol(mk))
+        }
 
     def _pose(self, key: int) -> np.ndarray:
         return self.values.atPose3(key).matrix()
@@ -898,8 +995,13 @@ class Estimator:
         placed = place_frame(frame, world, self.rotation_floor_rad)
         if placed is not None:
             return placed.world_T_camera
-        return resect(np.stack(list(world.values())), np.zeros_like(frame.covariances), frame.poses, frame.covariances,
-                      self.config.huber_k)[0]
+        return resect(
+            np.stack(list(world.values())),
+            np.zeros_like(frame.covariances),
+            frame.poses,
+            frame.covariances,
+            self.config.huber_k,
+        )[0]
 
     def _mapped(self, ids: np.ndarray) -> dict[int, np.ndarray]:
         """world_T_marker of those of ``ids`` in the graph."""

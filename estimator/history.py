@@ -41,13 +41,18 @@ def fuse_measurements(a: list[HistoryFactor], b: list[HistoryFactor]) -> list[Hi
     if not a:
         return []
     T_a, T_b = np.array([f.mean for f in a]), np.array([f.mean for f in b])
-    info_a, info_b = np.linalg.inv(np.array([f.covariance for f in a])), np.linalg.inv(np.array([f.covariance for f in b]))
+    info_a, info_b = (
+        np.linalg.inv(np.array([f.covariance for f in a])),
+        np.linalg.inv(np.array([f.covariance for f in b])),
+    )
     cov = np.linalg.inv(info_a + info_b)
     step = np.einsum("sij,sjk,sk->si", cov, info_b, pose_difference(T_a, T_b))
     return [HistoryFactor(T, C) for T, C in zip(pose_retract(T_a, step), cov)]
 
 
-def carried(old: History, factors: dict[int, HistoryFactor], here_T_old: np.ndarray) -> tuple[dict[int, HistoryFactor], list[int]]:
+def carried(
+    old: History, factors: dict[int, HistoryFactor], here_T_old: np.ndarray
+) -> tuple[dict[int, HistoryFactor], list[int]]:
     """A fold's history factors: the ended segment's own (``factors``, by marker id) and the
     previous history's moved onto the segment's pose through ``here_T_old`` (4, 4: the previous
     history's pose in the segment's frame), fused where both saw a marker (the moved or fused

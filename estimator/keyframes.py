@@ -96,7 +96,9 @@ class MovingFrames:
             self.gap_ns *= 2
 
 
-def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotation_floor_rad: float = 0.0) -> Placement | None:
+def place_frame(
+    frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotation_floor_rad: float = 0.0
+) -> Placement | None:
     """A frame's pose from the solved markers it sees, with the markers that agree with it (see
     ``Placement``); None unless two markers agree.
 
@@ -112,7 +114,9 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotat
     if len(rows) < 2:
         return None
     world = np.stack([world_T_marker[int(frame.ids[j])] for j in rows])
-    implied = world[:, None] @ invert_poses(np.stack([frame.poses[rows], frame.alternatives[rows]], axis=1))  # (K, 2, 4, 4)
+    implied = world[:, None] @ invert_poses(
+        np.stack([frame.poses[rows], frame.alternatives[rows]], axis=1)
+    )  # (K, 2, 4, 4)
     agreed = consensus(implied, agree_m=math.inf)
     if agreed is None:
         return None
@@ -131,7 +135,9 @@ def place_frame(frame: MovingFrame, world_T_marker: dict[int, np.ndarray], rotat
     return Placement(T, [rows[i] for i in idx], branches, Fit(float(d2.sum()), 6 * (len(idx) - 1)))
 
 
-def chosen_branches(frame: MovingFrame, rows: list[int], branches: list[int], rotation_floor_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def chosen_branches(
+    frame: MovingFrame, rows: list[int], branches: list[int], rotation_floor_rad: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """camera_T_marker (K, 4, 4) and covariance (K, 6, 6; ROS order, marker frame, the rotation
     floor added) of ``rows`` on their ``branches``: the other branch's covariance turned into its
     frame (the front-end gave it in the chosen pose's)."""
@@ -152,7 +158,8 @@ def consensus(implied: np.ndarray, agree_m: float = AGREE_M) -> tuple[np.ndarray
     # places a frame almost every tick, with K up to 32.
     R = flat[:, :3, :3]
     close = rotations_within(R[:, None], R[None, :], AGREE_RAD) & (
-        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < agree_m)
+        np.linalg.norm(flat[:, None, :3, 3] - flat[None, :, :3, 3], axis=-1) < agree_m
+    )
     votes = close.reshape(len(flat), -1, 2).any(axis=2).sum(axis=1)  # witnesses with a branch near each candidate
     b = int(np.argmax(votes))  # the first of the most agreed
     if votes[b] < 2:
@@ -171,7 +178,9 @@ def _is_new_view(T: np.ndarray, seen: list[np.ndarray], config: KeyframeConfig) 
     if not seen:
         return True
     S = np.stack(seen)
-    same = (rotation_angles(S[:, :3, :3], T[:3, :3]) < np.radians(config.new_view_deg)) & (np.linalg.norm(S[:, :3, 3] - T[:3, 3], axis=1) < config.new_view_m)
+    same = (rotation_angles(S[:, :3, :3], T[:3, :3]) < np.radians(config.new_view_deg)) & (
+        np.linalg.norm(S[:, :3, 3] - T[:3, 3], axis=1) < config.new_view_m
+    )
     return not bool(same.any())
 
 
@@ -184,8 +193,13 @@ class Selected:
     placement: Placement
 
 
-def select_keyframes(frames: list[MovingFrame], world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]],
-                     rotation_floor_rad: float, config: KeyframeConfig) -> list[Selected]:  # fmt: skip
+def select_keyframes(
+    frames: list[MovingFrame],
+    world_T_marker: dict[int, np.ndarray],
+    segment_poses: dict[str, list[np.ndarray]],
+    rotation_floor_rad: float,
+    config: KeyframeConfig,
+) -> list[Selected]:
     """The frames that ``place_frame`` can place and that are new views (not their camera's
     segments' ``segment_poses`` nor the frame kept before), of moves with at least
     ``config.min_frames`` of them, in order."""
@@ -217,8 +231,14 @@ def weighed(static: Fit, frames: Fit, config: KeyframeConfig) -> tuple[float, bo
 
 
 def add_keyframes(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, selected: list[Selected], rotation_floor_rad: float,
-    robust: gtsam.noiseModel.mEstimator.Base, first_index: int = 0, max_markers: int = 0, covariance_scale: float = 1.0,
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    selected: list[Selected],
+    rotation_floor_rad: float,
+    robust: gtsam.noiseModel.mEstimator.Base,
+    first_index: int = 0,
+    max_markers: int = 0,
+    covariance_scale: float = 1.0,
 ) -> list[tuple[int, MovingFrame, int]]:
     """Add each selected frame to ``graph`` and ``values`` (in place): a pose ``k<first_index +
     index>`` and one robust factor per agreeing marker, its single-frame covariance plus the view's
@@ -265,7 +285,9 @@ class LiveKeyframes:
         self.pending: dict[str, deque[MovingFrame]] = {}  # camera -> its newest frames while moving
         self.live: deque[LiveKeyframe] = deque()
         self.next_index = 0  # keys are never reused
-        self._move_entered: dict[str, tuple[int, int, Fit]] = {}  # camera -> (its latest move, frames of it entered, their fit)
+        self._move_entered: dict[
+            str, tuple[int, int, Fit]
+        ] = {}  # camera -> (its latest move, frames of it entered, their fit)
         self.inflation = 1.0  # the covariance factor of the frames weighed last (``estimator.variance.inflation``)
         self.refused = 0  # frames left out for it (``max_inflation``)
 
@@ -281,9 +303,17 @@ class LiveKeyframes:
         if len(frame.ids) >= 2 and self.due(frame.camera_id, frame.stamp_ns):
             self.pending.setdefault(frame.camera_id, deque(maxlen=self.config.max_live)).append(frame)
 
-    def enter(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, frames: list[MovingFrame],
-              world_T_marker: dict[int, np.ndarray], segment_poses: dict[str, list[np.ndarray]], rotation_floor_rad: float,
-              robust: gtsam.noiseModel.mEstimator.Base, static: Fit) -> tuple[list[tuple[int, KeyframeFactor]], list[int]]:
+    def enter(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        frames: list[MovingFrame],
+        world_T_marker: dict[int, np.ndarray],
+        segment_poses: dict[str, list[np.ndarray]],
+        rotation_floor_rad: float,
+        robust: gtsam.noiseModel.mEstimator.Base,
+        static: Fit,
+    ) -> tuple[list[tuple[int, KeyframeFactor]], list[int]]:
         """``add_keyframes`` of one camera's ``frames`` (a finished move's, or the older ones of a
         move still going on), move by move, weighed against the static pairs' fit ``static`` by
         the fit of all the move's frames so far (``weigh_by_fit``); returns (position in
@@ -297,7 +327,9 @@ class LiveKeyframes:
             entered_move, entered, fit = self._move_entered.get(cid, (-1, 0, Fit()))
             if entered_move != move:
                 entered, fit = 0, Fit()
-            config = self.config.model_copy(update={"min_frames": 1}) if entered >= self.config.min_frames else self.config
+            config = (
+                self.config.model_copy(update={"min_frames": 1}) if entered >= self.config.min_frames else self.config
+            )
             selected = select_keyframes(group, world_T_marker, segment_poses, rotation_floor_rad, config)
             first_index, self.next_index = self.next_index, self.next_index + len(group)
             if not selected:
@@ -309,8 +341,16 @@ class LiveKeyframes:
                 self.refused += len(selected)
                 continue
             start = graph.size()
-            added = add_keyframes(graph, values, selected, rotation_floor_rad, robust, first_index=first_index,
-                                  max_markers=self.config.max_markers_online, covariance_scale=self.inflation)  # fmt: skip
+            added = add_keyframes(
+                graph,
+                values,
+                selected,
+                rotation_floor_rad,
+                robust,
+                first_index=first_index,
+                max_markers=self.config.max_markers_online,
+                covariance_scale=self.inflation,
+            )
             self._move_entered[cid] = (move, entered + len(added), fit)
             position = start
             for key, frame, n in added:

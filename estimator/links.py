@@ -20,16 +20,16 @@ graph holds the newest ``max_live`` of those that are a new view.
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import gtsam
 import numpy as np
 
 from estimator.config import LinkConfig
+from estimator.keyframes import consensus
 from estimator.observation import ObservationRows
 from estimator.symbols import object_symbol
-from estimator.keyframes import consensus
 from schemas.geometry import cov_ros_to_gtsam, covariance_in_frame, skew
 
 FREE_ROTATION_RAD = 0.5  # a link's rotation sigma: loose enough to carry no rotation, finite for the solver
@@ -93,7 +93,12 @@ class ObjectLinks:
 
 
 def block_sightings(
-    camera_id: str, stamps: np.ndarray, a: ObservationRows, segments: list[int | None], object_markers: set[int], sink: ObjectLinks,
+    camera_id: str,
+    stamps: np.ndarray,
+    a: ObservationRows,
+    segments: list[int | None],
+    object_markers: set[int],
+    sink: ObjectLinks,
 ) -> None:
     """The object markers seen in a camera's frames (stamps (F,) ns, rows ``a``) that joined a
     static segment (``segments``, per frame; None: none), near one of ``sink``'s instants."""
@@ -102,12 +107,26 @@ def block_sightings(
     for j in rows.tolist():
         seg = segments[int(a.frame[j])]
         if seg is not None:  # copies: a view would keep the whole block's arrays alive
-            sink.add(int(a.ids[j]), Sighting(camera_id, seg, int(stamps[a.frame[j]]), a.poses[j].copy(), a.alternatives[j].copy(), a.covariances[j].copy()))
+            sink.add(
+                int(a.ids[j]),
+                Sighting(
+                    camera_id,
+                    seg,
+                    int(stamps[a.frame[j]]),
+                    a.poses[j].copy(),
+                    a.alternatives[j].copy(),
+                    a.covariances[j].copy(),
+                ),
+            )
 
 
 def add_links(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, links: ObjectLinks, segment_keys: dict[tuple[str, int], int],
-    max_fused: int, robust: gtsam.noiseModel.mEstimator.Base,
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    links: ObjectLinks,
+    segment_keys: dict[tuple[str, int], int],
+    max_fused: int,
+    robust: gtsam.noiseModel.mEstimator.Base,
 ) -> int:
     """Add each linked instant whose sightings' solved segments (``segment_keys``, with values in
     ``values``) agree on the marker's pose to ``graph`` and ``values`` (in place): a pose ``o<i>``
@@ -130,8 +149,14 @@ def add_links(
         solved = [s for s in sightings if (s.camera_id, s.segment) in segment_keys]
         keys = [segment_keys[(s.camera_id, s.segment)] for s in solved]
         key = object_symbol(added)
-        made = instant_factors(key, solved, keys, [values.atPose3(k).matrix() for k in keys],
-                               [count[(s.camera_id, mk)] / max_fused for s in solved], robust)  # fmt: skip
+        made = instant_factors(
+            key,
+            solved,
+            keys,
+            [values.atPose3(k).matrix() for k in keys],
+            [count[(s.camera_id, mk)] / max_fused for s in solved],
+            robust,
+        )
         if made is None:
             continue
         values.insert(key, gtsam.Pose3(made[0]))
@@ -142,7 +167,11 @@ def add_links(
 
 
 def instant_factors(
-    key: int, sightings: list[Sighting], camera_keys: list[int], world_T_cameras: list[np.ndarray], repeats: list[float],
+    key: int,
+    sightings: list[Sighting],
+    camera_keys: list[int],
+    world_T_cameras: list[np.ndarray],
+    repeats: list[float],
     robust: gtsam.noiseModel.mEstimator.Base,
 ) -> tuple[np.ndarray, list[tuple[Sighting, gtsam.BetweenFactorPose3]]] | None:
     """One linked instant: where the sightings (each from the camera pose of the same index, with
@@ -164,11 +193,15 @@ def instant_factors(
         cov[:3, :3] = given[:3, :3] * max(1.0, repeats[i])
         cov[3:, 3:] = np.eye(3) * FREE_ROTATION_RAD**2
         noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(cov)))
-        factors.append((s, gtsam.BetweenFactorPose3(camera_keys[i], key, gtsam.Pose3((s.pose, s.alternative)[k]), noise)))
+        factors.append(
+            (s, gtsam.BetweenFactorPose3(camera_keys[i], key, gtsam.Pose3((s.pose, s.alternative)[k]), noise))
+        )
     return world_T_marker, factors
 
 
-def instant_gain(world_T_cameras: np.ndarray, sightings: list[Sighting], repeats: list[float], joint_covariance: np.ndarray) -> float:
+def instant_gain(
+    world_T_cameras: np.ndarray, sightings: list[Sighting], repeats: list[float], joint_covariance: np.ndarray
+) -> float:
     """The largest share of predicted variance an instant removes: over every two of its sightings,
     1 - trace(posterior) / trace(prior) of the difference between the marker positions their
     cameras imply, the prior from the cameras' joint covariance (6K, 6K; gtsam's tangent order per
@@ -191,7 +224,7 @@ def instant_gain(world_T_cameras: np.ndarray, sightings: list[Sighting], repeats
     for i in range(K):
         for j in range(i + 1, K):
             D = np.zeros((3, 6 * K))
-            D[:, 6 * i:6 * i + 6], D[:, 6 * j:6 * j + 6] = J[i], -J[j]
+            D[:, 6 * i : 6 * i + 6], D[:, 6 * j : 6 * j + 6] = J[i], -J[j]
             prior = D @ joint_covariance @ D.T
             if np.trace(prior) <= 0.0:
                 continue  # the cameras move as one: nothing to learn of their relative position

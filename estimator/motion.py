@@ -132,7 +132,9 @@ def rigid_motion(p: np.ndarray, q: np.ndarray, covs: np.ndarray) -> RigidMotion 
         return None
     if n < len(p):
         x, chi2 = _fit(p[keep], r[keep], W[keep])
-    return RigidMotion(chi2=chi2, shift_m=float(np.linalg.norm(x[3:])), angle_rad=float(np.linalg.norm(x[:3])), inliers=n)
+    return RigidMotion(
+        chi2=chi2, shift_m=float(np.linalg.norm(x[3:])), angle_rad=float(np.linalg.norm(x[:3])), inliers=n
+    )
 
 
 def rigid_move(p: np.ndarray, q: np.ndarray, R: np.ndarray, covs: np.ndarray, bump_position_m: float) -> bool:
@@ -142,13 +144,25 @@ def rigid_move(p: np.ndarray, q: np.ndarray, R: np.ndarray, covs: np.ndarray, bu
     motion = rigid_motion(p, q, R @ covs @ np.swapaxes(R, -1, -2) + 1e-8 * np.eye(3))
     if motion is None or not motion.is_move(bump_position_m, float(np.median(np.linalg.norm(p, axis=1)))):
         return False
-    log.debug("rigid motion %.1f mm %.2f deg (chi2 %.0f, %d markers)", 1e3 * motion.shift_m, math.degrees(motion.angle_rad),
-              motion.chi2, motion.inliers)  # fmt: skip
+    log.debug(
+        "rigid motion %.1f mm %.2f deg (chi2 %.0f, %d markers)",
+        1e3 * motion.shift_m,
+        math.degrees(motion.angle_rad),
+        motion.chi2,
+        motion.inliers,
+    )
     return True
 
 
-def frame_moved(deltas: list[np.ndarray], before: list[np.ndarray], rotations: list[tuple[np.ndarray, np.ndarray]],
-                obs_covs: list[np.ndarray], scales: list[float], margins: list[float], bump_position_m: float) -> tuple[bool, float]:  # fmt: skip
+def frame_moved(
+    deltas: list[np.ndarray],
+    before: list[np.ndarray],
+    rotations: list[tuple[np.ndarray, np.ndarray]],
+    obs_covs: list[np.ndarray],
+    scales: list[float],
+    margins: list[float],
+    bump_position_m: float,
+) -> tuple[bool, float]:
     """One frame's test (``Estimator._camera_is_still``): per marker its shift from where it was
     expected (``deltas``, (3,) m, camera frame; ``before``: the expected positions), the observation's
     and the expectation's rotations, the observation's position covariance (3, 3) in its marker
@@ -179,8 +193,9 @@ def frame_moved(deltas: list[np.ndarray], before: list[np.ndarray], rotations: l
     return moved, float(np.median(shifts))
 
 
-def any_frame_moved(s: ObservationRows, expected: np.ndarray, frames: int, screen: RigidScreen | None,
-                    bump_position_m: float) -> tuple[bool, RigidScreen | None]:  # fmt: skip
+def any_frame_moved(
+    s: ObservationRows, expected: np.ndarray, frames: int, screen: RigidScreen | None, bump_position_m: float
+) -> tuple[bool, RigidScreen | None]:
     """``frame_moved`` for many frames of one camera at once (static rows ``s``, their pairs' means
     ``expected`` (N, 4, 4)): does any frame's median marker shift exceed noise, or the block's last
     frame (a move persists) show a rigid motion of the camera? ``screen``: the rigid screen of the
@@ -196,7 +211,11 @@ def any_frame_moved(s: ObservationRows, expected: np.ndarray, frames: int, scree
     p, R, covs = expected[last, :3, 3], expected[last, :3, :3], s.covariances[last, :3, :3]
     if screen is None or not np.array_equal(screen.ids, s.ids[last]):
         screen = RigidScreen.of(s.ids[last], p, R @ covs @ R.transpose(0, 2, 1) + 1e-8 * np.eye(3))
-    if screen is not None and screen.chi2(D[last]) > RIGID_CHI2 and rigid_move(p, p + D[last], R, covs, bump_position_m):
+    if (
+        screen is not None
+        and screen.chi2(D[last]) > RIGID_CHI2
+        and rigid_move(p, p + D[last], R, covs, bump_position_m)
+    ):
         return True, screen
     # A median above a threshold needs at least half of the frame's values above it: only frames
     # that pass this count can have moved, and only they get an exact median. The shift alone rules

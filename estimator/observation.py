@@ -7,8 +7,8 @@ one is the "other" branch a flip would be is the estimator's decision, made here
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -50,12 +50,18 @@ class ObservationRows:
     ambiguous: np.ndarray
     frame: np.ndarray
 
-    def rows(self, keep: np.ndarray) -> "ObservationRows":
+    def rows(self, keep: np.ndarray) -> ObservationRows:
         """The rows selected by a boolean mask or index array."""
-        return ObservationRows(self.ids[keep], self.poses[keep], self.alternatives[keep], self.covariances[keep],
-                               self.ambiguous[keep], self.frame[keep])  # fmt: skip
+        return ObservationRows(
+            self.ids[keep],
+            self.poses[keep],
+            self.alternatives[keep],
+            self.covariances[keep],
+            self.ambiguous[keep],
+            self.frame[keep],
+        )
 
-    def of_frames(self, frames: np.ndarray) -> "ObservationRows":
+    def of_frames(self, frames: np.ndarray) -> ObservationRows:
         """The rows of the frames ``frames`` (ascending frame indices), renumbered 0, 1, ... in that order."""
         a = self.rows(np.isin(self.frame, frames))
         return dataclasses.replace(a, frame=np.searchsorted(frames, a.frame))
@@ -94,7 +100,9 @@ def validated_rows(msgs: Sequence[m.MarkerObservations], limits: WireLimits = DE
     return _validated(len(msgs), codec.marker_fields(msgs), limits)
 
 
-def validated_fields(camera_id: str, frames: int, fields: MarkerFields, limits: WireLimits = DEFAULT_LIMITS) -> ValidatedFrames:
+def validated_fields(
+    camera_id: str, frames: int, fields: MarkerFields, limits: WireLimits = DEFAULT_LIMITS
+) -> ValidatedFrames:
     """Check a camera's frames together, in numpy, and convert the good ones once: a frame with
     any bad marker is dropped whole (the rest of it is not trusted either). The one validation of
     marker observations on both the live and the offline path."""
@@ -117,13 +125,17 @@ def _validated(frames: int, fields: MarkerFields, limits: WireLimits) -> Validat
     keep_rows = ~np.isin(frame_of, list(why))
     rows = None
     if kept:
-        rows = observation_rows(fields.arrays(keep_rows)).of_frames(np.array(kept))  # frame indices among the kept frames
+        rows = observation_rows(fields.arrays(keep_rows)).of_frames(
+            np.array(kept)
+        )  # frame indices among the kept frames
     return ValidatedFrames(kept, rows, [(i, what, reason) for i, (what, reason) in sorted(why.items())])
 
 
 def observations_of(camera_id: str, stamp_ns: int, a: ObservationRows) -> list[Observation]:
     """Rows of one frame as single observations."""
     return [
-        Observation(camera_id, stamp_ns, int(a.ids[i]), a.poses[i], a.covariances[i], a.alternatives[i], bool(a.ambiguous[i]))
+        Observation(
+            camera_id, stamp_ns, int(a.ids[i]), a.poses[i], a.covariances[i], a.alternatives[i], bool(a.ambiguous[i])
+        )
         for i in range(len(a.ids))
     ]

@@ -93,7 +93,9 @@ class Pair:
         if self.n >= 3 and 2 * self.primary_in_alt > self.n:
             # The covariances were added in the frame of the branch taken: into the other one's
             # (every observation's branches sit within the flip gate of their means).
-            self.cov_sum[:] = covariance_in_frame(self.cov_sum, project_rotation(self.rot_sum), project_rotation(self.alt_rot_sum))
+            self.cov_sum[:] = covariance_in_frame(
+                self.cov_sum, project_rotation(self.rot_sum), project_rotation(self.alt_rot_sum)
+            )
             self.sums[3:12], self.sums[12:21] = self.sums[12:21].copy(), self.sums[3:12].copy()
             self.primary_in_alt = self.n - self.primary_in_alt
             self._cached = None
@@ -211,7 +213,7 @@ class Pair:
             self._take(*first, cov, False)
         return False
 
-    def fold(self, rows: "FoldedRows", j: int) -> None:
+    def fold(self, rows: FoldedRows, j: int) -> None:
         """Add pair ``j``'s share of a batch judged against the means before it (see ``fold_rows``)."""
         k = int(rows.accepted[j])
         self.n += k
@@ -231,7 +233,11 @@ def factors_current(pairs: list[Pair], max_fused: int, sigmas: float, rotation_f
     then stops costing solver updates: its mean's drift shrinks as 1/n. One batched test for all.
     """
     out = np.zeros(len(pairs), bool)
-    full = [i for i, p in enumerate(pairs) if p.factor_mean is not None and p.factor_cov is not None and p.factor_n_eff >= max_fused]
+    full = [
+        i
+        for i, p in enumerate(pairs)
+        if p.factor_mean is not None and p.factor_cov is not None and p.factor_n_eff >= max_fused
+    ]
     if not full:
         return out
     sel = [pairs[i] for i in full]
@@ -273,7 +279,9 @@ def fold_rows(expected: np.ndarray, row_pair: np.ndarray, n_pairs: int, a: Obser
     swap = tr_alt > tr_pose
     chosen = np.where(swap[:, None, None], a.alternatives, a.poses)
     other = np.where(swap[:, None, None], a.poses, a.alternatives)
-    ok = (np.maximum(tr_pose, tr_alt) > TRACE_GATE) & (np.linalg.norm(chosen[:, :3, 3] - expected[:, :3, 3], axis=1) < POSITION_GATE_M)
+    ok = (np.maximum(tr_pose, tr_alt) > TRACE_GATE) & (
+        np.linalg.norm(chosen[:, :3, 3] - expected[:, :3, 3], axis=1) < POSITION_GATE_M
+    )
     covs = a.covariances
     if swap.any():  # given in the frame of the front-end's choice: into the taken branch's
         covs = covs.copy()
@@ -282,6 +290,8 @@ def fold_rows(expected: np.ndarray, row_pair: np.ndarray, n_pairs: int, a: Obser
     member = np.zeros((n_pairs, n))
     member[row_pair, np.arange(n)] = 1.0
     taken = member * ok
-    stats = np.concatenate([chosen[:, :3, 3], chosen[:, :3, :3].reshape(n, 9), other[:, :3, :3].reshape(n, 9), covs.reshape(n, 36)], axis=1)
+    stats = np.concatenate(
+        [chosen[:, :3, 3], chosen[:, :3, :3].reshape(n, 9), other[:, :3, :3].reshape(n, 9), covs.reshape(n, 36)], axis=1
+    )
     accepted = taken.sum(axis=1)
     return FoldedRows(taken @ stats, accepted, taken @ swap, member.sum(axis=1) - accepted)

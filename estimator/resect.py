@@ -38,7 +38,9 @@ def at_camera(camera_T_markers: np.ndarray, covs: np.ndarray) -> np.ndarray:
     return Ad @ np.asarray(covs, np.float64)[np.ix_(range(len(Ad)), ROS_TO_GTSAM, ROS_TO_GTSAM)] @ np.swapaxes(Ad, 1, 2)
 
 
-def implied_d2(world_T_camera: np.ndarray, world_T_markers: np.ndarray, camera_T_markers: np.ndarray, pair_covs: np.ndarray) -> np.ndarray:
+def implied_d2(
+    world_T_camera: np.ndarray, world_T_markers: np.ndarray, camera_T_markers: np.ndarray, pair_covs: np.ndarray
+) -> np.ndarray:
     """Squared Mahalanobis distances (N,) of each marker's implied camera pose M_i Z_i^-1 from
     ``world_T_camera`` (4, 4), under the observation's own covariance (``pair_covs`` (N, 6, 6), ROS
     order, marker frame) taken to the camera as ``resect`` does; the map taken as exact."""
@@ -49,7 +51,11 @@ def implied_d2(world_T_camera: np.ndarray, world_T_markers: np.ndarray, camera_T
 
 
 def resect(
-    world_T_markers: np.ndarray, marker_covs: np.ndarray, camera_T_markers: np.ndarray, pair_covs: np.ndarray, huber_k: float = 1.345
+    world_T_markers: np.ndarray,
+    marker_covs: np.ndarray,
+    camera_T_markers: np.ndarray,
+    pair_covs: np.ndarray,
+    huber_k: float = 1.345,
 ) -> tuple[np.ndarray, np.ndarray]:
     """world_T_camera (4, 4) and its covariance (6, 6; ROS order, camera frame) from N markers.
 

@@ -101,8 +101,12 @@ class ClockJumps:
         self._late[camera_id] = 0
         self._correction_ns[camera_id] = self._correction_ns.get(camera_id, 0) + step
         self.jumps[camera_id] += 1
-        log.warning("the clock of camera %s jumped %+.3f s; its stamps are shifted back onto the timeline it had "
-                    "(check the time sync of its host)", camera_id, step / 1e9)  # fmt: skip
+        log.warning(
+            "the clock of camera %s jumped %+.3f s; its stamps are shifted back onto the timeline it had "
+            "(check the time sync of its host)",
+            camera_id,
+            step / 1e9,
+        )
         return stamp_ns - step
 
 
@@ -128,7 +132,9 @@ class Ros2Out:
         self.tf.put(self.types.tf_message(stamp_ns, frames), stamp_ns)
         for p in cams:
             if p.child not in self.poses:
-                self.poses[p.child] = self.node.publisher(f"/cellsight/{p.child}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")
+                self.poses[p.child] = self.node.publisher(
+                    f"/cellsight/{p.child}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"
+                )
             self.poses[p.child].put(self.types.pose_with_covariance(p.stamp_ns, WORLD, p.T, p.covariance), p.stamp_ns)
         if self.anchors and time.monotonic() - self._last_static >= self.config.static_every_s:
             anchors = [(WORLD, keys.marker_frame(k), T) for k, T in sorted(self.anchors.items())]
@@ -158,7 +164,9 @@ class EstimatorService:
         self.restored = self._restore()
         cell = bus.cell
         # Content is validated once, a camera's frames together, in ``ingest``.
-        self._sub = bus.subscribe(keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192, semantic=False)
+        self._sub = bus.subscribe(
+            keys.all_cameras(cell, "markers"), m.MarkerObservations, capacity=8192, semantic=False
+        )
         self.bad_frames: Counter[str] = Counter()  # camera -> frames dropped as malformed
         self.rejected: Counter[tuple[str, str]] = Counter()  # (key, reason) -> frames dropped here
         self._pub = {
@@ -196,7 +204,9 @@ class EstimatorService:
             save_state(path, markers, self.bus.cell)
         except OSError as exc:  # a full disk must not stop the estimator; the old file stays intact
             if not self.save_failures:
-                log.error("cannot save state to %s: %s (previous state kept; retrying every %.0f s)", path, exc, SAVE_PERIOD_S)
+                log.error(
+                    "cannot save state to %s: %s (previous state kept; retrying every %.0f s)", path, exc, SAVE_PERIOD_S
+                )
             self.save_failures += 1
             return
         if self.save_failures:
@@ -229,8 +239,12 @@ class EstimatorService:
             self.bad_frames[camera_id] += 1
             self.rejected[keys_[i], reason] += 1
             if self.bad_frames[camera_id] == 1:  # once per camera: garbage must not flood the log
-                log.warning("dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
-                            camera_id[:40], msgs[i].stamp_ns, why)  # fmt: skip
+                log.warning(
+                    "dropping malformed marker observations of %r at %d ns: %s (further ones are only counted)",
+                    camera_id[:40],
+                    msgs[i].stamp_ns,
+                    why,
+                )
         if v.rows is None:
             return
         # Only frames that passed reach the clocks: a dropped frame's stamp is as untrusted as the rest
@@ -242,7 +256,9 @@ class EstimatorService:
         owner = np.array([cams[i] for i in v.kept])
         for camera_id in dict.fromkeys(owner.tolist()):
             mine = np.flatnonzero(owner == camera_id)  # positions among the kept frames, in arrival order
-            self.estimator.add_frames(camera_id, np.array([stamps[v.kept[j]] for j in mine], dtype=np.int64), v.rows.of_frames(mine))
+            self.estimator.add_frames(
+                camera_id, np.array([stamps[v.kept[j]] for j in mine], dtype=np.int64), v.rows.of_frames(mine)
+            )
 
     def step(self) -> Estimate:
         """Ingest what arrived, update, publish. One call per update period."""
@@ -270,8 +286,14 @@ class EstimatorService:
         ]
         marks = []
         if with_map:
-            marks = [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.markers.items()]
-            marks += [codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance) for k, p in est.object_markers.items()]
+            marks = [
+                codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance)
+                for k, p in est.markers.items()
+            ]
+            marks += [
+                codec.StampedPose("world", keys.marker_frame(k), stamp_ns, p.T, p.covariance)
+                for k, p in est.object_markers.items()
+            ]
         cams_msg = codec.poses_to_msg(stamp_ns, cams)
         self._pub["tf"].put(codec.transforms_to_msg(stamp_ns, [(p.parent, p.child, p.T) for p in cams + marks]))
         self._pub["cameras"].put(cams_msg)
@@ -288,10 +310,15 @@ class EstimatorService:
     def status_msg(self, est: Estimate, stamp_ns: int) -> m.EstimatorStatus:
         c = self.estimator.counters
         msg = m.EstimatorStatus(
-            stamp_ns=stamp_ns, observations=c.observations, rejected=c.rejected + sum(self._sub.bad.values()) + sum(self.bad_frames.values()),
-            unknown_markers=c.unknown_markers, update_ms=c.last_update_ms, factors=self.estimator.factor_count(),
-            factors_rebuilt=c.factors_rebuilt, update_cpu_ms=c.last_update_cpu_ms,
-        )  # fmt: skip
+            stamp_ns=stamp_ns,
+            observations=c.observations,
+            rejected=c.rejected + sum(self._sub.bad.values()) + sum(self.bad_frames.values()),
+            unknown_markers=c.unknown_markers,
+            update_ms=c.last_update_ms,
+            factors=self.estimator.factor_count(),
+            factors_rebuilt=c.factors_rebuilt,
+            update_cpu_ms=c.last_update_cpu_ms,
+        )
         msg.flagged_anchors.extend(est.flagged_anchors)
         for (key, reason), count in sorted((self._sub.rejected + self.rejected).items()):
             msg.rejections.add(key=key, reason=reason, count=count)
@@ -300,9 +327,13 @@ class EstimatorService:
             if cam.pose is not None and cam.pose.covariance is not None:
                 sigma = float(np.sqrt(np.linalg.eigvalsh(cam.pose.covariance[:3, :3]).max()))
             msg.cameras.add(
-                camera_id=cam.camera_id, state=_STATE[cam.state], segment=cam.segment,
-                last_stamp_ns=cam.last_stamp_ns, markers_seen=cam.markers_seen, position_sigma_m=sigma,
-            )  # fmt: skip
+                camera_id=cam.camera_id,
+                state=_STATE[cam.state],
+                segment=cam.segment,
+                last_stamp_ns=cam.last_stamp_ns,
+                markers_seen=cam.markers_seen,
+                position_sigma_m=sigma,
+            )
         return msg
 
     def _answer_map(self, query: zenoh.Query) -> None:

@@ -32,7 +32,9 @@ def save_state(path: Path, markers: dict[int, SavedMarker], cell: str) -> None:
         "version": VERSION,
         "cell": cell,
         "saved_unix_s": time.time(),
-        "markers": {str(k): {"T": v.T.tolist(), "covariance": v.covariance.tolist()} for k, v in sorted(markers.items())},
+        "markers": {
+            str(k): {"T": v.T.tolist(), "covariance": v.covariance.tolist()} for k, v in sorted(markers.items())
+        },
     }
     text = json.dumps(body, sort_keys=True)
     payload = json.dumps({"sha256": hashlib.sha256(text.encode()).hexdigest(), "body": body}, sort_keys=True)
@@ -60,7 +62,9 @@ def load_state(path: Path, cell: str) -> dict[int, SavedMarker]:
     if hashlib.sha256(text.encode()).hexdigest() != outer.get("sha256"):
         raise StateFileError(f"{path}: checksum mismatch (truncated or edited)")
     if body.get("version") != VERSION or body.get("cell") != cell:
-        raise StateFileError(f"{path}: state of cell {body.get('cell')!r} version {body.get('version')}, expected cell {cell!r} version {VERSION}")
+        raise StateFileError(
+            f"{path}: state of cell {body.get('cell')!r} version {body.get('version')}, expected cell {cell!r} version {VERSION}"
+        )
     out = {}
     for k, v in body["markers"].items():
         T, cov = np.array(v["T"], float), np.array(v["covariance"], float)

@@ -62,7 +62,9 @@ def pose_fit(measured: np.ndarray, predicted: np.ndarray, covariances: np.ndarra
     (N, 6, 6; ROS order, in the measured pose's frame), tying ``variables`` 6-dof poses between them."""
     if not len(measured):
         return Fit()
-    d2 = mahalanobis_sq(pose_difference(np.asarray(measured, np.float64), np.asarray(predicted, np.float64)), covariances)
+    d2 = mahalanobis_sq(
+        pose_difference(np.asarray(measured, np.float64), np.asarray(predicted, np.float64)), covariances
+    )
     return Fit(float(d2.sum()), 6 * (len(measured) - variables))
 
 

@@ -5,7 +5,7 @@ import sys
 from schemas import codec, keys, messages
 from schemas.bus import Bus, TransportConfig
 
-endpoint, cell = (sys.argv[1:3] + ["tcp/127.0.0.1:7447", "demo"][len(sys.argv[1:3]):])[:2]
+endpoint, cell = (sys.argv[1:3] + ["tcp/127.0.0.1:7447", "demo"][len(sys.argv[1:3]) :])[:2]
 with Bus(TransportConfig(connect=[endpoint]), cell) as bus:
     sub = bus.subscribe(keys.objects(cell), messages.ObjectDetections)
     while True:

@@ -16,8 +16,8 @@ import numpy as np
 import open3d as o3d
 
 from recognition.cloud import PointIndex
-from recognition.vfh import ROLL_BINS
 from recognition.verify import project
+from recognition.vfh import ROLL_BINS
 from schemas.geometry import rotation_between, rpy_matrix
 
 
@@ -132,8 +132,9 @@ class ImageBounds:
             return (z > 0) & (u >= 0) & (u < self.size[1]) & (v >= 0) & (v < self.size[0])
 
 
-def facing_camera(model_points: np.ndarray, model_normals: np.ndarray, camera_T_objects: np.ndarray,
-                  image: ImageBounds | None = None) -> np.ndarray:  # fmt: skip
+def facing_camera(
+    model_points: np.ndarray, model_normals: np.ndarray, camera_T_objects: np.ndarray, image: ImageBounds | None = None
+) -> np.ndarray:
     """Mask (S, N) of the model points (N, 3), object frame, whose normal faces the camera at each
     pose (S, 4, 4): a cheap visibility cull; with the image, only those landing inside it (an object
     cut by the frame's border is not missing what lies beyond it)."""
@@ -158,7 +159,7 @@ class Surface:
     cloud: o3d.geometry.PointCloud
 
     @classmethod
-    def of(cls, points: np.ndarray, normals: np.ndarray) -> "Surface":
+    def of(cls, points: np.ndarray, normals: np.ndarray) -> Surface:
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         cloud = _cloud(points)
@@ -188,7 +189,9 @@ def icp_pass(
         return failed
     est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     crit = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
-    reg = o3d.pipelines.registration.registration_icp(_cloud(source_points), surface.cloud, distance_m, start, est, crit)
+    reg = o3d.pipelines.registration.registration_icp(
+        _cloud(source_points), surface.cloud, distance_m, start, est, crit
+    )
     pose = np.asarray(reg.transformation)
     if not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
         return failed
@@ -263,10 +266,17 @@ def icp_passes(
         active &= ~(live & (np.abs(before[0] - fitness) < 1e-6) & (np.abs(before[1] - rmse) < 1e-6))
     out = []
     for s, (start, pose) in enumerate(zip(starts, poses)):
-        if counts[s] < 3 or starved[s] or not np.all(np.isfinite(pose)) or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m:
+        if (
+            counts[s] < 3
+            or starved[s]
+            or not np.all(np.isfinite(pose))
+            or np.linalg.norm(pose[:3, 3] - start[:3, 3]) > max_shift_m
+        ):
             out.append(IcpResult(start, 0.0, float("inf")))
         else:
-            out.append(IcpResult(pose, float(fitness[s]), float(np.sqrt(sq_sum[s] / pairs[s])) if pairs[s] else float("inf")))
+            out.append(
+                IcpResult(pose, float(fitness[s]), float(np.sqrt(sq_sum[s] / pairs[s])) if pairs[s] else float("inf"))
+            )
     return out
 
 

@@ -65,7 +65,9 @@ def camera_rays(
     return np.hstack([origin, dirs]).astype(np.float32)
 
 
-def image_window(K: np.ndarray, width: int, height: int, camera_T_points: np.ndarray, margin_px: int = 2) -> tuple[int, int, int, int]:
+def image_window(
+    K: np.ndarray, width: int, height: int, camera_T_points: np.ndarray, margin_px: int = 2
+) -> tuple[int, int, int, int]:
     """The pixels (u0, v0, u1, v1; end exclusive) that can see any of the points (N, 3) in the
     camera frame, and so anything inside their convex hull (a bounding box's 8 corners): their
     projections' box grown by ``margin_px``. The whole image when a point is not in front."""
@@ -74,8 +76,14 @@ def image_window(K: np.ndarray, width: int, height: int, camera_T_points: np.nda
         return 0, 0, width, height
     u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]
     v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
-    u0, u1 = int(np.clip(np.floor(u.min()) - margin_px, 0, width)), int(np.clip(np.ceil(u.max()) + margin_px + 1, 0, width))
-    v0, v1 = int(np.clip(np.floor(v.min()) - margin_px, 0, height)), int(np.clip(np.ceil(v.max()) + margin_px + 1, 0, height))
+    u0, u1 = (
+        int(np.clip(np.floor(u.min()) - margin_px, 0, width)),
+        int(np.clip(np.ceil(u.max()) + margin_px + 1, 0, width)),
+    )
+    v0, v1 = (
+        int(np.clip(np.floor(v.min()) - margin_px, 0, height)),
+        int(np.clip(np.ceil(v.max()) + margin_px + 1, 0, height)),
+    )
     return u0, v0, max(u1, u0), max(v1, v0)
 
 
@@ -168,7 +176,9 @@ def _pcd_size(path: Path) -> tuple[int, int]:
     normals = {"normal_x", "normal_y", "normal_z"} & set(fields)
     if normals and len(normals) != 3:  # Open3D crashes on a partial set
         raise bad(f"fields {fields} hold only {sorted(normals)} of normal_x, normal_y, normal_z")
-    if not all(size in ("1", "2", "4", "8") for size in lines["SIZE"]) or not all(t in ("F", "I", "U") for t in lines["TYPE"]):
+    if not all(size in ("1", "2", "4", "8") for size in lines["SIZE"]) or not all(
+        t in ("F", "I", "U") for t in lines["TYPE"]
+    ):
         raise bad(f"SIZE {lines['SIZE']} / TYPE {lines['TYPE']} are not 1/2/4/8 bytes of F, I or U")
     counts = [*lines["COUNT"], *lines["WIDTH"], *lines["HEIGHT"], *lines["POINTS"]]
     if len(counts) != len(fields) + 3 or not all(c.isdigit() for c in counts):
@@ -186,7 +196,9 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return voxel_downsample_coloured(points, None, voxel_m)[0]
 
 
-def voxel_downsample_coloured(points: np.ndarray, colours: np.ndarray | None, voxel_m: float) -> tuple[np.ndarray, np.ndarray | None]:
+def voxel_downsample_coloured(
+    points: np.ndarray, colours: np.ndarray | None, voxel_m: float
+) -> tuple[np.ndarray, np.ndarray | None]:
     """``voxel_downsample``, and the mean colour of each voxel's points (colours (N, 3) rgb 0-1 ->
     (M, 3) float32; None stays None)."""
     if voxel_m <= 0:
@@ -195,7 +207,9 @@ def voxel_downsample_coloured(points: np.ndarray, colours: np.ndarray | None, vo
     if colours is not None:
         pcd.colors = o3d.utility.Vector3dVector(np.asarray(colours, dtype=np.float64))
     down = pcd.voxel_down_sample(voxel_m)
-    return np.asarray(down.points, dtype=np.float32), np.asarray(down.colors, dtype=np.float32) if colours is not None else None
+    return np.asarray(down.points, dtype=np.float32), np.asarray(
+        down.colors, dtype=np.float32
+    ) if colours is not None else None
 
 
 @dataclass(frozen=True)
@@ -211,7 +225,7 @@ class Neighbours:
     sq_dist_m2: np.ndarray
     splits: np.ndarray
 
-    def within(self, radius_m: float) -> "Neighbours":
+    def within(self, radius_m: float) -> Neighbours:
         """The same neighbourhoods cut down to radius_m (at most this one's radius)."""
         if radius_m > self.radius_m:
             raise CloudError(f"neighbours were searched within {self.radius_m} m, not {radius_m} m")

@@ -11,16 +11,16 @@ the zenoh side and calls these.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 import open3d as o3d
 
 from recognition.align import Surface, facing_camera, icp_pass
 from recognition.cloud import finite_points, voxel_downsample
-from recognition.models import ModelDatabase
 from recognition.hypotheses import Detection
+from recognition.models import ModelDatabase
 from recognition.verify import DepthView, Verdict
 from schemas import geometry
 
@@ -37,8 +37,19 @@ NORMAL_NEIGHBOURS = 30
 #: about the up, as an object on a table takes, is free) slid off: the fused pose stands.
 REFINE_MAX_SHIFT_M, REFINE_MAX_TILT_DEG = 0.02, 3.0
 #: Colours of the cameras' points in the fused cloud (RGBA), in camera-id order.
-CLOUD_COLOURS = np.array([[31, 119, 180, 255], [255, 127, 14, 255], [44, 160, 44, 255], [214, 39, 40, 255],
-                          [148, 103, 189, 255], [140, 86, 75, 255], [227, 119, 194, 255], [188, 189, 34, 255]], np.uint8)
+CLOUD_COLOURS = np.array(
+    [
+        [31, 119, 180, 255],
+        [255, 127, 14, 255],
+        [44, 160, 44, 255],
+        [214, 39, 40, 255],
+        [148, 103, 189, 255],
+        [140, 86, 75, 255],
+        [227, 119, 194, 255],
+        [188, 189, 34, 255],
+    ],
+    np.uint8,
+)
 
 
 @dataclass(frozen=True)
@@ -83,12 +94,22 @@ def fuse(detections: list[WorldDetection]) -> list[FusedObject]:
     out = []
     for oid, group in sorted(by_object.items()):
         best = max(group, key=lambda d: d.score)
-        agree = [d for d in group if np.linalg.norm(d.world_T_object[:3, 3] - best.world_T_object[:3, 3]) <= SAME_OBJECT_M]
+        agree = [
+            d for d in group if np.linalg.norm(d.world_T_object[:3, 3] - best.world_T_object[:3, 3]) <= SAME_OBJECT_M
+        ]
         w = np.array([d.score for d in agree])
         T = best.world_T_object.copy()
         T[:3, 3] = np.average([d.world_T_object[:3, 3] for d in agree], axis=0, weights=w)
-        out.append(FusedObject(oid, max(d.stamp_ns for d in agree), T, sorted(d.camera_id for d in agree),
-                               best.detection.fitness, best.detection.rmse_m))
+        out.append(
+            FusedObject(
+                oid,
+                max(d.stamp_ns for d in agree),
+                T,
+                sorted(d.camera_id for d in agree),
+                best.detection.fitness,
+                best.detection.rmse_m,
+            )
+        )
     return out
 
 
@@ -117,8 +138,9 @@ class Contradiction:
 Judge = Callable[[DepthView, str, np.ndarray], Verdict | None]
 
 
-def cross_checked(detections: list[WorldDetection], views: list[CameraView], judge: Judge,
-                  max_age_ns: int) -> tuple[list[FusedObject], list[Contradiction]]:  # fmt: skip
+def cross_checked(
+    detections: list[WorldDetection], views: list[CameraView], judge: Judge, max_age_ns: int
+) -> tuple[list[FusedObject], list[Contradiction]]:
     """The fused objects (``fuse``) that no other camera's frame contradicts, and those held back.
 
     A fused object is judged by the view of every camera not among those that agree on it, taken
@@ -155,8 +177,14 @@ class CameraPoints:
     world_T_camera: np.ndarray
 
 
-def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], models: ModelDatabase, distance_m: float,
-                     normal_radius_m: float, min_fitness: float) -> list[FusedObject]:  # fmt: skip
+def refined_in_cloud(
+    objects: list[FusedObject],
+    cameras: list[CameraPoints],
+    models: ModelDatabase,
+    distance_m: float,
+    normal_radius_m: float,
+    min_fitness: float,
+) -> list[FusedObject]:
     """Each fused object fitted (point-to-plane ICP at distance_m, m) to every camera's points around
     it, in world frame: what one camera sees of it, the others complete, so the pose is held on all
     its sides at once instead of averaged from views that each see one or two, and on the support
@@ -180,16 +208,27 @@ def refined_in_cloud(objects: list[FusedObject], cameras: list[CameraPoints], mo
             continue
         facing = np.zeros(len(model.points), bool)
         for c in cameras:
-            facing |= facing_camera(model.points, model.normals, geometry.invert_pose(c.world_T_camera) @ o.world_T_object)[0]
+            facing |= facing_camera(
+                model.points, model.normals, geometry.invert_pose(c.world_T_camera) @ o.world_T_object
+            )[0]
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(near.astype(np.float64)))
         target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=NORMAL_NEIGHBOURS))
-        fit = icp_pass(model.points[facing], Surface.of(near, np.asarray(target.normals)), o.world_T_object, distance_m,
-                       max_shift_m=REFINE_MAX_SHIFT_M)
+        fit = icp_pass(
+            model.points[facing],
+            Surface.of(near, np.asarray(target.normals)),
+            o.world_T_object,
+            distance_m,
+            max_shift_m=REFINE_MAX_SHIFT_M,
+        )
         # world up in the object's frame, before and after
         tilt = np.degrees(geometry.angle_between(o.world_T_object[2, :3], fit.camera_T_object[2, :3]))
         if fit.fitness < min_fitness or tilt > REFINE_MAX_TILT_DEG:
-            log.debug("%s: kept its fused pose, the fit in the cameras' points scored %.2f and tilted it %.1f deg",
-                      o.object_id, fit.fitness, tilt)  # fmt: skip
+            log.debug(
+                "%s: kept its fused pose, the fit in the cameras' points scored %.2f and tilted it %.1f deg",
+                o.object_id,
+                fit.fitness,
+                tilt,
+            )
             out.append(o)
             continue
         out.append(replace(o, world_T_object=fit.camera_T_object))
@@ -212,7 +251,9 @@ def points_in_frame(cameras: list[CameraPoints], world_T_camera: np.ndarray) -> 
 Recognise = Callable[[np.ndarray, np.ndarray, DepthView], list[Detection]]
 
 
-def found_in_cloud(missing: set[str], judge: CameraView, cameras: list[CameraPoints], recognise: Recognise) -> list[WorldDetection]:
+def found_in_cloud(
+    missing: set[str], judge: CameraView, cameras: list[CameraPoints], recognise: Recognise
+) -> list[WorldDetection]:
     """Objects no camera found (``missing``) recognised in every camera's points together, put in
     the frame of ``judge``'s camera and verified against its frame: what one camera sees of an
     object only partly, another completes. Detections of that camera (the caller cross-checks them
@@ -220,8 +261,13 @@ def found_in_cloud(missing: set[str], judge: CameraView, cameras: list[CameraPoi
     if not missing:
         return []
     found = recognise(points_in_frame(cameras, judge.world_T_camera), judge.world_T_camera, judge.view)
-    return [WorldDetection(judge.camera_id, judge.stamp_ns, judge.world_T_camera @ d.camera_T_object, d, judge.world_T_camera)
-            for d in found if d.object_id in missing]  # fmt: skip
+    return [
+        WorldDetection(
+            judge.camera_id, judge.stamp_ns, judge.world_T_camera @ d.camera_T_object, d, judge.world_T_camera
+        )
+        for d in found
+        if d.object_id in missing
+    ]
 
 
 def fused_cloud(clouds: dict[str, np.ndarray], world_T_camera: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -18,8 +18,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recognition.align import (
-    RAN_OFF, ImageBounds, IcpResult, Surface, align_to_z, damped_icp, facing_camera, icp_passes, refine_icp,
-    roll_correlations, roll_peaks, rot_z, views_to_scene,
+    RAN_OFF,
+    IcpResult,
+    ImageBounds,
+    Surface,
+    align_to_z,
+    damped_icp,
+    facing_camera,
+    icp_passes,
+    refine_icp,
+    roll_correlations,
+    roll_peaks,
+    rot_z,
+    views_to_scene,
 )
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
@@ -66,7 +77,9 @@ SMALL_PART = 0.5
 #: The sides an object may lie on besides its base (``Stance.rest``): turns of its frame that
 #: bring each side's outward normal (+-x, +-y) to -z. Not its top: a box or a can upside down fits
 #: a standing one as well, and its frame would be reported upside down.
-RESTS = tuple(rotation_between(np.array(side, float), [0.0, 0.0, -1.0]) for side in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)))
+RESTS = tuple(
+    rotation_between(np.array(side, float), [0.0, 0.0, -1.0]) for side in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))
+)
 #: Two sides are alike when the object lain on one, turned about the vertical by some multiple of
 #: YAW_STEP_DEG, is the object lain on the other: 99 % of its points within this many voxels of it
 #: (the same surface sampled twice: up to 0.5; a box's long side against its short one: 3; a block
@@ -125,7 +138,9 @@ class SceneCloud:
     points: np.ndarray
     normals: np.ndarray
     graph: PointGraph
-    planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # the dominant planes removed (P, 4), ``remove_planes``
+    planes: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 4))
+    )  # the dominant planes removed (P, 4), ``remove_planes``
     image: ImageBounds | None = None  # the image an organised cloud was measured in
     #: Each point's rg-chromaticity (N, 2), NaN: none; None: the frame has no colour (``Matcher._palette_mask``).
     chroma: np.ndarray | None = None
@@ -153,7 +168,7 @@ class Target:
     seeds: dict[str, list[np.ndarray]] = field(default_factory=dict, compare=False)
 
     @classmethod
-    def of(cls, scene: SceneCloud, idx: np.ndarray) -> "Target":
+    def of(cls, scene: SceneCloud, idx: np.ndarray) -> Target:
         chroma = None if scene.chroma is None else scene.chroma[idx]
         return cls(scene.points[idx], Surface.of(scene.points[idx], scene.normals[idx]), scene.image, chroma)
 
@@ -192,10 +207,15 @@ class Matcher:
         #: Each whole model's point index, built once: which scene points a pose explains is asked
         #: of every accepted hypothesis, here and in the resolution.
         self.indexes = {oid: PointIndex(mdl.points) for oid, mdl in database.models.items()}
-        self._rests = {oid: distinct_rests(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)
-                       for oid, mdl in database.models.items()}  # fmt: skip
-        self._palettes = {oid: palette(mdl.chroma_range, config.colour_tolerance, config.colour_min_saturation)
-                          for oid, mdl in database.models.items() if mdl.colours is not None}  # fmt: skip
+        self._rests = {
+            oid: distinct_rests(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)
+            for oid, mdl in database.models.items()
+        }
+        self._palettes = {
+            oid: palette(mdl.chroma_range, config.colour_tolerance, config.colour_min_saturation)
+            for oid, mdl in database.models.items()
+            if mdl.colours is not None
+        }
 
     def tries(self, object_id: str, stance: Stance) -> bool:
         """Whether the object is tried in this stance: lying, only on the first of sides alike."""
@@ -206,7 +226,12 @@ class Matcher:
         return explained_by(self.indexes[object_id], camera_T_object, points, self.config.icp_distance_m)
 
     def candidates(
-        self, scene: SceneCloud, clusters: list[np.ndarray], first_fragment: int, stance: Stance, parts: Iterator[int],
+        self,
+        scene: SceneCloud,
+        clusters: list[np.ndarray],
+        first_fragment: int,
+        stance: Stance,
+        parts: Iterator[int],
     ) -> list[Candidate]:
         """Every candidate for the clusters (indices into the scene's points; from ``first_fragment``
         on, fragments: the pieces path only), with objects standing as ``stance`` says; parts numbered
@@ -261,17 +286,26 @@ class Matcher:
         for oid, (rows, rolls) in chosen.items():
             if not self.tries(oid, stance) or (stance.lying and not self._shows_colour(target, oid)):
                 continue
-            camera_T_view = views_to_scene(desc.centroid, self._views.centroid[rows], self._view_to_z[rows],
-                                           np.array(rolls))
-            match = self.score(self.db.models[oid], target, camera_T_view @ self._views.view_T_object[rows], stance.up,
-                                turns=True, rest=stance.rest)
+            camera_T_view = views_to_scene(
+                desc.centroid, self._views.centroid[rows], self._view_to_z[rows], np.array(rolls)
+            )
+            match = self.score(
+                self.db.models[oid],
+                target,
+                camera_T_view @ self._views.view_T_object[rows],
+                stance.up,
+                turns=True,
+                rest=stance.rest,
+            )
             if match is not None:
                 matches.append(match)
         # Those only damped steps reached last: the first match is what the cluster's rest is matched
         # without, and a fit on weaker evidence is not to decide that over one Open3D's steps found.
         return sorted(matches, key=lambda m: (not m[0].needs_colour, rank(m[0])), reverse=True)
 
-    def _looks(self, scene: SceneCloud, idx: np.ndarray) -> tuple[ClusterDescription, dict[str, tuple[list[int], list[float]]], Target]:
+    def _looks(
+        self, scene: SceneCloud, idx: np.ndarray
+    ) -> tuple[ClusterDescription, dict[str, tuple[list[int], list[float]]], Target]:
         """A part's (``idx`` into the scene's points) descriptor, every object's nearest views with
         their roll candidates (view rows, rolls in rad), and its target; computed once a frame."""
         key = idx.tobytes()
@@ -345,8 +379,15 @@ class Matcher:
             poses, facings, shares = poses[keep], facings[keep], shares[keep]
         else:
             shares = None
-        passes = icp_passes(sparse_points, facings, target.surface, poses, 2.0 * c.icp_distance_m, SCREEN_ITERATIONS,
-                            max_shift_m=model.diameter_m)
+        passes = icp_passes(
+            sparse_points,
+            facings,
+            target.surface,
+            poses,
+            2.0 * c.icp_distance_m,
+            SCREEN_ITERATIONS,
+            max_shift_m=model.diameter_m,
+        )
         # Not upright after the pass: a symmetric shape's mirror image.
         screened = [res for res in passes if res.fitness > 0 and _upright(res.camera_T_object @ from_rest, up)]
         shared_fitness = c.min_fitness_shared if fitness_to_verify is None else fitness_to_verify
@@ -364,15 +405,28 @@ class Matcher:
         if not ran_off:
             return None
         k = max(ran_off, key=lambda k: shares[k])
-        damped = damped_icp(sparse_points[facings[k]], target.surface, poses[k], 2.0 * c.icp_distance_m,
-                            SCREEN_ITERATIONS, max_shift_m=model.diameter_m)
+        damped = damped_icp(
+            sparse_points[facings[k]],
+            target.surface,
+            poses[k],
+            2.0 * c.icp_distance_m,
+            SCREEN_ITERATIONS,
+            max_shift_m=model.diameter_m,
+        )
         if damped.fitness <= 0 or not _upright(damped.camera_T_object @ from_rest, up):
             return None
         return self._fine_fit(model, target, [damped], up, from_rest, shared_fitness, from_prior, needs_colour=True)
 
     def _fine_fit(
-        self, model: ObjectModel, target: Target, screened: list[IcpResult], up: np.ndarray | None,
-        from_rest: np.ndarray, shared_fitness: float, from_prior: bool, needs_colour: bool = False,
+        self,
+        model: ObjectModel,
+        target: Target,
+        screened: list[IcpResult],
+        up: np.ndarray | None,
+        from_rest: np.ndarray,
+        shared_fitness: float,
+        from_prior: bool,
+        needs_colour: bool = False,
     ) -> tuple[Detection, np.ndarray] | None:
         """The best few screened poses refined with the whole model (``refine_icp``): the best result,
         with the mask of the target points it explains, if it passes ``score``'s acceptance tests
@@ -389,8 +443,16 @@ class Matcher:
             if any(_same_pose(coarse.camera_T_object, done) for done in refined):
                 continue  # two starts that screened into one pose refine into one pose
             refined.append(coarse.camera_T_object)
-            res = refine_icp(dense_points, dense_normals, target.surface, coarse.camera_T_object, c.icp_distance_m,
-                             c.icp_iterations, max_shift_m=model.diameter_m, image=target.image)
+            res = refine_icp(
+                dense_points,
+                dense_normals,
+                target.surface,
+                coarse.camera_T_object,
+                c.icp_distance_m,
+                c.icp_iterations,
+                max_shift_m=model.diameter_m,
+                image=target.image,
+            )
             if not _upright(res.camera_T_object @ from_rest, up):
                 continue
             if best is None or (res.fitness, -res.rmse_m) > (best.fitness, -best.rmse_m):
@@ -402,15 +464,31 @@ class Matcher:
         whole = best.fitness >= c.min_fitness and coverage >= c.min_coverage
         shared = best.fitness >= shared_fitness and explained.sum() >= c.cluster_min_points
         ok = (whole or shared) and best.rmse_m <= c.max_rmse_m
-        log.debug("%s: fitness %.2f coverage %.2f rmse %.4f -> %s", model.object_id, best.fitness, coverage,
-                  best.rmse_m, "accepted" if ok else "rejected")
+        log.debug(
+            "%s: fitness %.2f coverage %.2f rmse %.4f -> %s",
+            model.object_id,
+            best.fitness,
+            coverage,
+            best.rmse_m,
+            "accepted" if ok else "rejected",
+        )
         if not ok:
             return None
-        det = Detection(model.object_id, best.camera_T_object, best.fitness, coverage, best.rmse_m,
-                        int(explained.sum()), from_prior, needs_colour)
+        det = Detection(
+            model.object_id,
+            best.camera_T_object,
+            best.fitness,
+            coverage,
+            best.rmse_m,
+            int(explained.sum()),
+            from_prior,
+            needs_colour,
+        )
         return det, explained
 
-    def fragments(self, merged: list[np.ndarray], parts: list[np.ndarray], shed: list[np.ndarray], n_points: int) -> list[np.ndarray]:
+    def fragments(
+        self, merged: list[np.ndarray], parts: list[np.ndarray], shed: list[np.ndarray], n_points: int
+    ) -> list[np.ndarray]:
         """Where a small object half hidden among larger ones may be, when their cluster (one of
         ``merged``) was split: its visible surface falls apart at the finer tolerance, into crumbs
         the split shed (``shed``) and parts too small to be any whole object. Per shed set, those
@@ -480,7 +558,9 @@ class Matcher:
                 mask = np.zeros(len(target.points), dtype=bool)
             else:
                 with np.errstate(invalid="ignore"):
-                    vivid = np.all(np.isfinite(chroma), axis=1) & np.any(np.abs(chroma - 1 / 3) > self.config.colour_tolerance, axis=1)
+                    vivid = np.all(np.isfinite(chroma), axis=1) & np.any(
+                        np.abs(chroma - 1 / 3) > self.config.colour_tolerance, axis=1
+                    )
                 cell = np.clip((np.nan_to_num(chroma) * PALETTE_CELLS).astype(np.int64), 0, PALETTE_CELLS - 1)
                 mask = vivid & table[cell[:, 0], cell[:, 1]]
             target.palette_masks[object_id] = mask
@@ -496,8 +576,13 @@ class Matcher:
             mine = idx[self._palette_mask(target, object_id)]
             seeds = []
             if len(mine) >= c.cluster_min_points:
-                groups = euclidean_clusters(scene.points[mine], c.cluster_tolerance_m, c.cluster_min_points, len(mine),
-                                            scene.graph.subgraph(mine, c.cluster_tolerance_m))
+                groups = euclidean_clusters(
+                    scene.points[mine],
+                    c.cluster_tolerance_m,
+                    c.cluster_min_points,
+                    len(mine),
+                    scene.graph.subgraph(mine, c.cluster_tolerance_m),
+                )
                 seeds = [scene.points[mine[g]].mean(axis=0) for g in groups[:COLOUR_SEEDS]]
             target.seeds[object_id] = seeds
         return target.seeds[object_id]
@@ -505,7 +590,9 @@ class Matcher:
     def _overlap(self, points: np.ndarray, facing: np.ndarray, poses: np.ndarray, target: PointIndex) -> np.ndarray:
         """Per start pose (S, 4, 4): the share (S,) of its facing model points (N, 3; ``facing`` (S, N))
         within the coarse ICP's distance of the target's points."""
-        placed = (points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3])[facing]  # only facing ones count
+        placed = (points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3])[
+            facing
+        ]  # only facing ones count
         hits = np.bincount(np.nonzero(facing)[0], target.within(placed, 2.0 * self.config.icp_distance_m), len(poses))
         return hits / np.maximum(facing.sum(axis=1), 1)
 
@@ -547,8 +634,11 @@ def distinct_rests(points: np.ndarray, tolerance_m: float) -> list[np.ndarray]:
     index = [PointIndex(p) for p in lain]
     kept: list[int] = []
     for j, p in enumerate(lain):
-        alike = any(np.sqrt(np.percentile(index[k].nearest(p @ Y.T.astype(np.float32))[1], 99)) <= tolerance_m
-                    for k in kept for Y in yaws)  # fmt: skip
+        alike = any(
+            np.sqrt(np.percentile(index[k].nearest(p @ Y.T.astype(np.float32))[1], 99)) <= tolerance_m
+            for k in kept
+            for Y in yaws
+        )
         if not alike:
             kept.append(j)
     return [RESTS[k] for k in kept]
@@ -602,7 +692,9 @@ def _upright(camera_T_object: np.ndarray, up: np.ndarray | None) -> bool:
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two poses (4, 4) are within SAME_POSE_M and SAME_POSE_RAD of each other."""
-    return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and rotation_angle(a[:3, :3], b[:3, :3]) <= SAME_POSE_RAD)
+    return bool(
+        np.linalg.norm(a[:3, 3] - b[:3, 3]) <= SAME_POSE_M and rotation_angle(a[:3, :3], b[:3, :3]) <= SAME_POSE_RAD
+    )
 
 
 def turned_about_z(camera_T_object: np.ndarray, centre: np.ndarray) -> np.ndarray:

@@ -29,7 +29,14 @@ import numpy as np
 import open3d as o3d
 from pydantic import ValidationError
 
-from recognition.cloud import camera_rays, depth_to_cloud, estimate_normals, finite_points, image_window, voxel_downsample_coloured
+from recognition.cloud import (
+    camera_rays,
+    depth_to_cloud,
+    estimate_normals,
+    finite_points,
+    image_window,
+    voxel_downsample_coloured,
+)
 from recognition.config import DescriptorConfig
 from recognition.descriptor import describe, prepare
 from recognition.errors import ModelError
@@ -37,8 +44,7 @@ from recognition.texture import texture_colours
 from recognition.verify import chroma_ranges
 from recognition.vfh import ROLL_BINS, SIZE
 from schemas.codec import CameraInfo
-from schemas.geometry import invert_pose, make_pose
-from schemas.geometry import look_at_matrix
+from schemas.geometry import invert_pose, look_at_matrix, make_pose
 
 log = logging.getLogger(__name__)
 FORMAT = 1
@@ -119,10 +125,14 @@ class ModelDatabase:
         """Every object's views stacked into one ``Views`` (V rows), and each row's object id."""
         owners = [oid for oid, mdl in self.models.items() for _ in range(len(mdl.views))]
         if not owners:
-            empty = Views(np.zeros((0, SIZE), np.float32), np.zeros((0, ROLL_BINS)), np.zeros((0, 3)), np.zeros((0, 4, 4)))
+            empty = Views(
+                np.zeros((0, SIZE), np.float32), np.zeros((0, ROLL_BINS)), np.zeros((0, 3)), np.zeros((0, 4, 4))
+            )
             return empty, []
-        fields = [np.concatenate([getattr(mdl.views, f) for mdl in self.models.values()])
-                  for f in ("vfh", "roll", "centroid", "view_T_object")]
+        fields = [
+            np.concatenate([getattr(mdl.views, f) for mdl in self.models.values()])
+            for f in ("vfh", "roll", "centroid", "view_T_object")
+        ]
         return Views(*fields), owners
 
     def save(self, directory: str | Path) -> Path:
@@ -145,7 +155,7 @@ class ModelDatabase:
         return d
 
     @classmethod
-    def load(cls, directory: str | Path) -> "ModelDatabase":
+    def load(cls, directory: str | Path) -> ModelDatabase:
         d = Path(directory)
         index_file = d / "database.json"
         if not index_file.is_file():
@@ -178,8 +188,14 @@ def _load_model(od: Path, oid: str) -> ObjectModel:
             raise ModelError(f"{od / 'views.npz'}: {name} should be finite with shape {shape}")
     meta = json.loads((od / "model.json").read_text()) if (od / "model.json").is_file() else {}
     colours = np.asarray(pcd.colors, np.float32) if pcd.has_colors() else None
-    return ObjectModel(oid, np.asarray(pcd.points, np.float32), np.asarray(pcd.normals, np.float32), views,
-                       str(meta.get("source", "")), colours)
+    return ObjectModel(
+        oid,
+        np.asarray(pcd.points, np.float32),
+        np.asarray(pcd.normals, np.float32),
+        views,
+        str(meta.get("source", "")),
+        colours,
+    )
 
 
 def sphere_viewpoints(subdivisions: int = 1) -> np.ndarray:
@@ -227,10 +243,17 @@ def check_size(object_id: str, points: np.ndarray) -> None:
     size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
     if lo <= size <= hi:
         return
-    hint = next((f": in {unit}? scale it by {factor:g}" for unit, factor in (("millimetres", 1e-3), ("centimetres", 1e-2))
-                 if lo <= size * factor <= hi), "")  # fmt: skip
-    raise ModelError(f"object {object_id!r} is {size:.4g} across, and models are in metres (an object here is "
-                     f"{lo:g}-{hi:g} m){hint}")  # fmt: skip
+    hint = next(
+        (
+            f": in {unit}? scale it by {factor:g}"
+            for unit, factor in (("millimetres", 1e-3), ("centimetres", 1e-2))
+            if lo <= size * factor <= hi
+        ),
+        "",
+    )
+    raise ModelError(
+        f"object {object_id!r} is {size:.4g} across, and models are in metres (an object here is {lo:g}-{hi:g} m){hint}"
+    )
 
 
 def model_from_mesh(
@@ -264,7 +287,9 @@ def model_from_mesh(
             object_T_view = _object_T_view(centre, direction, distance_m)
             view_T_object = invert_pose(object_T_view)
             # Only the pixels where the object's box projects (a few % of the image) can see it.
-            u0, v0, u1, v1 = image_window(camera.K, camera.width, camera.height, corners @ view_T_object[:3, :3].T + view_T_object[:3, 3])
+            u0, v0, u1, v1 = image_window(
+                camera.K, camera.width, camera.height, corners @ view_T_object[:3, :3].T + view_T_object[:3, 3]
+            )
             if u1 <= u0 or v1 <= v0:
                 yield np.zeros((0, 3), np.float32), view_T_object
                 continue
@@ -272,7 +297,10 @@ def model_from_mesh(
             t_hit = scene.cast_rays(rays)["t_hit"].numpy().reshape(v1 - v0, u1 - u0)
             K = camera.K.copy()
             K[:2, 2] -= (u0, v0)  # the window's own principal point
-            yield finite_points(depth_to_cloud(np.where(np.isfinite(t_hit), t_hit, 0.0), K, depth_scale=1.0)), view_T_object
+            yield (
+                finite_points(depth_to_cloud(np.where(np.isfinite(t_hit), t_hit, 0.0), K, depth_scale=1.0)),
+                view_T_object,
+            )
 
     views = describe_views(rendered(), params, progress)
     area = mesh.get_surface_area()
@@ -282,7 +310,9 @@ def model_from_mesh(
     normals = np.asarray(sample.normals)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     colours = np.asarray(sample.colors, np.float32) if mesh.has_vertex_colors() else None
-    return ObjectModel(object_id, np.asarray(sample.points, np.float32), normals.astype(np.float32), views, "mesh", colours)
+    return ObjectModel(
+        object_id, np.asarray(sample.points, np.float32), normals.astype(np.float32), views, "mesh", colours
+    )
 
 
 def model_from_cloud(
@@ -322,7 +352,9 @@ def model_from_cloud(
         yield from _hidden_point_views(pts, pts_normals, centre, distance_m, subdivisions)
 
     views = describe_views(seen(), params, progress)
-    return ObjectModel(object_id, model_pts, model_normals, views, "cloud", None if model_colours is None else model_colours[ok])
+    return ObjectModel(
+        object_id, model_pts, model_normals, views, "cloud", None if model_colours is None else model_colours[ok]
+    )
 
 
 def model_from_points(
@@ -348,8 +380,11 @@ def model_from_points(
     inward, _ = estimate_normals(model_pts, params.normal_radius_m, centre)  # faced to the centroid ...
     ok = np.all(np.isfinite(inward), axis=1)
     pts_inward, _ = estimate_normals(pts, params.normal_radius_m, centre)
-    views = describe_views((view for d in distances_m for view in _hidden_point_views(pts, -pts_inward, centre, d, subdivisions)),
-                           params, progress)  # fmt: skip
+    views = describe_views(
+        (view for d in distances_m for view in _hidden_point_views(pts, -pts_inward, centre, d, subdivisions)),
+        params,
+        progress,
+    )
     kept_colours = None if model_colours is None else model_colours[ok]
     return ObjectModel(object_id, model_pts[ok], -inward[ok], views, "points", kept_colours)  # ... and turned outward
 
@@ -424,4 +459,3 @@ def _mesh_arrays(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             colours = None
         colours = np.zeros((0, 3)) if colours is None else colours
     return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy(), colours
-

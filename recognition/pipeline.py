@@ -87,8 +87,9 @@ class Recognizer:
         """Finite points within range (and the workspace, when the camera pose is known), downsampled,
         off the dominant planes, with normals."""
         c, d = self.config, self.config.descriptor
-        empty = SceneCloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                           PointGraph.empty(c.cluster_tolerance_m))
+        empty = SceneCloud(
+            np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), PointGraph.empty(c.cluster_tolerance_m)
+        )
         pts = self.workspace_points(cloud, world_T_camera)
         if len(pts) == 0:
             return empty
@@ -98,9 +99,15 @@ class Recognizer:
         # A workspace box has already cut the room away: only its table is left to remove (a search
         # for walls there costs ~8 ms a frame and finds none).
         cropped = world_T_camera is not None and c.workspace_min is not None
-        off_planes, planes = remove_planes(pts, c.plane_distance_m, min(c.max_planes, 1) if cropped else c.max_planes,
-                                           c.min_plane_fraction, c.plane_noise_per_m2, c.plane_seed,
-                                           STRUCTURE_OBJECTS * self._largest)
+        off_planes, planes = remove_planes(
+            pts,
+            c.plane_distance_m,
+            min(c.max_planes, 1) if cropped else c.max_planes,
+            c.min_plane_fraction,
+            c.plane_noise_per_m2,
+            c.plane_seed,
+            STRUCTURE_OBJECTS * self._largest,
+        )
         pts = pts[off_planes]
         if len(pts) == 0:
             return empty
@@ -110,12 +117,20 @@ class Recognizer:
         graph = PointGraph.from_neighbours(neighbours).subgraph(ok, c.cluster_tolerance_m)
         grid = np.asarray(cloud)
         # Only which pixels a model point lands on is asked of it: a sparse fit is ample.
-        image = ImageBounds(fit_intrinsics(grid, 16), grid.shape[:2]) if grid.ndim == 3 and min(grid.shape[:2]) > 1 else None
+        image = (
+            ImageBounds(fit_intrinsics(grid, 16), grid.shape[:2])
+            if grid.ndim == 3 and min(grid.shape[:2]) > 1
+            else None
+        )
         return SceneCloud(pts[ok], normals[ok], graph, planes, image)
 
     def recognize(
-        self, cloud: np.ndarray, priors: Sequence[Prior] = (), world_T_camera: np.ndarray | None = None,
-        view: DepthView | None = None, rgb: np.ndarray | None = None,
+        self,
+        cloud: np.ndarray,
+        priors: Sequence[Prior] = (),
+        world_T_camera: np.ndarray | None = None,
+        view: DepthView | None = None,
+        rgb: np.ndarray | None = None,
     ) -> list[Detection]:
         """Detections in one cloud ((H, W, 3) organised or (N, 3), camera frame, metres), at most one
         per object and one per cluster.
@@ -136,10 +151,18 @@ class Recognizer:
             u, v, ok = project(scene.points, view.K, view.z.shape)
             scene.chroma = np.where(ok[:, None], view.chroma[v, u], np.nan)
         stances = self._stances(scene.planes, world_T_camera, coloured)
-        merged = euclidean_clusters(scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points,
-                                    scene.graph)
-        clusters, shed = split_oversized(scene.points, merged, SPLIT_ABOVE * self._largest, c.cluster_tolerance_m,
-                                         MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m, c.cluster_min_points, scene.graph)
+        merged = euclidean_clusters(
+            scene.points, c.cluster_tolerance_m, c.cluster_min_points, c.cluster_max_points, scene.graph
+        )
+        clusters, shed = split_oversized(
+            scene.points,
+            merged,
+            SPLIT_ABOVE * self._largest,
+            c.cluster_tolerance_m,
+            MIN_TOLERANCE_VOXELS * c.descriptor.voxel_m,
+            c.cluster_min_points,
+            scene.graph,
+        )
         first_fragment = len(clusters)  # clusters from here on are fragments: the pieces path only
         if any(s.resting for s in stances):
             clusters += self.matcher.fragments(merged, clusters, shed, len(scene.points))
@@ -204,8 +227,15 @@ class Recognizer:
         camera measured surfaces behind where the object would be: under ``min_cross_view_fitness``
         of the ``CROSS_VIEW_PIXELS`` or more it could judge), else None."""
         model, c = self.db.models[object_id], self.config
-        v = verdict(view, model.points, model.normals, camera_T_object, c.icp_distance_m, c.plane_noise_per_m2,
-                    spacing_m=c.descriptor.voxel_m)
+        v = verdict(
+            view,
+            model.points,
+            model.normals,
+            camera_T_object,
+            c.icp_distance_m,
+            c.plane_noise_per_m2,
+            spacing_m=c.descriptor.voxel_m,
+        )
         judged = v.inliers + v.violations
         return v if judged >= CROSS_VIEW_PIXELS and v.fitness < c.min_cross_view_fitness else None
 

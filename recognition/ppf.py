@@ -110,7 +110,7 @@ def match(model: PpfModel, points: np.ndarray, normals: np.ndarray, ref_every: i
     refs = np.arange(0, len(s), ref_every)
     if len(refs) == 0 or len(model.points) < 2:
         return []
-    chunks = [_vote(model, s, sn, refs[i:i + REFS_AT_ONCE]) for i in range(0, len(refs), REFS_AT_ONCE)]
+    chunks = [_vote(model, s, sn, refs[i : i + REFS_AT_ONCE]) for i in range(0, len(refs), REFS_AT_ONCE)]
     poses, votes = np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks])
     return _cluster(poses, votes, 0.1 * model.diameter_m, np.radians(2 * 360 / ANGLE_BINS))[:top]
 
@@ -150,7 +150,9 @@ def _cluster(poses: np.ndarray, votes: np.ndarray, dist_m: float, angle_rad: flo
     total: list[float] = []
     for k in np.argsort(-votes, kind="stable"):
         H = poses[heads]  # (h, 4, 4), compared all at once
-        near = (np.linalg.norm(H[:, :3, 3] - poses[k, :3, 3], axis=1) <= dist_m) & (rotation_angles(H[:, :3, :3], poses[k, :3, :3]) <= angle_rad)
+        near = (np.linalg.norm(H[:, :3, 3] - poses[k, :3, 3], axis=1) <= dist_m) & (
+            rotation_angles(H[:, :3, :3], poses[k, :3, :3]) <= angle_rad
+        )
         if near.any():
             total[int(np.argmax(near))] += votes[k]  # the first head it is near, as heads were made
         else:

@@ -24,8 +24,7 @@ from recognition.cloud import PointIndex, depth_to_cloud, estimate_normals, voxe
 from recognition.config import BoardConfig, DescriptorConfig
 from recognition.errors import ModelError
 from recognition.models import MIN_VIEW_POINTS, ObjectModel, describe_views
-from schemas import codec, keys
-from schemas import geometry
+from schemas import codec, geometry, keys
 from schemas import messages as m
 from schemas.log import ReadReport, read_log
 
@@ -69,7 +68,9 @@ def _inside(pts: np.ndarray, camera_T_object: np.ndarray, board: BoardConfig) ->
     object_T_camera = geometry.invert_pose(camera_T_object)
     board_T_object = board.board_T_object.matrix()
     with np.errstate(invalid="ignore"):
-        in_board = (pts @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]) @ board_T_object[:3, :3].T + board_T_object[:3, 3]
+        in_board = (pts @ object_T_camera[:3, :3].T + object_T_camera[:3, 3]) @ board_T_object[
+            :3, :3
+        ].T + board_T_object[:3, 3]
         return np.all((in_board >= board.object_min) & (in_board <= board.object_max), axis=1)
 
 
@@ -109,7 +110,9 @@ def model_from_views(
     ok = np.all(np.isfinite(normals), axis=1)
     # Faced to the centre by estimate_normals; a captured object is seen from outside: flip them.
     described = describe_views(((v.points, v.camera_T_object) for v in views), params, progress)
-    model = ObjectModel(object_id, pts[ok], -normals[ok], described, "recording", None if colours is None else colours[ok])
+    model = ObjectModel(
+        object_id, pts[ok], -normals[ok], described, "recording", None if colours is None else colours[ok]
+    )
     log.info("%s: model from %d recorded views, %d points", object_id, len(model.views), len(model.points))
     return model
 
@@ -120,7 +123,9 @@ def _colours_at(points: np.ndarray, coloured: list[tuple[np.ndarray, np.ndarray]
     black (too dark to judge) where none of them saw within a voxel. None without such views."""
     if not coloured:
         return None
-    seen, rgb = voxel_downsample_coloured(np.concatenate([p for p, _ in coloured]), np.concatenate([c for _, c in coloured]) / 255.0, voxel_m)
+    seen, rgb = voxel_downsample_coloured(
+        np.concatenate([p for p, _ in coloured]), np.concatenate([c for _, c in coloured]) / 255.0, voxel_m
+    )
     nearest, sq_dist = PointIndex(seen).nearest(points)
     return np.where((sq_dist <= voxel_m**2)[:, None], rgb[nearest], 0.0).astype(np.float32)
 
@@ -155,7 +160,13 @@ def read_board_views(log_path: Path, board: BoardConfig, report: ReadReport | No
             pts = depth_to_cloud(codec.image_from_msg(depth), info.K, depth_scale=0.001).reshape(-1, 3)
             inside = _inside(pts, camera_T_object, board)
             rgb = _rgb(colours.get(topic.camera), lm.msg.stamp_ns, (info.height, info.width))
-            yield BoardView(topic.camera, lm.msg.stamp_ns, pts[inside], camera_T_object, None if rgb is None else rgb.reshape(-1, 3)[inside])
+            yield BoardView(
+                topic.camera,
+                lm.msg.stamp_ns,
+                pts[inside],
+                camera_T_object,
+                None if rgb is None else rgb.reshape(-1, 3)[inside],
+            )
 
 
 def _rgb(msg: m.RawImage | None, stamp_ns: int, shape: tuple[int, int]) -> np.ndarray | None:
@@ -167,7 +178,11 @@ def _rgb(msg: m.RawImage | None, stamp_ns: int, shape: tuple[int, int]) -> np.nd
 
 
 def model_from_recording(
-    object_id: str, log_path: Path, board: BoardConfig, params: DescriptorConfig, progress: Callable[[], None] | None = None
+    object_id: str,
+    log_path: Path,
+    board: BoardConfig,
+    params: DescriptorConfig,
+    progress: Callable[[], None] | None = None,
 ) -> ObjectModel:
     """``read_board_views`` -> ``select_views`` -> ``model_from_views``."""
     report = ReadReport()

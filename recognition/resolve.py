@@ -30,11 +30,28 @@ from recognition.align import projective_icp
 from recognition.cloud import PointIndex
 from recognition.config import RecognitionConfig
 from recognition.hypotheses import (
-    ALIKE_VOXELS, UPRIGHT_COS, Candidate, Detection, SceneCloud, Stance, explained_by, rank, round_about_z, stand_up, turned_about_z,
+    ALIKE_VOXELS,
+    UPRIGHT_COS,
+    Candidate,
+    Detection,
+    SceneCloud,
+    Stance,
+    explained_by,
+    rank,
+    round_about_z,
+    stand_up,
+    turned_about_z,
 )
 from recognition.models import ModelDatabase
 from recognition.verify import (
-    MIN_COLOUR_PIXELS, DepthView, Explained, Verdict, cluster_labels, hidden_apart, inliers_and_violations, verdict,
+    MIN_COLOUR_PIXELS,
+    DepthView,
+    Explained,
+    Verdict,
+    cluster_labels,
+    hidden_apart,
+    inliers_and_violations,
+    verdict,
 )
 from schemas.geometry import invert_pose
 
@@ -80,28 +97,43 @@ class Evidence:
     labels: np.ndarray
     pixels: Explained = field(default_factory=Explained)
     vouched: set[str] = field(default_factory=set)  # objects taken whose colour vouches for them (``COLOUR_VOUCHES``)
-    turned: set[tuple[str, int]] = field(default_factory=set)  # (object, part) judged turned about up (``Resolver._turned``)
+    turned: set[tuple[str, int]] = field(
+        default_factory=set
+    )  # (object, part) judged turned about up (``Resolver._turned``)
 
 
 class Resolver:
     """The joint resolution of candidates for a model database's objects."""
 
-    def __init__(self, database: ModelDatabase, config: RecognitionConfig, indexes: dict[str, PointIndex],
-                 dense: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:  # fmt: skip
+    def __init__(
+        self,
+        database: ModelDatabase,
+        config: RecognitionConfig,
+        indexes: dict[str, PointIndex],
+        dense: dict[str, tuple[np.ndarray, np.ndarray]],
+    ) -> None:
         self.db = database
         self.config = config
         self._indexes = indexes  # each model's point index (``Matcher.indexes``)
         self._dense = dense  # each model's points and normals the fine ICP fits (``Matcher.dense``)
         # Objects standing on their base that turning about their upright axis changes (``_turned``).
-        self._turnable = {oid for oid, mdl in database.models.items()
-                          if mdl.stands_on_z and not round_about_z(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)}
+        self._turnable = {
+            oid
+            for oid, mdl in database.models.items()
+            if mdl.stands_on_z and not round_about_z(mdl.points, ALIKE_VOXELS * config.descriptor.voxel_m)
+        }
 
-    def resolve(self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud,
-                clusters: Sequence[np.ndarray]) -> list[Detection]:
+    def resolve(
+        self, candidates: Sequence[Candidate], view: DepthView | None, scene: SceneCloud, clusters: Sequence[np.ndarray]
+    ) -> list[Detection]:
         """The detections the frame holds, by object id: of ``candidates`` fitted in ``scene`` (its
         ``clusters`` as indices into its points), those verified against ``view`` (None: not verified)."""
         support = next((cand.stance.support for cand in candidates if cand.stance.support is not None), None)
-        evidence = None if view is None else Evidence(view, scene.planes, support, cluster_labels(view, scene.points, clusters))
+        evidence = (
+            None
+            if view is None
+            else Evidence(view, scene.planes, support, cluster_labels(view, scene.points, clusters))
+        )
         found = self._take(candidates, evidence)
         # Two rules judge a match by the rest of its cluster's shape; an object its colour vouches
         # for is past them: in clutter that rest is what stands beside it or on it.
@@ -156,8 +188,9 @@ class Resolver:
                 found[cand.detection.object_id] = cand
             if len(found) == before:
                 for cand in waiting:
-                    log.debug("%s rejected: it floats above the support with nothing found under it",
-                              cand.detection.object_id)
+                    log.debug(
+                        "%s rejected: it floats above the support with nothing found under it", cand.detection.object_id
+                    )
                 break
             pending = waiting
         return found
@@ -192,9 +225,13 @@ class Resolver:
         if not self.db.models[det.object_id].stands_on_z:
             return None
         at = self._centre_at(det)
-        twins = [cand for cand in resting if cand.detection.object_id == det.object_id
-                 and rank(cand.detection)[0] >= TWIN_SHARE * rank(det)[0]
-                 and np.linalg.norm(self._centre_at(cand.detection) - at) <= TWIN_M]  # fmt: skip
+        twins = [
+            cand
+            for cand in resting
+            if cand.detection.object_id == det.object_id
+            and rank(cand.detection)[0] >= TWIN_SHARE * rank(det)[0]
+            and np.linalg.norm(self._centre_at(cand.detection) - at) <= TWIN_M
+        ]
         return max(twins, key=lambda cand: rank(cand.detection), default=None)
 
     def _centre_at(self, det: Detection) -> np.ndarray:
@@ -207,8 +244,9 @@ class Resolver:
         turned upright first, ``_upright_twin``), else None; its pixels are not yet explained."""
         if (upright := self._upright_twin(cand, up)) is not None:
             if (v := self._verified(upright.detection, cand.stance, evidence)) is not None:
-                log.debug("%s found upside down: reported upright, which the frame holds as well",
-                          cand.detection.object_id)
+                log.debug(
+                    "%s found upside down: reported upright, which the frame holds as well", cand.detection.object_id
+                )
                 return upright, v
         v = self._verdict(cand.detection, evidence)
         if self._accepts(cand.detection, cand.stance, v, evidence):
@@ -230,9 +268,14 @@ class Resolver:
         (``_refitted``), a search on the measure verification judges: only for a colour a grey
         surface would disagree with, and taken with its colour agreeing there."""
         det, stance = cand.detection, cand.stance
-        if (stance.lying or det.object_id not in self._turnable or v.violations == 0
-                or v.colour_distinct < MIN_COLOUR_PIXELS or not REFIT_FITNESS <= v.fitness < self.config.min_visible_fitness
-                or (det.object_id, cand.part) in evidence.turned):  # fmt: skip
+        if (
+            stance.lying
+            or det.object_id not in self._turnable
+            or v.violations == 0
+            or v.colour_distinct < MIN_COLOUR_PIXELS
+            or not REFIT_FITNESS <= v.fitness < self.config.min_visible_fitness
+            or (det.object_id, cand.part) in evidence.turned
+        ):
             return None
         evidence.turned.add((det.object_id, cand.part))
         (points, normals), c, view = self._dense[det.object_id], self.config, evidence.view
@@ -240,8 +283,12 @@ class Resolver:
         for T in turned_about_z(det.camera_T_object, self.db.models[det.object_id].centre):
             # The fit to the cluster that put the part there moved the rest off too: each turn is
             # fitted to the frame's depth first (None: it lost the surface).
-            if (T := projective_icp(points, normals, view.z, view.K, T, c.icp_distance_m, c.plane_noise_per_m2)) is not None:
-                inliers, violations = inliers_and_violations(view, points, normals, T, c.icp_distance_m, c.plane_noise_per_m2)
+            if (
+                T := projective_icp(points, normals, view.z, view.K, T, c.icp_distance_m, c.plane_noise_per_m2)
+            ) is not None:
+                inliers, violations = inliers_and_violations(
+                    view, points, normals, T, c.icp_distance_m, c.plane_noise_per_m2
+                )
                 fits.append((inliers / max(inliers + violations, 1), inliers, T))
         if not fits:
             return None
@@ -250,8 +297,12 @@ class Resolver:
         best_v = self._verdict(turned.detection, evidence)
         if not self._accepts(turned.detection, stance, best_v, evidence):
             return None
-        log.debug("%s accepted turned about its upright axis: it was seen through on %d pixels, turned on %d",
-                  det.object_id, v.violations, best_v.violations)  # fmt: skip
+        log.debug(
+            "%s accepted turned about its upright axis: it was seen through on %d pixels, turned on %d",
+            det.object_id,
+            v.violations,
+            best_v.violations,
+        )
         return turned, best_v
 
     def _refitted(self, cand: Candidate, v: Verdict, evidence: Evidence) -> Candidate | None:
@@ -270,13 +321,26 @@ class Resolver:
         if self._placed(v, self._support(v, evidence)):
             return None  # rejected for another reason (its pixels another object's)
         model = self.db.models[det.object_id]
-        T = projective_icp(model.points, model.normals, evidence.view.z, evidence.view.K, det.camera_T_object,
-                           c.icp_distance_m, c.plane_noise_per_m2)  # fmt: skip
+        T = projective_icp(
+            model.points,
+            model.normals,
+            evidence.view.z,
+            evidence.view.K,
+            det.camera_T_object,
+            c.icp_distance_m,
+            c.plane_noise_per_m2,
+        )
         return None if T is None else replace(cand, detection=replace(det, camera_T_object=T, needs_colour=True))
 
-    def _contest(self, judged: tuple[Candidate, Verdict], pending: Sequence[Candidate], found: dict[str, Candidate],
-                 below: list[Detection], up: np.ndarray | None,
-                 evidence: Evidence) -> tuple[Candidate, Verdict] | None:  # fmt: skip
+    def _contest(
+        self,
+        judged: tuple[Candidate, Verdict],
+        pending: Sequence[Candidate],
+        found: dict[str, Candidate],
+        below: list[Detection],
+        up: np.ndarray | None,
+        evidence: Evidence,
+    ) -> tuple[Candidate, Verdict] | None:
         """Of ``judged`` and its rivals (each other object's best-ranked candidate on the same part
         that verification accepts, competing for the same pixels: ``Explained.competing``), the one
         explaining at least RIVAL_SHARE times as many of the scene's pixels as each other; None if
@@ -299,12 +363,21 @@ class Resolver:
         best, second = sorted(contenders, key=lambda c: len(c[1].pixels), reverse=True)[:2]
         if len(best[1].pixels) >= RIVAL_SHARE * len(second[1].pixels):
             if best is not judged:
-                log.debug("%s taken for %s: it explains %d pixels of the part, against %d", best[0].detection.object_id,
-                          cand.detection.object_id, len(best[1].pixels), len(judged[1].pixels))  # fmt: skip
+                log.debug(
+                    "%s taken for %s: it explains %d pixels of the part, against %d",
+                    best[0].detection.object_id,
+                    cand.detection.object_id,
+                    len(best[1].pixels),
+                    len(judged[1].pixels),
+                )
             return best
-        log.debug("%s and %s fit the same pixels about as well (%d and %d): neither is reported",
-                  best[0].detection.object_id, second[0].detection.object_id, len(best[1].pixels),
-                  len(second[1].pixels))  # fmt: skip
+        log.debug(
+            "%s and %s fit the same pixels about as well (%d and %d): neither is reported",
+            best[0].detection.object_id,
+            second[0].detection.object_id,
+            len(best[1].pixels),
+            len(second[1].pixels),
+        )
         return None
 
     def _verified(self, det: Detection, stance: Stance, evidence: Evidence) -> Verdict | None:
@@ -319,9 +392,14 @@ class Resolver:
         # disagree is it one: a white carton's colour agrees with a pale cabinet.
         if (det.needs_colour or stance.lying) and not self._coloured(v, c.min_colour_agreement):
             why = "lying on a side" if stance.lying else "only damped steps or a refit to the depth reached it"
-            log.debug("%s rejected: %s, and its colour where grey would differ is not the model's or not judged "
-                      "(%d of %d pixels agree)", det.object_id, why, v.colour_distinct_agreeing,
-                      v.colour_distinct)  # fmt: skip
+            log.debug(
+                "%s rejected: %s, and its colour where grey would differ is not the model's or not judged "
+                "(%d of %d pixels agree)",
+                det.object_id,
+                why,
+                v.colour_distinct_agreeing,
+                v.colour_distinct,
+            )
             return False
         seen = self._support(v, evidence)
         if not (self._placed(v, seen) and self._plausible(v) and pixels.admits(v)):
@@ -355,9 +433,15 @@ class Resolver:
         is (``_placed``): the side it shows facing the camera, its outline, not
         inside a support, its colour and its surface's shape."""
         c = self.config
-        return (v.facing_share >= c.min_facing_share and v.clutter <= c.max_clutter
-                and v.outline_seen >= c.min_outline_seen and v.flush <= c.max_flush and v.penetration <= c.max_penetration
-                and v.colour_agreement >= c.min_colour_agreement and v.shape_error <= c.max_shape_error)  # fmt: skip
+        return (
+            v.facing_share >= c.min_facing_share
+            and v.clutter <= c.max_clutter
+            and v.outline_seen >= c.min_outline_seen
+            and v.flush <= c.max_flush
+            and v.penetration <= c.max_penetration
+            and v.colour_agreement >= c.min_colour_agreement
+            and v.shape_error <= c.max_shape_error
+        )
 
     def _alone(self, cand: Candidate, found: Iterable[Candidate]) -> bool:
         """Whether a candidate explains under min_coverage of its cluster with no other object found there."""
@@ -366,11 +450,16 @@ class Resolver:
             return False
         if any(other.cluster == k for other in found if other.detection.object_id != det.object_id):
             return False
-        log.debug("%s rejected: it explains %.0f %% of its cluster and nothing else was found in the rest",
-                  det.object_id, 100 * det.coverage)  # fmt: skip
+        log.debug(
+            "%s rejected: it explains %.0f %% of its cluster and nothing else was found in the rest",
+            det.object_id,
+            100 * det.coverage,
+        )
         return True
 
-    def _topped(self, cand: Candidate, found: Iterable[Candidate], points: np.ndarray, clusters: Sequence[np.ndarray]) -> bool:
+    def _topped(
+        self, cand: Candidate, found: Iterable[Candidate], points: np.ndarray, clusters: Sequence[np.ndarray]
+    ) -> bool:
         """Whether an upright candidate has more than TOPPED_SHARE of its points' worth of its
         cluster's unexplained points (``points`` (N, 3), the scene's) standing on its top."""
         det, k, stance = cand.detection, cand.cluster, cand.stance
@@ -379,17 +468,31 @@ class Resolver:
         above = self._above(det, points[clusters[k]], [f.detection for f in found], stance.rest)
         if above <= TOPPED_SHARE * det.points:
             return False
-        log.debug("%s rejected: %d points of its cluster stand on its top and nothing found explains them",
-                  det.object_id, above)
+        log.debug(
+            "%s rejected: %d points of its cluster stand on its top and nothing found explains them",
+            det.object_id,
+            above,
+        )
         return True
 
     def _verdict(self, det: Detection, evidence: Evidence) -> Verdict:
         """A hypothesis judged against the frame's depth, the planes removed from it and the support
         objects stand on (``recognition.verify``)."""
         model, c = self.db.models[det.object_id], self.config
-        return verdict(evidence.view, model.points, model.normals, det.camera_T_object, c.icp_distance_m, c.plane_noise_per_m2,
-                       evidence.planes, model.chroma_range, c.colour_tolerance, c.descriptor.voxel_m, evidence.support,
-                       c.colour_min_saturation)  # fmt: skip
+        return verdict(
+            evidence.view,
+            model.points,
+            model.normals,
+            det.camera_T_object,
+            c.icp_distance_m,
+            c.plane_noise_per_m2,
+            evidence.planes,
+            model.chroma_range,
+            c.colour_tolerance,
+            c.descriptor.voxel_m,
+            evidence.support,
+            c.colour_min_saturation,
+        )
 
     def _floats(self, cand: Candidate, below: Iterable[Detection]) -> bool:
         """Whether a candidate with a support to rest on rests neither on it nor on a detection in
@@ -448,8 +551,10 @@ class Resolver:
 
 def described(v: Verdict, support: float) -> str:
     """A verdict's figures, as verification's log lines give them (support: ``Resolver._support``)."""
-    return (f"visible fitness {v.fitness:.2f}, support {support:.2f} ({v.inliers} of {v.visible} visible pixels, "
-            f"{v.violations} seen through), facing {v.facing_share:.2f} ({v.backfacing} pixels seen from behind), clutter "
-            f"{v.clutter:.2f}, outline seen {v.outline_seen:.2f} (of {v.outline} pixels), flush {v.flush:.2f}, inside a support "
-            f"{v.penetration:.3f}, colour {v.colour_agreement:.2f} (of {v.colour_judged} pixels; {v.colour_distinct_agreeing} "
-            f"of {v.colour_distinct} where grey would differ), shape error {v.shape_error:.1f} sigma")  # fmt: skip
+    return (
+        f"visible fitness {v.fitness:.2f}, support {support:.2f} ({v.inliers} of {v.visible} visible pixels, "
+        f"{v.violations} seen through), facing {v.facing_share:.2f} ({v.backfacing} pixels seen from behind), clutter "
+        f"{v.clutter:.2f}, outline seen {v.outline_seen:.2f} (of {v.outline} pixels), flush {v.flush:.2f}, inside a support "
+        f"{v.penetration:.3f}, colour {v.colour_agreement:.2f} (of {v.colour_judged} pixels; {v.colour_distinct_agreeing} "
+        f"of {v.colour_distinct} where grey would differ), shape error {v.shape_error:.1f} sigma"
+    )

@@ -60,7 +60,9 @@ def remove_planes(
         share = len(inliers) * len(rest) / (len(sample) * len(pts))  # of all points
         dominant = share >= min_fraction and not planes
         if not dominant and not (
-            planes and share >= STRUCTURE_SHARE and patch_extent(pts[rest[np.abs(signed) < distance_m]], np.array([a, b, c])) > min_extent_m
+            planes
+            and share >= STRUCTURE_SHARE
+            and patch_extent(pts[rest[np.abs(signed) < distance_m]], np.array([a, b, c])) > min_extent_m
         ):
             break
         keep[rest[(signed < band[rest]) & (dominant | (signed > -band[rest]))]] = False
@@ -114,23 +116,23 @@ class PointGraph:
     sq_len_m2: np.ndarray
 
     @classmethod
-    def empty(cls, radius_m: float) -> "PointGraph":
+    def empty(cls, radius_m: float) -> PointGraph:
         """The graph of no points."""
         none = np.zeros(0, dtype=np.int64)
         return cls(0, radius_m, none, none, np.zeros(0, dtype=np.float32))
 
     @classmethod
-    def of(cls, points: np.ndarray, radius_m: float) -> "PointGraph":
+    def of(cls, points: np.ndarray, radius_m: float) -> PointGraph:
         """The graph of points (N, 3) closer than radius_m (m)."""
         return cls.from_neighbours(radius_neighbours(points, radius_m))
 
     @classmethod
-    def from_neighbours(cls, nb: Neighbours) -> "PointGraph":
+    def from_neighbours(cls, nb: Neighbours) -> PointGraph:
         rows = np.repeat(np.arange(len(nb.splits) - 1), np.diff(nb.splits))
         once = rows < nb.index  # each pair once, no self-loops
         return cls(len(nb.splits) - 1, nb.radius_m, rows[once], nb.index[once], nb.sq_dist_m2[once])
 
-    def subgraph(self, members: np.ndarray, radius_m: float | None = None) -> "PointGraph":
+    def subgraph(self, members: np.ndarray, radius_m: float | None = None) -> PointGraph:
         """The graph among the points members (M,) (renumbered 0..M-1 in that order), optionally
         only the edges up to radius_m."""
         radius = self.radius_m if radius_m is None else radius_m
@@ -192,8 +194,13 @@ def euclidean_clusters(
 
 
 def split_oversized(
-    points: np.ndarray, clusters: list[np.ndarray], max_extent_m: float, tolerance_m: float, min_tolerance_m: float,
-    min_points: int, graph: PointGraph | None = None,
+    points: np.ndarray,
+    clusters: list[np.ndarray],
+    max_extent_m: float,
+    tolerance_m: float,
+    min_tolerance_m: float,
+    min_points: int,
+    graph: PointGraph | None = None,
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Clusters larger than any object (2-98 % bounding-box diagonal over max_extent_m) re-clustered with a
     tighter tolerance, down to min_tolerance_m: objects standing close together merge at the
@@ -222,7 +229,9 @@ def split_oversized(
         if not big.any():
             out.append(idx)  # shattered: a single noisy surface, not several objects
             continue
-        todo.extend((idx[p], finer) for p, b in zip(parts, big) if b)  # one piece (without its crumbs) is tried finer still
+        todo.extend(
+            (idx[p], finer) for p, b in zip(parts, big) if b
+        )  # one piece (without its crumbs) is tried finer still
         if not big.all():
             shed.append(idx[np.concatenate([p for p, b in zip(parts, big) if not b])])
     return sorted(out, key=len, reverse=True), shed

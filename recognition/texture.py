@@ -24,9 +24,24 @@ import open3d as o3d
 log = logging.getLogger(__name__)
 
 #: PLY scalar types as numpy's.
-PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
-             "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
-             "double": "f8", "float64": "f8"}  # fmt: skip
+PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 #: Names a PLY gives a vertex's texture coordinates.
 UV_NAMES = (("texture_u", "texture_v"), ("s", "t"), ("u", "v"))
 
@@ -71,7 +86,7 @@ class _PlyHeader:
         return "<" if self.fmt == "binary_little_endian" else ">"
 
     @classmethod
-    def read(cls, path: Path) -> "_PlyHeader | None":
+    def read(cls, path: Path) -> _PlyHeader | None:
         """The header of a PLY in one of the three formats; None for anything else."""
         with path.open("rb") as f:
             head = f.read(65536)
@@ -80,7 +95,9 @@ class _PlyHeader:
             return None
         body = head.index(b"\n", end) + 1
         lines = head[:end].decode("ascii", "replace").splitlines()
-        texture = next((m.group(1).strip() for line in lines if (m := re.match(r"comment\s+TextureFile\s+(.+)", line))), None)
+        texture = next(
+            (m.group(1).strip() for line in lines if (m := re.match(r"comment\s+TextureFile\s+(.+)", line))), None
+        )
         fmt = next((line.split()[1] for line in lines if line.startswith("format ")), "")
         elements: list[tuple[str, int, list[list[str]]]] = []
         for words in (line.split() for line in lines if line.startswith(("element ", "property "))):
@@ -109,8 +126,9 @@ def ply_texture_colours(path: Path, n_vertices: int) -> np.ndarray | None:
     uv_names = next((pair for pair in UV_NAMES if set(pair) <= set(names)), None)
     triangles = None  # with UVs per vertex; else the faces whose corners carry them
     if uv_names is not None and head.fmt == "ascii":
-        uv = np.loadtxt(path, skiprows=head.body_line, max_rows=n_vertices, ndmin=2,
-                        usecols=[names.index(n) for n in uv_names]).astype(np.float64)  # fmt: skip
+        uv = np.loadtxt(
+            path, skiprows=head.body_line, max_rows=n_vertices, ndmin=2, usecols=[names.index(n) for n in uv_names]
+        ).astype(np.float64)
     elif uv_names is not None:
         vertices = np.fromfile(path, dtype=vertex_dtype, count=n_vertices, offset=head.body_byte)
         if len(vertices) < n_vertices:
@@ -141,8 +159,8 @@ def _face_uvs(path: Path, head: _PlyHeader, vertex_bytes: int) -> tuple[np.ndarr
         return None
     if head.fmt == "ascii":
         with path.open() as f:
-            rows = f.read().splitlines()[head.body_line:]
-        faces = [row.split() for row in rows[n_vertices:n_vertices + n_faces]]
+            rows = f.read().splitlines()[head.body_line :]
+        faces = [row.split() for row in rows[n_vertices : n_vertices + n_faces]]
         first = [p[3] for p in props].index("vertex_indices") == 0
         try:
             table = np.array([[float(x) for x in words] for words in faces])
@@ -159,7 +177,10 @@ def _face_uvs(path: Path, head: _PlyHeader, vertex_bytes: int) -> tuple[np.ndarr
             if count_type not in PLY_TYPES or item_type not in PLY_TYPES:
                 return None
             size = 3 if p[3] == "vertex_indices" else 6
-            fields += [(p[3] + "_n", head.order + PLY_TYPES[count_type]), (p[3], head.order + PLY_TYPES[item_type], size)]
+            fields += [
+                (p[3] + "_n", head.order + PLY_TYPES[count_type]),
+                (p[3], head.order + PLY_TYPES[item_type], size),
+            ]
         table = np.fromfile(path, dtype=np.dtype(fields), count=n_faces, offset=head.body_byte + vertex_bytes)
         if len(table) < n_faces or np.any(table["vertex_indices_n"] != 3) or np.any(table["texcoord_n"] != 6):
             return None  # not all triangles with a UV per corner: not a layout this reads

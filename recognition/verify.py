@@ -109,7 +109,7 @@ class DepthView:
     chroma: np.ndarray | None = None  # (H, W, 2) rg-chromaticity (NaN: too dark); None: no colour
 
     @classmethod
-    def of(cls, cloud: np.ndarray, rgb: np.ndarray | None = None) -> "DepthView":
+    def of(cls, cloud: np.ndarray, rgb: np.ndarray | None = None) -> DepthView:
         """From a camera-frame cloud: (H, W, 3) organised (every other row and column of its own
         grid, with the K its points fit) or (N, 3), projected with ``VIRTUAL_K``.
 
@@ -149,7 +149,9 @@ class Verdict:
     inliers: int
     violations: int
     occluded: int
-    pixels: np.ndarray  # flat indices of the inlier pixels, closed over the gaps between model points (for ``Explained``)
+    pixels: (
+        np.ndarray
+    )  # flat indices of the inlier pixels, closed over the gaps between model points (for ``Explained``)
     outline: int = 0  # ring pixels around the silhouette, inside the image
     outline_measured: int = 0  # ... with a depth
     outline_continuing: int = 0  # ... where the model's surface goes on
@@ -214,10 +216,20 @@ class Verdict:
         return self.outline_measured / self.outline if self.outline else 1.0
 
 
-def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray,
-            tolerance_m: float, noise_per_m2: float, planes: np.ndarray | None = None,
-            chroma_range: np.ndarray | None = None, colour_tolerance: float = 0.1, spacing_m: float = 0.01,
-            support: np.ndarray | None = None, min_saturation: float = 1.0) -> Verdict:  # fmt: skip
+def verdict(
+    view: DepthView,
+    points: np.ndarray,
+    normals: np.ndarray,
+    camera_T_object: np.ndarray,
+    tolerance_m: float,
+    noise_per_m2: float,
+    planes: np.ndarray | None = None,
+    chroma_range: np.ndarray | None = None,
+    colour_tolerance: float = 0.1,
+    spacing_m: float = 0.01,
+    support: np.ndarray | None = None,
+    min_saturation: float = 1.0,
+) -> Verdict:
     """Judge one hypothesis: model points and outward normals (M, 3, object frame) posed by
     camera_T_object (4, 4). Tolerance at depth z: ``tolerance_m + noise_per_m2 * z^2`` (m).
 
@@ -261,13 +273,32 @@ def verdict(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_o
         sigma = noise_per_m2 / 3 * float(np.median(z[inlier])) ** 2  # noise_per_m2 is three sigmas' worth
         spread = residual_spread(view, flat[inlier], z[inlier], tol[inlier])
         shape_error = max(spread - SPREAD_FLOOR_M, 0.0) / max(sigma, 1e-6)
-    return Verdict(len(flat), int(inlier.sum()), int(violation.sum()), int(occluded.sum()), _filled(flat[inlier], W, gap_px),
-                   *outline, inside, flat[occluded], judged, agreeing, distinct, distinct_agreeing, shape_error,
-                   backfacing)  # fmt: skip
+    return Verdict(
+        len(flat),
+        int(inlier.sum()),
+        int(violation.sum()),
+        int(occluded.sum()),
+        _filled(flat[inlier], W, gap_px),
+        *outline,
+        inside,
+        flat[occluded],
+        judged,
+        agreeing,
+        distinct,
+        distinct_agreeing,
+        shape_error,
+        backfacing,
+    )
 
 
-def inliers_and_violations(view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray, tolerance_m: float,
-                            noise_per_m2: float) -> tuple[int, int]:  # fmt: skip
+def inliers_and_violations(
+    view: DepthView,
+    points: np.ndarray,
+    normals: np.ndarray,
+    camera_T_object: np.ndarray,
+    tolerance_m: float,
+    noise_per_m2: float,
+) -> tuple[int, int]:
     """``verdict``'s inliers and violations alone (its visible fitness is the one over both): a
     cheap judgement of many poses, or of a pose where only that is asked."""
     p, _, front, u, v, ok = _posed(view, points, normals, camera_T_object)
@@ -277,8 +308,9 @@ def inliers_and_violations(view: DepthView, points: np.ndarray, normals: np.ndar
     return int(inlier.sum()), int(violation.sum())
 
 
-def _posed(view: DepthView, points: np.ndarray, normals: np.ndarray,
-           camera_T_object: np.ndarray) -> tuple[np.ndarray, ...]:  # fmt: skip
+def _posed(
+    view: DepthView, points: np.ndarray, normals: np.ndarray, camera_T_object: np.ndarray
+) -> tuple[np.ndarray, ...]:
     """Model points and normals (M, 3) posed by camera_T_object (4, 4) into the camera frame, which
     of them face the camera at the origin, their pixel columns and rows and which land in the view."""
     R, t = camera_T_object[:3, :3], camera_T_object[:3, 3]
@@ -304,8 +336,9 @@ def _seen(p: np.ndarray, u: np.ndarray, v: np.ndarray, W: int) -> tuple[np.ndarr
     return seen, pix[first], zs[first], rows[first]
 
 
-def _against(view: DepthView, flat: np.ndarray, z: np.ndarray, tolerance_m: float,
-             noise_per_m2: float) -> tuple[np.ndarray, ...]:  # fmt: skip
+def _against(
+    view: DepthView, flat: np.ndarray, z: np.ndarray, tolerance_m: float, noise_per_m2: float
+) -> tuple[np.ndarray, ...]:
     """Model depths z (m) at flat pixel indices against the measured surface around them: each
     one's tolerance (m) and the masks of inliers, violations (in front of it) and occluded ones
     (behind it); a pixel with no depth is none of them."""
@@ -367,7 +400,9 @@ def chroma_ranges(points: np.ndarray, colours: np.ndarray, radius_m: float = COL
     return np.concatenate([lo, hi], axis=1)
 
 
-def colour_agrees(scene: np.ndarray, lo: np.ndarray, hi: np.ndarray, tolerance: float, min_saturation: float = 1.0) -> np.ndarray:
+def colour_agrees(
+    scene: np.ndarray, lo: np.ndarray, hi: np.ndarray, tolerance: float, min_saturation: float = 1.0
+) -> np.ndarray:
     """Mask (N,) of scene chromaticities (N, 2) within the tolerance, in r and in g, of the model's
     colour range (lo, hi (N, 2)) as it is, or paled: moved towards grey (1/3, 1/3) to k times its
     distance from it, k down to min_saturation, as far as the scene's own colour asks (its share of
@@ -422,8 +457,9 @@ def chromaticity(rgb: np.ndarray) -> np.ndarray:
     return out
 
 
-def _inside_support(view: DepthView, pixels: np.ndarray, z: np.ndarray, band: np.ndarray, planes: np.ndarray,
-                    tolerance_m: float) -> int:  # fmt: skip
+def _inside_support(
+    view: DepthView, pixels: np.ndarray, z: np.ndarray, band: np.ndarray, planes: np.ndarray, tolerance_m: float
+) -> int:
     """How many hidden model points (flat pixel indices, depths z m) are hidden by a surface on one
     of the planes (P, 4), within ``band`` (m, per point: one pixel's noise), and lie over
     ``tolerance_m`` behind it. The plane and the pose are each fitted to hundreds of points: depth
@@ -462,8 +498,17 @@ def _filled(pixels: np.ndarray, W: int, gap_px: float) -> np.ndarray:
     return (fv[keep] + v0) * W + fu[keep] + u0
 
 
-def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance_m: float,
-             noise_per_m2: float, gap_px: float = 0.0, support: np.ndarray | None = None) -> tuple[int, int, int, int]:  # fmt: skip
+def _outline(
+    view: DepthView,
+    u: np.ndarray,
+    v: np.ndarray,
+    p: np.ndarray,
+    n: np.ndarray,
+    tolerance_m: float,
+    noise_per_m2: float,
+    gap_px: float = 0.0,
+    support: np.ndarray | None = None,
+) -> tuple[int, int, int, int]:
     """(ring pixels, measured, continuing, flush) around the silhouette of the seen model points p
     (M, 3, camera frame) with outward normals n, at pixels (u, v): a ring pixel continues when the
     measured surface there lies on the tangent plane of the nearest model point (within the
@@ -510,7 +555,9 @@ def _outline(view: DepthView, u: np.ndarray, v: np.ndarray, p: np.ndarray, n: np
         measured = np.isfinite(z)
         tol = tolerance_m + noise_per_m2 * z**2
         same_plane = np.abs(z - z_plane) <= tol
-        same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(np.radians(SAME_SURFACE_DEG))
+        same_normal = np.abs(np.einsum("ij,ij->i", _depth_normals(view, gu, gv), normal)) >= np.cos(
+            np.radians(SAME_SURFACE_DEG)
+        )
         flush = measured & (np.abs(z - edge_z.reshape(-1)[nearest]) <= tol)
         if support is not None:  # where an object stands on its support, no step is expected
             flush &= np.abs(rays * z[:, None] @ support[:3] + support[3]) > tol
@@ -641,6 +688,8 @@ def _filter3(z: np.ndarray, nearest: bool) -> np.ndarray:
     whole neighbourhood is)."""
     fill = np.inf if nearest else -np.inf
     morph = cv2.erode if nearest else cv2.dilate  # min / max filters, exact
-    out = morph(np.where(np.isnan(z), fill, z), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=fill)
+    out = morph(
+        np.where(np.isnan(z), fill, z), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=fill
+    )
     out[np.isinf(out)] = np.nan
     return out

@@ -64,8 +64,11 @@ def vfh(
     if binning == "pcl":
         edges = [(f.astype(np.float64) + np.pi) * _D_PI for f in (f1, f2, f3)]
     else:
-        edges = [(f1.astype(np.float64) + np.pi) * _D_PI, (f2.astype(np.float64) + 1.0) * 0.5,
-                 (f3.astype(np.float64) + 1.0) * 0.5]
+        edges = [
+            (f1.astype(np.float64) + np.pi) * _D_PI,
+            (f2.astype(np.float64) + 1.0) * 0.5,
+            (f3.astype(np.float64) + 1.0) * 0.5,
+        ]
     hists = [_accumulate(_bin_index(F_BINS * e, F_BINS)[valid], F_BINS, incr) for e in edges]
     if size_component:
         if normalize_distance:

@@ -23,14 +23,22 @@ import numpy as np
 from recognition.cloud import depth_to_cloud, voxel_downsample
 from recognition.config import RecognitionConfig
 from recognition.fusion import (
-    REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, cross_checked, display_cloud, found_in_cloud, fuse, fused_cloud,
+    REFINE_VOXEL_M,
+    CameraPoints,
+    CameraView,
+    FusedObject,
+    WorldDetection,
+    cross_checked,
+    display_cloud,
+    found_in_cloud,
+    fuse,
+    fused_cloud,
     refined_in_cloud,
 )
 from recognition.models import ModelDatabase
 from recognition.pipeline import Prior, Recognizer
 from recognition.verify import DepthView
-from schemas import codec, keys
-from schemas import geometry
+from schemas import codec, geometry, keys
 from schemas import messages as m
 from schemas.bus import Bus, Subscription
 from schemas.errors import DecodeError, KeyError_
@@ -62,7 +70,10 @@ def _still_at(then: np.ndarray, now: np.ndarray) -> bool:
 def _within(a: np.ndarray, b: np.ndarray, metres: float, degrees: float) -> bool:
     """Whether poses a and b (4, 4) are within ``metres`` and ``degrees`` of each other."""
     step = geometry.invert_pose(a) @ b
-    return bool(np.linalg.norm(step[:3, 3]) <= metres and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= degrees)
+    return bool(
+        np.linalg.norm(step[:3, 3]) <= metres
+        and np.degrees(geometry.rotation_angle(np.eye(3), step[:3, :3])) <= degrees
+    )
 
 
 def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDetections:
@@ -74,7 +85,9 @@ def detections_to_msg(stamp_ns: int, objects: list[FusedObject]) -> m.ObjectDete
     return msg
 
 
-def scene_to_msg(stamp_ns: int, objects: list[FusedObject], boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> m.SceneUpdate:
+def scene_to_msg(
+    stamp_ns: int, objects: list[FusedObject], boxes: dict[str, tuple[np.ndarray, np.ndarray]]
+) -> m.SceneUpdate:
     """Foxglove 3-D scene: each object's model bounding box (``model_boxes``), posed in world, with its name."""
     msg = m.SceneUpdate()
     for o in objects:
@@ -129,7 +142,9 @@ class Ros2Objects:
 class RecognitionWorker:
     """Runs the recogniser on each localized camera in turn, at most ``rate_hz`` per camera."""
 
-    def __init__(self, bus: Bus, config: RecognitionConfig, database: ModelDatabase, ros2: Ros2Config | None = None) -> None:
+    def __init__(
+        self, bus: Bus, config: RecognitionConfig, database: ModelDatabase, ros2: Ros2Config | None = None
+    ) -> None:
         self.bus = bus
         self.config = config
         self.db = database
@@ -147,7 +162,9 @@ class RecognitionWorker:
         self._pub_points = bus.publisher(keys.points(cell))
         bus.declare_alive("recognition", "main")
         self.ros2 = Ros2Objects(bus, ros2, self.boxes) if ros2 is not None and ros2.enabled else None
-        self._object_T_marker = {mk.marker_id: (mk.object_id, mk.object_T_marker.matrix()) for mk in config.object_markers}
+        self._object_T_marker = {
+            mk.marker_id: (mk.object_id, mk.object_T_marker.matrix()) for mk in config.object_markers
+        }
         self.intrinsics: dict[str, codec.CameraInfo] = {}
         self.world_T_camera: dict[str, np.ndarray] = {}
         self.camera_state: dict[str, int] = {}  # the estimator's latest CameraState.State per camera
@@ -157,9 +174,15 @@ class RecognitionWorker:
         self.marker_msgs: dict[str, m.MarkerObservations] = {}
         self.latest: dict[tuple[str, str], WorldDetection] = {}  # (camera, object) -> newest detection
         self.views: dict[str, CameraView] = {}  # camera -> its last recognised frame, judge of the others'
-        self._last_cloud: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}  # camera -> (stamp, cloud, pose) last recognised
-        self.scenes: dict[str, CameraPoints] = {}  # camera -> that frame's workspace points, made when a fit or search needs them
-        self.refined: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # object -> (fused pose, its refinement), last refined
+        self._last_cloud: dict[
+            str, tuple[int, np.ndarray, np.ndarray]
+        ] = {}  # camera -> (stamp, cloud, pose) last recognised
+        self.scenes: dict[
+            str, CameraPoints
+        ] = {}  # camera -> that frame's workspace points, made when a fit or search needs them
+        self.refined: dict[
+            str, tuple[np.ndarray, np.ndarray]
+        ] = {}  # object -> (fused pose, its refinement), last refined
         self._refined_at = -np.inf  # monotonic s of the last refinement
         self._searched_at = -np.inf  # monotonic s of the last search of the cameras' points together
         self._search_turn = 0  # whose frame the next search is seen from
@@ -216,7 +239,9 @@ class RecognitionWorker:
             elif c not in self._depth and now - self.last_run.get(c, -np.inf) >= 1.0 / self.config.rate_hz:
                 self._depth[c] = self.bus.subscribe(keys.depth(self.bus.cell, c), m.RawImage, capacity=1, ring=True)
                 if self.config.verify and self.config.min_colour_agreement > 0:
-                    self._colour[c] = self.bus.subscribe(keys.color(self.bus.cell, c), m.RawImage, capacity=1, ring=True)
+                    self._colour[c] = self.bus.subscribe(
+                        keys.color(self.bus.cell, c), m.RawImage, capacity=1, ring=True
+                    )
 
     def _close_frames(self, camera_id: str) -> None:
         self._depth.pop(camera_id).close()
@@ -229,14 +254,26 @@ class RecognitionWorker:
         """The camera with a due frame (and its colour, or waited ``COLOUR_WAIT_S`` for it) whose last
         run is oldest."""
         now = time.monotonic()
-        ready = [c for c in self.frames if self.placed(c) and (
-            c not in self._colour or self._colour_of(c) is not None or now - self._frame_since.get(c, now) >= COLOUR_WAIT_S)]  # fmt: skip
+        ready = [
+            c
+            for c in self.frames
+            if self.placed(c)
+            and (
+                c not in self._colour
+                or self._colour_of(c) is not None
+                or now - self._frame_since.get(c, now) >= COLOUR_WAIT_S
+            )
+        ]
         return min(ready, key=lambda c: self.last_run.get(c, -np.inf)) if ready else None
 
     def _colour_of(self, camera_id: str) -> m.RawImage | None:
         """The colour frame of the waiting depth frame's stamp, if it came."""
         colour, depth = self.colours.get(camera_id), self.frames.get(camera_id)
-        if colour is None or depth is None or codec.timestamp_to_stamp(colour.timestamp) != codec.timestamp_to_stamp(depth.timestamp):
+        if (
+            colour is None
+            or depth is None
+            or codec.timestamp_to_stamp(colour.timestamp) != codec.timestamp_to_stamp(depth.timestamp)
+        ):
             return None
         return colour
 
@@ -248,7 +285,9 @@ class RecognitionWorker:
         try:
             rgb = codec.rgb_from_msg(msg)
             if rgb.shape[:2] != shape:
-                raise DecodeError(f"colour is {rgb.shape[1]}x{rgb.shape[0]}, depth {shape[1]}x{shape[0]} (not registered to it)")
+                raise DecodeError(
+                    f"colour is {rgb.shape[1]}x{rgb.shape[0]}, depth {shape[1]}x{shape[0]} (not registered to it)"
+                )
         except DecodeError as exc:
             self._warn_once(f"colour/{camera_id}", f"{camera_id}: recognising on depth alone: {exc}")
             return None
@@ -279,13 +318,17 @@ class RecognitionWorker:
         depth = codec.image_from_msg(frame)
         info = self.intrinsics[camera_id]
         if depth.shape != (info.height, info.width):
-            raise DecodeError(f"{camera_id}: depth is {depth.shape[1]}x{depth.shape[0]} but camera_info says "
-                              f"{info.width}x{info.height}")
+            raise DecodeError(
+                f"{camera_id}: depth is {depth.shape[1]}x{depth.shape[0]} but camera_info says "
+                f"{info.width}x{info.height}"
+            )
         rgb = self._rgb(camera_id, colour, depth.shape)
         world_T_camera = self.world_T_camera[camera_id]
         cloud = depth_to_cloud(depth, info.K, depth_scale=0.001)
         if self.config.cloud_voxel_m > 0:
-            self.clouds[camera_id] = display_cloud(cloud, info.K[0, 0], self.config.cloud_voxel_m, self.config.max_range_m)
+            self.clouds[camera_id] = display_cloud(
+                cloud, info.K[0, 0], self.config.cloud_voxel_m, self.config.max_range_m
+            )
         # Kept to judge the other cameras' detections; without that check, the recogniser builds
         # one only for a frame with a hypothesis to verify.
         view = DepthView.of(cloud, rgb) if self.config.min_cross_view_fitness > 0 else None
@@ -296,7 +339,9 @@ class RecognitionWorker:
         found = self.recognizer.recognize(cloud, self.priors(camera_id, stamp_ns), world_T_camera, view, rgb)
         for key in [k for k in self.latest if k[0] == camera_id]:
             del self.latest[key]  # what this camera no longer sees is no longer reported by it
-        out = [WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d, world_T_camera) for d in found]
+        out = [
+            WorldDetection(camera_id, stamp_ns, world_T_camera @ d.camera_T_object, d, world_T_camera) for d in found
+        ]
         for d in out:
             self.latest[(camera_id, d.detection.object_id)] = d
         return out
@@ -331,14 +376,26 @@ class RecognitionWorker:
         what no camera found looked for in all their points (``searched``), each fitted to the
         cameras' points around it (``refined_in_cloud``)."""
         c = self.config
-        views = [v for v in self.views.values() if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])]
+        views = [
+            v
+            for v in self.views.values()
+            if self.placed(v.camera_id) and _still_at(v.world_T_camera, self.world_T_camera[v.camera_id])
+        ]
         if c.min_cross_view_fitness <= 0:
             objects = fuse(self.current_detections())
         else:
-            objects, held = cross_checked(self.current_detections(), views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))
+            objects, held = cross_checked(
+                self.current_detections(), views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9)
+            )
             for h in held:  # what a robot is not told, and why
-                log.debug("%s from %s held back: %s saw through it (%d of %d judged pixels on its surface)", h.object_id,
-                          ", ".join(h.detected_by), h.camera_id, h.verdict.inliers, h.verdict.inliers + h.verdict.violations)  # fmt: skip
+                log.debug(
+                    "%s from %s held back: %s saw through it (%d of %d judged pixels on its surface)",
+                    h.object_id,
+                    ", ".join(h.detected_by),
+                    h.camera_id,
+                    h.verdict.inliers,
+                    h.verdict.inliers + h.verdict.violations,
+                )
             self.held_back += len(held)
         if c.search_fused_cloud:
             objects = objects + self.searched(objects, views)
@@ -346,12 +403,18 @@ class RecognitionWorker:
             return objects
         now = time.monotonic()
         if now - self._refined_at < c.refine_period_s:  # hold the last refinement of what stayed put
-            return [replace(o, world_T_object=self.refined[o.object_id][1]) if o.object_id in self.refined
-                    and _within(self.refined[o.object_id][0], o.world_T_object, REFINED_HOLD_M, REFINED_HOLD_DEG) else o
-                    for o in objects]  # fmt: skip
+            return [
+                replace(o, world_T_object=self.refined[o.object_id][1])
+                if o.object_id in self.refined
+                and _within(self.refined[o.object_id][0], o.world_T_object, REFINED_HOLD_M, REFINED_HOLD_DEG)
+                else o
+                for o in objects
+            ]
         self._refined_at = now
         cameras = self._cameras(max(o.stamp_ns for o in objects))
-        refined = refined_in_cloud(objects, cameras, self.db, c.icp_distance_m, c.descriptor.normal_radius_m, c.min_fitness)
+        refined = refined_in_cloud(
+            objects, cameras, self.db, c.icp_distance_m, c.descriptor.normal_radius_m, c.min_fitness
+        )
         self.refined = {o.object_id: (o.world_T_object, r.world_T_object) for o, r in zip(objects, refined)}
         return refined
 
@@ -362,9 +425,13 @@ class RecognitionWorker:
             if camera_id not in self.scenes or self.scenes[camera_id].stamp_ns != stamp_ns:
                 near = voxel_downsample(self.recognizer.workspace_points(cloud, world_T_camera), REFINE_VOXEL_M)
                 self.scenes[camera_id] = CameraPoints(camera_id, stamp_ns, near, world_T_camera)
-        return [replace(p, world_T_camera=self.world_T_camera[p.camera_id]) for p in self.scenes.values()
-                if self.placed(p.camera_id) and _still_at(p.world_T_camera, self.world_T_camera[p.camera_id])
-                and newest_ns - p.stamp_ns <= self.config.cross_view_max_age_s * 1e9]  # fmt: skip
+        return [
+            replace(p, world_T_camera=self.world_T_camera[p.camera_id])
+            for p in self.scenes.values()
+            if self.placed(p.camera_id)
+            and _still_at(p.world_T_camera, self.world_T_camera[p.camera_id])
+            and newest_ns - p.stamp_ns <= self.config.cross_view_max_age_s * 1e9
+        ]
 
     def searched(self, objects: list[FusedObject], views: list[CameraView]) -> list[FusedObject]:
         """The objects no camera found (not in ``objects``), looked for in every camera's points
@@ -381,10 +448,19 @@ class RecognitionWorker:
         judge = sorted(views, key=lambda v: v.camera_id)[self._search_turn % len(views)]
         self._search_turn += 1
         cameras = self._cameras(max(v.stamp_ns for v in views))
-        found = found_in_cloud(missing, judge, cameras, lambda cloud, W, view: self.recognizer.recognize(cloud, world_T_camera=W, view=view))
-        self.from_cloud = cross_checked(found, views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))[0]
+        found = found_in_cloud(
+            missing,
+            judge,
+            cameras,
+            lambda cloud, W, view: self.recognizer.recognize(cloud, world_T_camera=W, view=view),
+        )
+        self.from_cloud = cross_checked(found, views, self.recognizer.seen_through, int(c.cross_view_max_age_s * 1e9))[
+            0
+        ]
         for o in self.from_cloud:
-            log.info("%s found in %d cameras' points together, seen from %s", o.object_id, len(cameras), judge.camera_id)
+            log.info(
+                "%s found in %d cameras' points together, seen from %s", o.object_id, len(cameras), judge.camera_id
+            )
         return self.from_cloud
 
     def current_detections(self) -> list[WorldDetection]:

@@ -21,9 +21,10 @@ import resource
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Generic, Literal, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
 import zenoh
 from google.protobuf.message import Message
@@ -55,17 +56,21 @@ class TransportConfig(BaseModel):
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on")
     multicast_scouting: bool = False
     shared_memory: bool = Field(
-        default=True, description="frames through zenoh shared memory between processes on this host (needs "
+        default=True,
+        description="frames through zenoh shared memory between processes on this host (needs "
         "unlimited locked memory: root, CAP_IPC_LOCK or `ulimit -l unlimited`; otherwise switched off with a warning)",
     )
     shm_pool_mb: int = Field(
-        default=16, ge=2, le=4096,
+        default=16,
+        ge=2,
+        le=4096,
         description="shared-memory pool of each frame-publishing process (a VGA RGB-D pair is 1.5 MB; decoders release "
         "a frame at once). Every reader maps it too and, zenoh 1.10, keeps a crashed publisher's pool mapped for its "
         "own lifetime (zenoh issue 2787): see shm_driver_starts",
     )
     shm_driver_starts: int = Field(
-        default=1, ge=0,
+        default=1,
+        ge=0,
         description="how many times `cellsight run` starts a driver with shared memory; a driver restarted after that "
         "sends plain bytes, because every pool a reader has seen stays mapped in it (zenoh issue 2787): with 1, "
         "driver crashes cost the readers nothing more, the crashed camera 1.5x the transport CPU",
@@ -112,7 +117,7 @@ class TransportConfig(BaseModel):
         return cfg
 
     @classmethod
-    def router(cls, listen: list[str], connect: list[str] | None = None) -> "TransportConfig":
+    def router(cls, listen: list[str], connect: list[str] | None = None) -> TransportConfig:
         """A router listening on ``listen``; ``connect``: other routers it peers with."""
         return cls(mode="router", connect=list(connect or []), listen=listen)
 
@@ -129,7 +134,9 @@ def memory_lock_problem(status_file: Path = Path("/proc/self/status")) -> str | 
     if soft == resource.RLIM_INFINITY:
         return None
     try:
-        caps = next(int(line.split()[1], 16) for line in status_file.read_text().splitlines() if line.startswith("CapEff:"))
+        caps = next(
+            int(line.split()[1], 16) for line in status_file.read_text().splitlines() if line.startswith("CapEff:")
+        )
     except (OSError, StopIteration, ValueError, IndexError):
         caps = 0
     if caps >> CAP_IPC_LOCK & 1:
@@ -215,9 +222,17 @@ class Subscription(Generic[Msg]):
     """A zenoh subscriber that decodes into an ``Inbox`` (or a callback) and counts bad input."""
 
     def __init__(
-        self, session: zenoh.Session, key_expr: str, msg_type: type[Msg] | None = None, *, capacity: int = 1024, ring: bool = False,
-        callback: Callable[[Received[Msg]], None] | None = None, semantic: bool = True, limits: WireLimits = DEFAULT_LIMITS,
-    ) -> None:  # fmt: skip
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        msg_type: type[Msg] | None = None,
+        *,
+        capacity: int = 1024,
+        ring: bool = False,
+        callback: Callable[[Received[Msg]], None] | None = None,
+        semantic: bool = True,
+        limits: WireLimits = DEFAULT_LIMITS,
+    ) -> None:
         self.key_expr = key_expr
         self._semantic = semantic
         self._limits = limits
@@ -276,7 +291,9 @@ class Subscription(Generic[Msg]):
 class Publisher(Generic[Msg]):
     """Publishes one message type on one concrete key; checks the type against the contract."""
 
-    def __init__(self, session: zenoh.Session, key: str, *, frames: bool = False, shm: "zenoh.shm.ShmProvider | None" = None) -> None:
+    def __init__(
+        self, session: zenoh.Session, key: str, *, frames: bool = False, shm: zenoh.shm.ShmProvider | None = None
+    ) -> None:
         self.key = key
         self.msg_type = keys.message_type(key)
         self._shm = shm
@@ -334,7 +351,7 @@ class CellTap:
     subscription then waits for the next one.
     """
 
-    def __init__(self, bus: "Bus", callback: Callable[[str, bytes, int], bool | None], max_image_hz: float) -> None:
+    def __init__(self, bus: Bus, callback: Callable[[str, bytes, int], bool | None], max_image_hz: float) -> None:
         if max_image_hz <= 0:
             raise BusError(f"max_image_hz must be positive, not {max_image_hz}")
         self._bus = bus
@@ -384,8 +401,14 @@ class CellTap:
             self._wake.clear()
             now = time.monotonic()
             with self._lock:
-                done = [self._due.pop(k).sub for k in self._image_keys if k in self._due and self._due[k].state == "taken"]
-                due = {k: _DueImage() for k in self._image_keys if k not in self._due and now - self._taken.get(k, -math.inf) >= self._period_s}
+                done = [
+                    self._due.pop(k).sub for k in self._image_keys if k in self._due and self._due[k].state == "taken"
+                ]
+                due = {
+                    k: _DueImage()
+                    for k in self._image_keys
+                    if k not in self._due and now - self._taken.get(k, -math.inf) >= self._period_s
+                }
                 self._due.update(due)
             for sub in done:  # outside the lock: undeclaring waits for the subscriber's running callback
                 sub.undeclare()
@@ -413,7 +436,7 @@ class Bus:
         self._tokens: list[zenoh.LivelinessToken] = []
         self._shm: zenoh.shm.ShmProvider | None = None
 
-    def __enter__(self) -> "Bus":
+    def __enter__(self) -> Bus:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -424,26 +447,44 @@ class Bus:
         shm = self._frame_pool() if frames and self.transport.shared_memory else None
         return Publisher(self.session, key, frames=frames, shm=shm)
 
-    def _frame_pool(self) -> "zenoh.shm.ShmProvider | None":
+    def _frame_pool(self) -> zenoh.shm.ShmProvider | None:
         """This process's shared-memory pool for frames, made on first use; None if the OS refuses."""
         if self._shm is None:
             try:
                 self._shm = zenoh.shm.ShmProvider.default_backend(self.transport.shm_pool_mb * 1024 * 1024)
             except zenoh.ZError as exc:  # /dev/shm full, or locked memory refused: plain bytes still work
-                log.warning("no %d MiB shared-memory pool for frames (%s): sending them as plain bytes", self.transport.shm_pool_mb, exc)
+                log.warning(
+                    "no %d MiB shared-memory pool for frames (%s): sending them as plain bytes",
+                    self.transport.shm_pool_mb,
+                    exc,
+                )
                 self.transport = self.transport.model_copy(update={"shared_memory": False})
         return self._shm
 
     def subscribe(
-        self, key_expr: str, msg_type: type[Msg] | None = None, *, capacity: int = 1024, ring: bool = False,
-        callback: Callable[[Received[Msg]], None] | None = None, semantic: bool = True,
-    ) -> Subscription[Msg]:  # fmt: skip
+        self,
+        key_expr: str,
+        msg_type: type[Msg] | None = None,
+        *,
+        capacity: int = 1024,
+        ring: bool = False,
+        callback: Callable[[Received[Msg]], None] | None = None,
+        semantic: bool = True,
+    ) -> Subscription[Msg]:
         """Decode messages on ``key_expr``; the type comes from the key when ``msg_type`` is None.
 
         ``semantic=False`` checks wire format and schema only, for a consumer that validates the
         content itself, many messages at once (the estimator's marker observations)."""
-        return Subscription(self.session, key_expr, msg_type, capacity=capacity, ring=ring, callback=callback, semantic=semantic,
-                            limits=self.limits)  # fmt: skip
+        return Subscription(
+            self.session,
+            key_expr,
+            msg_type,
+            capacity=capacity,
+            ring=ring,
+            callback=callback,
+            semantic=semantic,
+            limits=self.limits,
+        )
 
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes, int], None]) -> zenoh.Subscriber:
         """Undecoded payloads: ``callback(key, payload, receive_ns)`` in zenoh's thread (recorder)."""
@@ -457,7 +498,7 @@ class Bus:
 
         return self.session.declare_subscriber(key_expr, on_sample)
 
-    def tap_cell(self, callback: Callable[[str, bytes, int], bool | None], max_image_hz: float) -> "CellTap":
+    def tap_cell(self, callback: Callable[[str, bytes, int], bool | None], max_image_hz: float) -> CellTap:
         """Every key of the cell, undecoded, into ``callback(key, payload, receive_ns)``, each
         camera's images at most ``max_image_hz`` (``CellTap``)."""
         return CellTap(self, callback, max_image_hz)

@@ -10,8 +10,9 @@ input as untrusted and raises ``DecodeError`` naming what was wrong.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence, TypeVar
+from typing import TypeVar
 
 import numpy as np
 from google.protobuf.message import DecodeError as _PbDecodeError
@@ -120,7 +121,12 @@ def covariance_problems(rows: np.ndarray, limits: WireLimits | None = DEFAULT_LI
     if limits is not None:
         c = np.where(bad[:, None, None], np.eye(6) * limits.min_sigma, c)
         out = _sigma_out_of_bounds(c, limits)
-        why.append((out, f"a standard deviation outside [{limits.min_sigma:g}, {limits.max_sigma_m:g} m / {limits.max_sigma_rad:g} rad]"))
+        why.append(
+            (
+                out,
+                f"a standard deviation outside [{limits.min_sigma:g}, {limits.max_sigma_m:g} m / {limits.max_sigma_rad:g} rad]",
+            )
+        )
         bad |= out
     return [(i, next(say for mask, say in why if mask[i])) for i in np.flatnonzero(bad).tolist()]
 
@@ -140,7 +146,9 @@ def _sigma_out_of_bounds(c: np.ndarray, limits: WireLimits) -> np.ndarray:
     return too_wide | too_sharp
 
 
-def _checked_covariances(rows: np.ndarray, what: Sequence[str], limits: WireLimits | None = DEFAULT_LIMITS) -> np.ndarray:
+def _checked_covariances(
+    rows: np.ndarray, what: Sequence[str], limits: WireLimits | None = DEFAULT_LIMITS
+) -> np.ndarray:
     """Covariances (N, 6, 6) from ``rows`` (N, 36); the first bad one raises ``DecodeError`` named by ``what``."""
     problems = covariance_problems(rows, limits)
     if problems:
@@ -240,7 +248,7 @@ class CameraInfo:
             raise DecodeError("camera info: D contains NaN or inf")
 
     @classmethod
-    def kinect_v1(cls, width: int = 640, height: int = 480) -> "CameraInfo":
+    def kinect_v1(cls, width: int = 640, height: int = 480) -> CameraInfo:
         """Kinect v1 defaults (fx = fy = 525, cx = 319.5, cy = 239.5 at 640x480), scaled to size."""
         s = width / 640.0
         K = [[525.0 * s, 0, (319.5 + 0.5) * s - 0.5], [0, 525.0 * s, (239.5 + 0.5) * s - 0.5], [0, 0, 1]]
@@ -262,10 +270,12 @@ class CameraInfo:
         return msg
 
     @classmethod
-    def from_msg(cls, msg: m.CameraCalibration) -> "CameraInfo":
+    def from_msg(cls, msg: m.CameraCalibration) -> CameraInfo:
         if len(msg.K) != 9:
             raise DecodeError(f"camera info: K has {len(msg.K)} values, expected 9")
-        return cls(int(msg.width), int(msg.height), np.array(msg.K), np.array(msg.D), msg.distortion_model or "plumb_bob")
+        return cls(
+            int(msg.width), int(msg.height), np.array(msg.K), np.array(msg.D), msg.distortion_model or "plumb_bob"
+        )
 
 
 # ---------------------------------------------------------------- point clouds
@@ -274,8 +284,15 @@ class CameraInfo:
 _FLOAT32, _UINT8 = 7, 1
 #: One point: x, y, z float32 (m), then red, green, blue, alpha uint8: 16 bytes.
 _POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "u1", (4,))])
-_POINT_FIELDS = (("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32),
-                 ("red", 12, _UINT8), ("green", 13, _UINT8), ("blue", 14, _UINT8), ("alpha", 15, _UINT8))  # fmt: skip
+_POINT_FIELDS = (
+    ("x", 0, _FLOAT32),
+    ("y", 4, _FLOAT32),
+    ("z", 8, _FLOAT32),
+    ("red", 12, _UINT8),
+    ("green", 13, _UINT8),
+    ("blue", 14, _UINT8),
+    ("alpha", 15, _UINT8),
+)
 
 
 def points_to_msg(stamp_ns: int, frame_id: str, xyz: np.ndarray, rgba: np.ndarray) -> m.PointCloud:
@@ -329,18 +346,26 @@ def transforms_to_msg(stamp_ns: int, transforms: Iterable[tuple[str, str, np.nda
     return msg
 
 
-def transforms_from_msg(msg: m.FrameTransforms, limits: WireLimits = DEFAULT_LIMITS) -> dict[tuple[str, str], np.ndarray]:
+def transforms_from_msg(
+    msg: m.FrameTransforms, limits: WireLimits = DEFAULT_LIMITS
+) -> dict[tuple[str, str], np.ndarray]:
     """{(parent, child): parent_T_child} of a ``FrameTransforms``, each checked as ``pose_from_msg``
     checks one, all in one batch (a map's tf holds every marker, and subscribers read it at the
     estimator's rate)."""
     trs = msg.transforms
-    t = np.array([(tr.translation.x, tr.translation.y, tr.translation.z) for tr in trs], dtype=np.float64).reshape(-1, 3)
-    q = np.array([(tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w) for tr in trs], dtype=np.float64).reshape(-1, 4)
+    t = np.array([(tr.translation.x, tr.translation.y, tr.translation.z) for tr in trs], dtype=np.float64).reshape(
+        -1, 3
+    )
+    q = np.array(
+        [(tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w) for tr in trs], dtype=np.float64
+    ).reshape(-1, 4)
     T = _poses_from_arrays(t, q, [f"transform {tr.child_frame_id}" for tr in trs], limits)
     return {(tr.parent_frame_id, tr.child_frame_id): pose for tr, pose in zip(trs, T)}
 
 
-def _poses_from_arrays(t: np.ndarray, q: np.ndarray, what: Sequence[str], limits: WireLimits = DEFAULT_LIMITS) -> np.ndarray:
+def _poses_from_arrays(
+    t: np.ndarray, q: np.ndarray, what: Sequence[str], limits: WireLimits = DEFAULT_LIMITS
+) -> np.ndarray:
     """Poses (N, 4, 4) from translations (N, 3) and quaternions (N, 4; x y z w) as received, rejecting
     non-finite values, non-unit quaternions and positions beyond ``limits.max_position_m``: the first
     bad pose raises ``DecodeError`` named by ``what``."""
@@ -353,7 +378,9 @@ def _poses_from_arrays(t: np.ndarray, q: np.ndarray, what: Sequence[str], limits
         if not finite[i]:
             raise DecodeError(f"{what[i]}: contains NaN or inf", "not_finite")
         if far[i]:
-            raise DecodeError(f"{what[i]}: position {t[i].tolist()} beyond {limits.max_position_m:g} m", "out_of_bounds")
+            raise DecodeError(
+                f"{what[i]}: position {t[i].tolist()} beyond {limits.max_position_m:g} m", "out_of_bounds"
+            )
         raise DecodeError(f"{what[i]}: quaternion norm {norm[i]:.4g} is not 1", "not_rigid")
     T = np.zeros((len(t), 4, 4))
     T[:, :3, :3] = matrices_from_quats(q) if len(q) else np.zeros((0, 3, 3))
@@ -397,8 +424,10 @@ def poses_from_msg(msg: m.PosesWithCovariance, limits: WireLimits = DEFAULT_LIMI
             raise DecodeError(f"{what[k]}: expected 36 values, got {len(items[k].covariance)}", "covariance")
     rows = np.array([items[k].covariance for k in given], dtype=np.float64).reshape(-1, 36)
     covs = dict(zip(given, _checked_covariances(rows, [what[k] for k in given], limits)))
-    return {item.child_frame_id: StampedPose(item.parent_frame_id, item.child_frame_id, item.stamp_ns, T[k], covs.get(k))
-            for k, item in enumerate(items)}  # fmt: skip
+    return {
+        item.child_frame_id: StampedPose(item.parent_frame_id, item.child_frame_id, item.stamp_ns, T[k], covs.get(k))
+        for k, item in enumerate(items)
+    }
 
 
 # ---------------------------------------------------------------- untrusted payloads
@@ -425,7 +454,9 @@ def marker_arrays(msg: m.MarkerObservations, check: bool = True, limits: WireLim
     return marker_batch([msg], check, limits)
 
 
-def marker_batch(msgs: Sequence[m.MarkerObservations], check: bool = True, limits: WireLimits = DEFAULT_LIMITS) -> MarkerArrays:
+def marker_batch(
+    msgs: Sequence[m.MarkerObservations], check: bool = True, limits: WireLimits = DEFAULT_LIMITS
+) -> MarkerArrays:
     """Validate every observation of the messages at once (batched numpy) and return them as arrays.
 
     ``check=False`` only converts: for messages already validated (``decode`` with
@@ -456,8 +487,14 @@ class MarkerFields:
         poses[:, :3, :3] = matrices_from_quats(r[:, 9:13])
         poses[:, :3, 3] = r[:, 6:9]
         poses[:, 3, 3] = 1.0
-        return MarkerArrays(r[:, 0].astype(np.int64), poses, r[:, 9:21].reshape(-1, 3, 4), cov.reshape(-1, 6, 6), r[:, 2] != 0,
-                            r[:, 1].astype(np.int64))  # fmt: skip
+        return MarkerArrays(
+            r[:, 0].astype(np.int64),
+            poses,
+            r[:, 9:21].reshape(-1, 3, 4),
+            cov.reshape(-1, 6, 6),
+            r[:, 2] != 0,
+            r[:, 1].astype(np.int64),
+        )
 
 
 def marker_fields(msgs: Sequence[m.MarkerObservations]) -> MarkerFields:
@@ -470,8 +507,31 @@ def marker_fields(msgs: Sequence[m.MarkerObservations]) -> MarkerFields:
             a = o.candidate_a if o.HasField("candidate_a") else p
             b = o.candidate_b if o.HasField("candidate_b") else p
             cov = o.covariance
-            rows.append((o.marker_id, i, o.ambiguous, o.side_m, len(o.corners_px), len(cov),
-                         p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw, a.qx, a.qy, a.qz, a.qw, b.qx, b.qy, b.qz, b.qw))  # fmt: skip
+            rows.append(
+                (
+                    o.marker_id,
+                    i,
+                    o.ambiguous,
+                    o.side_m,
+                    len(o.corners_px),
+                    len(cov),
+                    p.x,
+                    p.y,
+                    p.z,
+                    p.qx,
+                    p.qy,
+                    p.qz,
+                    p.qw,
+                    a.qx,
+                    a.qy,
+                    a.qz,
+                    a.qw,
+                    b.qx,
+                    b.qy,
+                    b.qz,
+                    b.qw,
+                )
+            )
             covs.append(cov)
     r = np.array(rows, dtype=np.float64).reshape(-1, 21)
     if not np.all(r[:, 5] == 36):
@@ -492,7 +552,11 @@ def _packed_covariances(msgs: Sequence[m.MarkerObservations], n: int) -> np.ndar
     (a header's bytes inside other data), and the caller reads the values one by one."""
     buf = np.frombuffer(b"".join([msg.SerializeToString() for msg in msgs]), np.uint8)
     h0, h1, h2 = _COVARIANCE_HEADER
-    hits = np.flatnonzero((buf[:-2] == h0) & (buf[1:-1] == h1) & (buf[2:] == h2)) if len(buf) > 2 else np.zeros(0, np.int64)
+    hits = (
+        np.flatnonzero((buf[:-2] == h0) & (buf[1:-1] == h1) & (buf[2:] == h2))
+        if len(buf) > 2
+        else np.zeros(0, np.int64)
+    )
     if len(hits) != n or (n and hits[-1] + 3 + 288 > len(buf)):
         return None
     return buf[(hits + 3)[:, None] + np.arange(288)].view("<f8").reshape(-1, 36)
@@ -513,19 +577,40 @@ def marker_problems(f: MarkerFields, limits: WireLimits = DEFAULT_LIMITS) -> lis
 
     flag(r[:, 4] != 8, "malformed", lambda i: f"marker {ids[i]}: {int(r[i, 4])} corner values, expected 8")
     flag(r[:, 5] != 36, "covariance", lambda i: f"marker {ids[i]} covariance: expected 36 values, got {int(r[i, 5])}")
-    flag(~(r[:, 3] > 0) | ~np.isfinite(r[:, 3]), "out_of_bounds", lambda i: f"marker {ids[i]}: side length {r[i, 3]} must be positive")
-    flag(r[:, 3] > limits.max_marker_side_m, "out_of_bounds",
-         lambda i: f"marker {ids[i]}: side length {r[i, 3]:g} m beyond {limits.max_marker_side_m:g} m")  # fmt: skip
+    flag(
+        ~(r[:, 3] > 0) | ~np.isfinite(r[:, 3]),
+        "out_of_bounds",
+        lambda i: f"marker {ids[i]}: side length {r[i, 3]} must be positive",
+    )
+    flag(
+        r[:, 3] > limits.max_marker_side_m,
+        "out_of_bounds",
+        lambda i: f"marker {ids[i]}: side length {r[i, 3]:g} m beyond {limits.max_marker_side_m:g} m",
+    )
     flag(ids > limits.max_marker_id, "out_of_bounds", lambda i: f"marker id {ids[i]} beyond {limits.max_marker_id}")
-    for name, values, quat in (("camera_T_marker", r[:, 6:13], r[:, 9:13]), ("candidate_a", r[:, 13:17], r[:, 13:17]),
-                               ("candidate_b", r[:, 17:21], r[:, 17:21])):  # fmt: skip
-        flag(~np.all(np.isfinite(values), axis=1), "not_finite", lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf")
+    for name, values, quat in (
+        ("camera_T_marker", r[:, 6:13], r[:, 9:13]),
+        ("candidate_a", r[:, 13:17], r[:, 13:17]),
+        ("candidate_b", r[:, 17:21], r[:, 17:21]),
+    ):
+        flag(
+            ~np.all(np.isfinite(values), axis=1),
+            "not_finite",
+            lambda i, name=name: f"marker {ids[i]} {name}: contains NaN or inf",
+        )
         with np.errstate(over="ignore", invalid="ignore"):  # 1e300 squared is inf: not a unit norm either way
             norms = np.linalg.norm(np.nan_to_num(quat), axis=1)
-        flag(np.abs(norms - 1.0) > 1e-3, "not_rigid",
-             lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1")  # fmt: skip
+        flag(
+            np.abs(norms - 1.0) > 1e-3,
+            "not_rigid",
+            lambda i, name=name, norms=norms: f"marker {ids[i]} {name}: quaternion norm {norms[i]:.4g} is not 1",
+        )
     far = np.abs(np.nan_to_num(r[:, 6:9])).max(axis=1, initial=0.0) > limits.max_position_m
-    flag(far, "out_of_bounds", lambda i: f"marker {ids[i]} camera_T_marker: position {r[i, 6:9].tolist()} beyond {limits.max_position_m:g} m")
+    flag(
+        far,
+        "out_of_bounds",
+        lambda i: f"marker {ids[i]} camera_T_marker: position {r[i, 6:9].tolist()} beyond {limits.max_position_m:g} m",
+    )
     for i, why in covariance_problems(f.covariances, limits):
         found.setdefault(i, (f"marker {ids[i]} covariance: {why}", "not_finite" if "NaN" in why else "covariance"))
     return [(i, why, reason) for i, (why, reason) in sorted(found.items())]
@@ -581,7 +666,9 @@ def _validate(msg: Message, payload: bytes, semantic: bool, limits: WireLimits) 
         for cam in msg.cameras:
             check_id(cam.camera_id, "estimator status camera_id")
             if not (0.0 <= cam.position_sigma_m <= limits.max_sigma_m):
-                raise DecodeError(f"estimator status sigma {cam.position_sigma_m} of {cam.camera_id!r}", "out_of_bounds")
+                raise DecodeError(
+                    f"estimator status sigma {cam.position_sigma_m} of {cam.camera_id!r}", "out_of_bounds"
+                )
     elif isinstance(msg, m.RawImage):
         _check_image_size(msg.width, msg.height, "image", limits)
         image_from_msg(msg)
@@ -601,7 +688,10 @@ def _validate(msg: Message, payload: bytes, semantic: bool, limits: WireLimits) 
             check_id(det.object_id, "object id")
             pose_from_msg(det.world_T_object, f"object {det.object_id!r}", limits)
             if not (0.0 <= det.fitness <= 1.0 and 0.0 <= det.rmse_m <= limits.max_position_m):
-                raise DecodeError(f"object {det.object_id!r}: fitness {det.fitness} or rmse {det.rmse_m} m out of range", "out_of_bounds")
+                raise DecodeError(
+                    f"object {det.object_id!r}: fitness {det.fitness} or rmse {det.rmse_m} m out of range",
+                    "out_of_bounds",
+                )
     elif isinstance(msg, m.Map):
         poses_from_msg(msg.cameras, limits)
         poses_from_msg(msg.markers, limits)
@@ -626,9 +716,13 @@ def decode(payload: bytes, msg_type: type[Msg], semantic: bool = True, limits: W
 
 #: Repeated fields whose length ``check_on_key`` bounds, per message type.
 _ITEMS = {
-    m.MarkerObservations: "markers", m.PosesWithCovariance: "poses", m.FrameTransforms: "transforms",
-    m.ObjectDetections: "objects", m.EstimatorStatus: "cameras", m.SceneUpdate: "entities",
-}  # fmt: skip
+    m.MarkerObservations: "markers",
+    m.PosesWithCovariance: "poses",
+    m.FrameTransforms: "transforms",
+    m.ObjectDetections: "objects",
+    m.EstimatorStatus: "cameras",
+    m.SceneUpdate: "entities",
+}
 #: Messages a camera's driver sends, whose ``camera_id`` must be the camera of their key.
 _CAMERA_OWNED = (m.MarkerObservations, m.DriverStatus)
 
@@ -670,4 +764,6 @@ def check_on_key(msg: Message, camera: str | None, now_ns: int, limits: WireLimi
             continue
         if not earliest <= stamp <= latest:
             ahead = (stamp - now_ns) / 1e9
-            raise DecodeError(f"{msg.DESCRIPTOR.name} stamp {stamp} ns is {ahead:+.3g} s from the receiver's clock", "stamp")
+            raise DecodeError(
+                f"{msg.DESCRIPTOR.name} stamp {stamp} ns is {ahead:+.3g} s from the receiver's clock", "stamp"
+            )

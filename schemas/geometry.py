@@ -8,7 +8,7 @@ Nothing here knows about messages or the bus (that is ``codec``).
 from __future__ import annotations
 
 import math
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -76,7 +76,9 @@ def rotation_angles(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     the trace alone loses half the digits (1e-8 rad reads as 0).
     """
     D = np.einsum("...ji,...jk->...ik", R_a, R_b)
-    s = 0.5 * np.linalg.norm(np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1), axis=-1)
+    s = 0.5 * np.linalg.norm(
+        np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1), axis=-1
+    )
     c = 0.5 * (np.trace(D, axis1=-2, axis2=-1) - 1.0)
     return np.arctan2(s, c)
 
@@ -231,7 +233,9 @@ def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(position error mm, rotation error deg) of an estimate against a reference (4, 4 each)."""
-    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000), math.degrees(rotation_angle(T_est[:3, :3], T_true[:3, :3]))
+    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000), math.degrees(
+        rotation_angle(T_est[:3, :3], T_true[:3, :3])
+    )
 
 
 # ---------------------------------------------------------------- covariances
@@ -278,7 +282,9 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     a's own frame: translation R_a^T (t_b - t_a), rotation the axis-angle of R_a^T R_b."""
     RaT = np.swapaxes(T_a[..., :3, :3], -1, -2)
     D = RaT @ T_b[..., :3, :3]
-    w = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], axis=-1)  # sin(angle) x axis
+    w = 0.5 * np.stack(
+        [D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], axis=-1
+    )  # sin(angle) x axis
     s = np.sqrt(np.einsum("...i,...i->...", w, w))
     angle = np.arctan2(s, 0.5 * (np.trace(D, axis1=-2, axis2=-1) - 1.0))
     scale = np.where(s > 1e-300, angle / np.maximum(s, 1e-300), 1.0)
@@ -293,7 +299,9 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     K = skew(w)
     small = angle < 1e-8  # series terms: sin(a)/a -> 1, (1 - cos(a))/a^2 -> 1/2
     a = np.where(small, 1.0, angle)
-    return np.eye(3) + np.where(small, 1.0, np.sin(a) / a) * K + np.where(small, 0.5, (1.0 - np.cos(a)) / a**2) * (K @ K)
+    return (
+        np.eye(3) + np.where(small, 1.0, np.sin(a) / a) * K + np.where(small, 0.5, (1.0 - np.cos(a)) / a**2) * (K @ K)
+    )
 
 
 def pose_retract(T_a: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -304,4 +312,3 @@ def pose_retract(T_a: np.ndarray, d: np.ndarray) -> np.ndarray:
     out[..., :3, :3] = T_a[..., :3, :3] @ R
     out[..., :3, 3] = T_a[..., :3, 3] + (T_a[..., :3, :3] @ d[..., :3, None])[..., 0]
     return out
-

@@ -8,7 +8,6 @@ use.
 from __future__ import annotations
 
 import functools
-
 import re
 from dataclasses import dataclass
 

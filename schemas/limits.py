@@ -35,21 +35,36 @@ class WireLimits(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     max_position_m: float = Field(
-        default=100.0, gt=0, description="largest |x|, |y| or |z| of any position received (m): the cell's size with margin")
+        default=100.0,
+        gt=0,
+        description="largest |x|, |y| or |z| of any position received (m): the cell's size with margin",
+    )
     min_sigma: float = Field(
-        default=1e-6, gt=0, description="smallest standard deviation a covariance may claim (m for positions, rad for rotations)")
+        default=1e-6,
+        gt=0,
+        description="smallest standard deviation a covariance may claim (m for positions, rad for rotations)",
+    )
     max_sigma_rad: float = Field(default=10.0, gt=0, description="largest rotation standard deviation (rad)")
     max_marker_side_m: float = Field(default=10.0, gt=0, description="largest printed marker side (m)")
-    max_marker_id: int = Field(default=65535, ge=0, description="largest marker id (OpenCV's dictionaries stop at 2,320)")
+    max_marker_id: int = Field(
+        default=65535, ge=0, description="largest marker id (OpenCV's dictionaries stop at 2,320)"
+    )
     max_items: int = Field(
-        default=65536, ge=1, description="most items in one message: markers, poses, transforms, objects, cameras")
+        default=65536, ge=1, description="most items in one message: markers, poses, transforms, objects, cameras"
+    )
     max_image_side_px: int = Field(default=16384, ge=1, description="largest image width or height (pixels)")
     max_stamp_ahead_s: float = Field(
-        default=86400.0, gt=0, description="how far a stamp may be ahead of the receiver's clock (s): a sensor whose clock "
-        "stepped is taken back onto its timeline (hours); a stamp a day ahead is not a clock")
+        default=86400.0,
+        gt=0,
+        description="how far a stamp may be ahead of the receiver's clock (s): a sensor whose clock "
+        "stepped is taken back onto its timeline (hours); a stamp a day ahead is not a clock",
+    )
     max_stamp_age_s: float | None = Field(
-        default=None, gt=0, description="how far a stamp may be behind the receiver's clock (s); unset: any positive stamp, "
-        "since `cellsight replay` publishes a log's original stamps, however old")
+        default=None,
+        gt=0,
+        description="how far a stamp may be behind the receiver's clock (s); unset: any positive stamp, "
+        "since `cellsight replay` publishes a log's original stamps, however old",
+    )
 
     @property
     def max_sigma_m(self) -> float:

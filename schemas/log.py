@@ -12,15 +12,16 @@ import io
 import logging
 import struct
 import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 from google.protobuf.message import Message
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Message as McapMessage, Metadata, Schema
+from mcap.records import Channel, Chunk, Footer, Metadata, Schema
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import MAGIC_SIZE, CRCValidationError, StreamReader
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
@@ -106,9 +107,13 @@ class LogWriter:
         return self._channels[key]
 
     def write(self, key: str, msg: Message, log_time_ns: int, publish_time_ns: int | None = None) -> None:
-        self.write_raw(key, type(msg), msg.SerializeToString(), log_time_ns, publish_time_ns or stamp_of(msg, log_time_ns))
+        self.write_raw(
+            key, type(msg), msg.SerializeToString(), log_time_ns, publish_time_ns or stamp_of(msg, log_time_ns)
+        )
 
-    def write_raw(self, key: str, msg_type: type[Message], payload: bytes, log_time_ns: int, publish_time_ns: int) -> None:
+    def write_raw(
+        self, key: str, msg_type: type[Message], payload: bytes, log_time_ns: int, publish_time_ns: int
+    ) -> None:
         """Append one message; a time MCAP cannot hold (negative, or past 2^64 ns) raises ``DecodeError``
         before anything is written: the writer would fail half-way through the record, and the log
         would not read past it."""
@@ -158,12 +163,17 @@ class ReadReport:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # MCAP metadata records by name
     unknown_keys: set[str] = field(default_factory=set)
     stopped_early: str | None = None  # where and why the log could not be read further
-    refused: dict[tuple[str, str], int] = field(default_factory=dict)  # (key, reason) -> messages skipped as implausible
+    refused: dict[tuple[str, str], int] = field(
+        default_factory=dict
+    )  # (key, reason) -> messages skipped as implausible
 
-    def gaps(self) -> list["Gap"]:
+    def gaps(self) -> list[Gap]:
         """The silences the recorder marked (metadata records ``gap/<camera>/<from_ns>``), oldest first."""
-        found = [Gap(md["camera"], int(md["from_ns"]), int(md["to_ns"])) for name, md in self.metadata.items()
-                 if name.startswith(GAP_PREFIX) and {"camera", "from_ns", "to_ns"} <= md.keys()]  # fmt: skip
+        found = [
+            Gap(md["camera"], int(md["from_ns"]), int(md["to_ns"]))
+            for name, md in self.metadata.items()
+            if name.startswith(GAP_PREFIX) and {"camera", "from_ns", "to_ns"} <= md.keys()
+        ]
         return sorted(found, key=lambda g: g.from_ns)
 
 
@@ -185,7 +195,11 @@ class Gap:
     def metadata(self) -> tuple[str, dict[str, str]]:
         """The record's name and content."""
         return f"{GAP_PREFIX}{self.camera}/{self.from_ns}", {
-            "camera": self.camera, "from_ns": str(self.from_ns), "to_ns": str(self.to_ns), "seconds": f"{self.seconds:.3f}"}
+            "camera": self.camera,
+            "from_ns": str(self.from_ns),
+            "to_ns": str(self.to_ns),
+            "seconds": f"{self.seconds:.3f}",
+        }
 
 
 def chunk_records(chunk: Chunk) -> Iterator[Channel | Schema | McapMessage]:
@@ -218,7 +232,13 @@ def chunk_records(chunk: Chunk) -> Iterator[Channel | Schema | McapMessage]:
             raise McapError(f"a record of {length} bytes runs past the end of its chunk")
         if opcode == Opcode.MESSAGE:
             channel_id, sequence, log_time, publish_time = _MESSAGE.unpack_from(data, pos)
-            yield McapMessage(channel_id=channel_id, log_time=log_time, data=data[pos + _MESSAGE.size:end], publish_time=publish_time, sequence=sequence)
+            yield McapMessage(
+                channel_id=channel_id,
+                log_time=log_time,
+                data=data[pos + _MESSAGE.size : end],
+                publish_time=publish_time,
+                sequence=sequence,
+            )
         elif opcode == Opcode.CHANNEL:
             yield Channel.read(ReadDataStream(io.BytesIO(data[pos:end])))
         elif opcode == Opcode.SCHEMA:
@@ -259,7 +279,9 @@ def read_log(
     total = Path(path).stat().st_size
     with open(path, "rb") as f:
         try:
-            for record in _records(StreamReader(_Capped(f, total), skip_magic=False, emit_chunks=True, validate_crcs=True)):
+            for record in _records(
+                StreamReader(_Capped(f, total), skip_magic=False, emit_chunks=True, validate_crcs=True)
+            ):
                 if isinstance(record, Footer):
                     if f.tell() < total - MAGIC_SIZE:  # damage that reads as a footer, not the end of the file
                         raise McapError(f"a footer record at byte {f.tell()} of {total}")
@@ -282,7 +304,9 @@ def read_log(
                         continue
                     try:
                         parsed = keys.parse(ch.topic)
-                        msg = codec.decode(record.data, parsed.message_type, parsed.message_type not in deferred, limits)
+                        msg = codec.decode(
+                            record.data, parsed.message_type, parsed.message_type not in deferred, limits
+                        )
                         codec.check_on_key(msg, parsed.camera, record.log_time, limits)
                     except DecodeError as exc:
                         report.undecodable += 1

@@ -81,12 +81,14 @@ class Ros2Node:
         key = f"{ADMIN_SPACE}/{self.node.domain_id}/{self._zid}/{self._node_id}/{self._node_id}/NN/%/{mangle(self.node.namespace)}/{mangle(self.node.name)}"
         self._tokens.append(self.session.liveliness().declare_token(key))
 
-    def publisher(self, topic: str, typename: str, qos: str = QOS_DEFAULT) -> "Ros2Publisher":
+    def publisher(self, topic: str, typename: str, qos: str = QOS_DEFAULT) -> Ros2Publisher:
         """A publisher on ``topic`` (absolute, e.g. ``/tf``) of ``typename`` (``tf2_msgs/msg/TFMessage``)."""
         type_hash = self.types.type_hash(typename)
         entity = next(self._entities)
-        token = (f"{ADMIN_SPACE}/{self.node.domain_id}/{self._zid}/{self._node_id}/{entity}/MP/%/{mangle(self.node.namespace)}/"
-                 f"{mangle(self.node.name)}/{mangle(topic)}/{dds_type_name(typename)}/{type_hash}/{qos}")  # fmt: skip
+        token = (
+            f"{ADMIN_SPACE}/{self.node.domain_id}/{self._zid}/{self._node_id}/{entity}/MP/%/{mangle(self.node.namespace)}/"
+            f"{mangle(self.node.name)}/{mangle(topic)}/{dds_type_name(typename)}/{type_hash}/{qos}"
+        )
         self._tokens.append(self.session.liveliness().declare_token(token))
         key = topic_key(self.node.domain_id, topic, typename, type_hash)
         return Ros2Publisher(self.session.declare_publisher(key), typename, self.types, uuid.uuid4().bytes)

@@ -9,10 +9,11 @@ the same data a ROS 2 tool reads (``cellsight export ros2``).
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
-from typing import Any, Iterable, Literal, Mapping
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -37,10 +38,16 @@ class Ros2Config(BaseModel):
 
     enabled: bool = Field(default=False, description="publish /tf, /tf_static and camera poses as rmw_zenoh does")
     domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots that read them")
-    distro: Literal["jazzy", "humble"] = Field(default="jazzy", description="jazzy and later: RIHS01 type hashes; humble: none")
+    distro: Literal["jazzy", "humble"] = Field(
+        default="jazzy", description="jazzy and later: RIHS01 type hashes; humble: none"
+    )
     node: str = Field(default="cellsight_estimator", description="the ROS 2 node name the estimator appears as")
-    recognition_node: str = Field(default="cellsight_recognition", description="the node name the recognition worker appears as")
-    static_every_s: float = Field(default=1.0, gt=0, description="/tf_static (anchors) is re-sent this often for late joiners")
+    recognition_node: str = Field(
+        default="cellsight_recognition", description="the node name the recognition worker appears as"
+    )
+    static_every_s: float = Field(
+        default=1.0, gt=0, description="/tf_static (anchors) is re-sent this often for late joiners"
+    )
 
 
 def optical_frame(camera_id: str) -> str:
@@ -85,8 +92,10 @@ class Ros2Types:
     def _xyz_quat(self, T: np.ndarray, xyz_type: str) -> tuple[Any, Any]:
         """The translation of a 4x4 pose as ``xyz_type`` (Point or Vector3) and its rotation as a Quaternion."""
         q = quat_from_matrix(T[:3, :3])
-        return (self._t(xyz_type)(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))  # fmt: skip
+        return (
+            self._t(xyz_type)(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+            self._t("geometry_msgs/msg/Quaternion")(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
 
     def pose(self, T: np.ndarray) -> Any:
         point, quat = self._xyz_quat(T, "geometry_msgs/msg/Point")
@@ -98,28 +107,49 @@ class Ros2Types:
         for parent, child, T in transforms:
             vector, quat = self._xyz_quat(T, "geometry_msgs/msg/Vector3")
             tr = self._t("geometry_msgs/msg/Transform")(translation=vector, rotation=quat)
-            out.append(self._t("geometry_msgs/msg/TransformStamped")(header=self.header(stamp_ns, parent), child_frame_id=child, transform=tr))
+            out.append(
+                self._t("geometry_msgs/msg/TransformStamped")(
+                    header=self.header(stamp_ns, parent), child_frame_id=child, transform=tr
+                )
+            )
         return self._t("tf2_msgs/msg/TFMessage")(transforms=out)
 
     def pose_with_covariance(self, stamp_ns: int, frame_id: str, T: np.ndarray, covariance: np.ndarray | None) -> Any:
         """geometry_msgs/PoseWithCovarianceStamped; the 6x6 covariance in ROS order (x y z rx ry rz),
         as ours is; unknown covariance: zeros but -1 first (the ROS convention for "unknown")."""
-        cov = np.asarray(covariance, dtype=np.float64).reshape(36) if covariance is not None else np.r_[-1.0, np.zeros(35)]
+        cov = (
+            np.asarray(covariance, dtype=np.float64).reshape(36)
+            if covariance is not None
+            else np.r_[-1.0, np.zeros(35)]
+        )
         inner = self._t("geometry_msgs/msg/PoseWithCovariance")(pose=self.pose(T), covariance=cov)
-        return self._t("geometry_msgs/msg/PoseWithCovarianceStamped")(header=self.header(stamp_ns, frame_id), pose=inner)
+        return self._t("geometry_msgs/msg/PoseWithCovarianceStamped")(
+            header=self.header(stamp_ns, frame_id), pose=inner
+        )
 
     def pose_array(self, stamp_ns: int, frame_id: str, poses: Iterable[np.ndarray]) -> Any:
-        return self._t("geometry_msgs/msg/PoseArray")(header=self.header(stamp_ns, frame_id), poses=[self.pose(T) for T in poses])
+        return self._t("geometry_msgs/msg/PoseArray")(
+            header=self.header(stamp_ns, frame_id), poses=[self.pose(T) for T in poses]
+        )
 
     def image(self, stamp_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> Any:
         """sensor_msgs/Image of an (H, W, 3) rgb8 or (H, W) 16UC1 array."""
         pixels = np.ascontiguousarray(pixels)
         h, w = pixels.shape[:2]
         step = w * (pixels.shape[2] if pixels.ndim == 3 else 1) * pixels.dtype.itemsize
-        return self._t("sensor_msgs/msg/Image")(header=self.header(stamp_ns, frame_id), height=h, width=w, encoding=encoding,
-                                                is_bigendian=0, step=step, data=pixels.view(np.uint8).reshape(-1))  # fmt: skip
+        return self._t("sensor_msgs/msg/Image")(
+            header=self.header(stamp_ns, frame_id),
+            height=h,
+            width=w,
+            encoding=encoding,
+            is_bigendian=0,
+            step=step,
+            data=pixels.view(np.uint8).reshape(-1),
+        )
 
-    def detections(self, msg: m.ObjectDetections, boxes: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Any:
+    def detections(
+        self, msg: m.ObjectDetections, boxes: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None
+    ) -> Any:
         """vision_msgs/Detection3DArray (world frame) of our fused objects: class id and ``id`` are
         the object id, score its fitness, pose covariance unknown. ``boxes``: object id -> (box
         centre in the object frame (3,), size (3,)) in metres; without one the box is the pose, size 0."""
@@ -132,10 +162,18 @@ class Ros2Types:
             box_T[:3, 3] = T[:3, :3] @ centre + T[:3, 3]
             pose = t("geometry_msgs/msg/PoseWithCovariance")(pose=self.pose(T), covariance=np.r_[-1.0, np.zeros(35)])
             hyp = t("vision_msgs/msg/ObjectHypothesisWithPose")(
-                hypothesis=t("vision_msgs/msg/ObjectHypothesis")(class_id=o.object_id, score=float(o.fitness)), pose=pose)
+                hypothesis=t("vision_msgs/msg/ObjectHypothesis")(class_id=o.object_id, score=float(o.fitness)),
+                pose=pose,
+            )
             size_v = t("geometry_msgs/msg/Vector3")(x=float(size[0]), y=float(size[1]), z=float(size[2]))
-            out.append(t("vision_msgs/msg/Detection3D")(header=self.header(o.stamp_ns, WORLD), results=[hyp],
-                                                        bbox=t("vision_msgs/msg/BoundingBox3D")(center=self.pose(box_T), size=size_v), id=o.object_id))  # fmt: skip
+            out.append(
+                t("vision_msgs/msg/Detection3D")(
+                    header=self.header(o.stamp_ns, WORLD),
+                    results=[hyp],
+                    bbox=t("vision_msgs/msg/BoundingBox3D")(center=self.pose(box_T), size=size_v),
+                    id=o.object_id,
+                )
+            )
         return t(DETECTIONS)(header=self.header(msg.stamp_ns, WORLD), detections=out)
 
     def point_cloud(self, stamp_ns: int, frame_id: str, xyz: np.ndarray, rgba: np.ndarray) -> Any:
@@ -146,22 +184,40 @@ class Ros2Types:
         rgb = (rgba[:, 0].astype(np.uint32) << 16) | (rgba[:, 1].astype(np.uint32) << 8) | rgba[:, 2].astype(np.uint32)
         packed[:, 3] = rgb.view(np.float32)
         field = self._t("sensor_msgs/msg/PointField")
-        fields = [field(name=n, offset=4 * i, datatype=field.FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))]
-        return self._t(CLOUD)(header=self.header(stamp_ns, frame_id), height=1, width=len(xyz),
-                              fields=fields, is_bigendian=False, point_step=16, row_step=16 * len(xyz),
-                              data=packed.view(np.uint8).reshape(-1), is_dense=True)  # fmt: skip
+        fields = [
+            field(name=n, offset=4 * i, datatype=field.FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "rgb"))
+        ]
+        return self._t(CLOUD)(
+            header=self.header(stamp_ns, frame_id),
+            height=1,
+            width=len(xyz),
+            fields=fields,
+            is_bigendian=False,
+            point_step=16,
+            row_step=16 * len(xyz),
+            data=packed.view(np.uint8).reshape(-1),
+            is_dense=True,
+        )
 
     def camera_info(self, stamp_ns: int, frame_id: str, width: int, height: int, K: np.ndarray, D: np.ndarray) -> Any:
         P = np.hstack([np.asarray(K, np.float64), np.zeros((3, 1))])
         roi = self._t("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         return self._t("sensor_msgs/msg/CameraInfo")(
-            header=self.header(stamp_ns, frame_id), height=height, width=width, distortion_model="plumb_bob",
-            d=np.asarray(D, np.float64), k=np.asarray(K, np.float64).reshape(9), r=np.eye(3).reshape(9), p=P.reshape(12),
-            binning_x=0, binning_y=0, roi=roi,
-        )  # fmt: skip
+            header=self.header(stamp_ns, frame_id),
+            height=height,
+            width=width,
+            distortion_model="plumb_bob",
+            d=np.asarray(D, np.float64),
+            k=np.asarray(K, np.float64).reshape(9),
+            r=np.eye(3).reshape(9),
+            p=P.reshape(12),
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+        )
 
 
-@lru_cache(maxsize=None)
+@cache
 def ros2_types(distro: str = "jazzy") -> Ros2Types:
     """The message types of ``distro`` (``jazzy``: RIHS01 type hashes; ``humble``: none), with the
     packages we ship definitions of (``SHIPPED_MSGS``) registered."""

@@ -72,8 +72,13 @@ OWNS: dict[str, frozenset[str]] = {
     "edge": frozenset({"truth"}),
 }
 #: The liveliness component each role may hold tokens under (``alive/<component>/<id>``); none for the rest.
-ALIVE: dict[str, str] = {"driver": "driver", "estimator": "estimator", "recognition": "recognition", "recorder": "recorder",
-                         "edge": "driver"}  # fmt: skip
+ALIVE: dict[str, str] = {
+    "driver": "driver",
+    "estimator": "estimator",
+    "recognition": "recognition",
+    "recorder": "recorder",
+    "edge": "driver",
+}
 ROLES = tuple(PUBLISH)
 #: The roles whose processes are zenoh clients (``edge`` is a router).
 CLIENT_ROLES = tuple(role for role in ROLES if role != "edge")
@@ -99,16 +104,22 @@ def _key() -> ec.EllipticCurvePrivateKey:
 
 
 def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
-    path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                                       serialization.NoEncryption()))
+    path.write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
     path.chmod(0o600)
 
 
 def _certificate(
-    subject: str, key: ec.EllipticCurvePrivateKey, issuer: x509.Certificate | None, issuer_key: ec.EllipticCurvePrivateKey,
-    *, ca: bool = False, hosts: tuple[str, ...] = (),
+    subject: str,
+    key: ec.EllipticCurvePrivateKey,
+    issuer: x509.Certificate | None,
+    issuer_key: ec.EllipticCurvePrivateKey,
+    *,
+    ca: bool = False,
+    hosts: tuple[str, ...] = (),
 ) -> x509.Certificate:
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)])
     builder = (
         x509.CertificateBuilder()
@@ -122,12 +133,23 @@ def _certificate(
     )
     if ca:
         builder = builder.add_extension(
-            x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True, content_commitment=False,
-                          key_encipherment=False, data_encipherment=False, key_agreement=False,
-                          encipher_only=False, decipher_only=False), critical=True)
+            x509.KeyUsage(
+                digital_signature=True,
+                key_cert_sign=True,
+                crl_sign=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
     else:
         builder = builder.add_extension(
-            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False
+        )
         names: list[x509.GeneralName] = []
         for host in hosts:
             try:
@@ -139,8 +161,9 @@ def _certificate(
     return builder.sign(issuer_key, hashes.SHA256())
 
 
-def _issue(directory: Path, name: str, ca: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey,
-           hosts: tuple[str, ...] = ()) -> tuple[Path, Path]:
+def _issue(
+    directory: Path, name: str, ca: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey, hosts: tuple[str, ...] = ()
+) -> tuple[Path, Path]:
     key = _key()
     cert = _certificate(name, key, ca, ca_key, hosts=hosts)
     cert_path, key_path = directory / f"{name}.pem", directory / f"{name}.key"
@@ -158,31 +181,74 @@ def acl(cell: str, ros2_domain: int | None = None) -> dict:
         readable += [f"{int(ros2_domain)}/**", f"@ros2_lv/{int(ros2_domain)}/**"]
     ros2_graph = [f"@ros2_lv/{int(ros2_domain)}/**"] if ros2_domain is not None else []
     rules = [
-        {"id": "read", "permission": "allow", "flows": ["ingress"],
-         "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
-         "key_exprs": readable},
+        {
+            "id": "read",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
+            "key_exprs": readable,
+        },
         # What the router hands out to subscribers and queriers.
-        {"id": "deliver", "permission": "allow", "flows": ["egress"],
-         "messages": ["put", "delete", "reply", "query", "liveliness_token", "declare_subscriber",
-                      "declare_queryable", "declare_liveliness_subscriber", "liveliness_query"],
-         "key_exprs": readable},
-        {"id": "answer_map", "permission": "allow", "flows": ["ingress"],
-         "messages": ["declare_queryable", "reply"], "key_exprs": [keys.estimate_map(cell)]},
+        {
+            "id": "deliver",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": [
+                "put",
+                "delete",
+                "reply",
+                "query",
+                "liveliness_token",
+                "declare_subscriber",
+                "declare_queryable",
+                "declare_liveliness_subscriber",
+                "liveliness_query",
+            ],
+            "key_exprs": readable,
+        },
+        {
+            "id": "answer_map",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["declare_queryable", "reply"],
+            "key_exprs": [keys.estimate_map(cell)],
+        },
     ]
     own_rules: dict[str, list[str]] = {role: [] for role in ROLES}
     for role, topics in PUBLISH.items():
         ros2 = [f"{int(ros2_domain)}/{t}" for t in PUBLISH_ROS2.get(role, [])] if ros2_domain is not None else []
         if topics:
-            rules.append({"id": f"publish_{role}", "permission": "allow", "flows": ["ingress"],
-                          "messages": ["put", "delete"], "key_exprs": [f"{base}/{t}" for t in topics] + ros2})
+            rules.append(
+                {
+                    "id": f"publish_{role}",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["put", "delete"],
+                    "key_exprs": [f"{base}/{t}" for t in topics] + ros2,
+                }
+            )
             foreign = sorted(keys.RESERVED - OWNS.get(role, frozenset()))
-            rules.append({"id": f"deny_foreign_{role}", "permission": "deny", "flows": ["ingress"],
-                          "messages": ["put", "delete"], "key_exprs": [f"{base}/{r}/**" for r in foreign]})
+            rules.append(
+                {
+                    "id": f"deny_foreign_{role}",
+                    "permission": "deny",
+                    "flows": ["ingress"],
+                    "messages": ["put", "delete"],
+                    "key_exprs": [f"{base}/{r}/**" for r in foreign],
+                }
+            )
             own_rules[role] += [f"publish_{role}", f"deny_foreign_{role}"]
         tokens = ([f"{base}/alive/{ALIVE[role]}/*"] if role in ALIVE else []) + ros2_graph
         if tokens:
-            rules.append({"id": f"alive_{role}", "permission": "allow", "flows": ["ingress"],
-                          "messages": ["liveliness_token"], "key_exprs": tokens})
+            rules.append(
+                {
+                    "id": f"alive_{role}",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["liveliness_token"],
+                    "key_exprs": tokens,
+                }
+            )
             own_rules[role].append(f"alive_{role}")
     subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
     policies = [{"rules": ["read", "deliver"], "subjects": list(ROLES)}]
@@ -209,7 +275,7 @@ class AccessCell:
 
 def _may_put(role: str, cell: str, key: str) -> bool:
     base = f"{keys.ROOT}/{cell}"
-    first = key[len(base) + 1:].split("/")[0]
+    first = key[len(base) + 1 :].split("/")[0]
     if first in keys.RESERVED and first not in OWNS.get(role, frozenset()):
         return False
     return any(zenoh.KeyExpr(f"{base}/{t}").intersects(zenoh.KeyExpr(key)) for t in PUBLISH[role])
@@ -230,7 +296,15 @@ def access_matrix(cell: str, camera: str = "cam1") -> list[AccessCell]:
             out.append(AccessCell(role, family, key, "put", _may_put(role, cell, key)))
             out.append(AccessCell(role, family, key, "subscribe", True))
         for comp in components:
-            out.append(AccessCell(role, f"alive/{comp}", keys.alive(cell, comp, f"probe_{role}"), "liveliness", ALIVE.get(role) == comp))
+            out.append(
+                AccessCell(
+                    role,
+                    f"alive/{comp}",
+                    keys.alive(cell, comp, f"probe_{role}"),
+                    "liveliness",
+                    ALIVE.get(role) == comp,
+                )
+            )
         out.append(AccessCell(role, "estimate/map", keys.estimate_map(cell), "query", True))
         out.append(AccessCell(role, "estimate/map", keys.estimate_map(cell), "answer", role == "estimator"))
     return out
@@ -251,8 +325,13 @@ def matrix_markdown(cell: str = "demo") -> str:
     return "\n".join(lines)
 
 
-def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447", hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),
-                  ros2_domain: int | None = None) -> Profile:  # fmt: skip
+def write_profile(
+    directory: Path,
+    cell: str,
+    listen: str = "tls/127.0.0.1:7447",
+    hosts: tuple[str, ...] = ("127.0.0.1", "localhost"),
+    ros2_domain: int | None = None,
+) -> Profile:
     """Write a CA, the router's and every role's certificate and zenoh config into ``directory``.
 
     listen: the router's TLS endpoint; hosts: the names and addresses clients reach it by (they
@@ -275,9 +354,17 @@ def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447"
         "listen": {"endpoints": [listen]},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {"protocols": ["tls"], "tls": {
-            "root_ca_certificate": str(ca_path), "listen_certificate": str(router_cert),
-            "listen_private_key": str(router_key), "enable_mtls": True}}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(ca_path),
+                    "listen_certificate": str(router_cert),
+                    "listen_private_key": str(router_key),
+                    "enable_mtls": True,
+                },
+            }
+        },
         "access_control": acl(cell, ros2_domain),
     }
     router_config = directory / "router.json5"
@@ -290,9 +377,17 @@ def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447"
             "mode": "client",
             "connect": {"endpoints": [endpoint]},
             "scouting": {"multicast": {"enabled": False}},
-            "transport": {"link": {"protocols": ["tls"], "tls": {
-                "root_ca_certificate": str(ca_path), "connect_certificate": str(cert),
-                "connect_private_key": str(key), "enable_mtls": True}}},
+            "transport": {
+                "link": {
+                    "protocols": ["tls"],
+                    "tls": {
+                        "root_ca_certificate": str(ca_path),
+                        "connect_certificate": str(cert),
+                        "connect_private_key": str(key),
+                        "enable_mtls": True,
+                    },
+                }
+            },
         }
         role_configs[role] = directory / f"{role}.json5"
         role_configs[role].write_text(json.dumps(cfg, indent=2))
@@ -302,10 +397,19 @@ def write_profile(directory: Path, cell: str, listen: str = "tls/127.0.0.1:7447"
         "listen": {"endpoints": [EDGE_LISTEN]},
         "connect": {"endpoints": [endpoint]},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {"protocols": ["tls"], "tls": {
-            "root_ca_certificate": str(ca_path), "enable_mtls": True,
-            "listen_certificate": str(edge_cert), "listen_private_key": str(edge_key),
-            "connect_certificate": str(edge_cert), "connect_private_key": str(edge_key)}}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(ca_path),
+                    "enable_mtls": True,
+                    "listen_certificate": str(edge_cert),
+                    "listen_private_key": str(edge_key),
+                    "connect_certificate": str(edge_cert),
+                    "connect_private_key": str(edge_key),
+                },
+            }
+        },
     }
     edge_config = directory / "edge_router.json5"
     edge_config.write_text(json.dumps(edge, indent=2))

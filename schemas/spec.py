@@ -1,10 +1,10 @@
 """How a pose is written in TOML files (scenarios, anchors): a position plus one orientation form.
 
-    position = [1.0, 0.0, 0.8]     # metres
-    rpy_deg = [0, 0, 90]           # roll-pitch-yaw (extrinsic x, y, z), or
-    quaternion = [0, 0, 0, 1]      # (x, y, z, w), or
-    look_at = [0, 0, 0]            # optical frame: z toward the point, y down (cameras), or
-    normal = [0, 0, 1]             # marker frame: z out of the face, y toward ``up`` (markers)
+position = [1.0, 0.0, 0.8]     # metres
+rpy_deg = [0, 0, 90]           # roll-pitch-yaw (extrinsic x, y, z), or
+quaternion = [0, 0, 0, 1]      # (x, y, z, w), or
+look_at = [0, 0, 0]            # optical frame: z toward the point, y down (cameras), or
+normal = [0, 0, 1]             # marker frame: z out of the face, y toward ``up`` (markers)
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ class PoseSpec(BaseModel):
     up: Vec3 | None = None
 
     @model_validator(mode="after")
-    def _one_orientation(self) -> "PoseSpec":
+    def _one_orientation(self) -> PoseSpec:
         given = [n for n in ("rpy_deg", "quaternion", "look_at", "normal") if getattr(self, n) is not None]
         if len(given) > 1:
             raise ValueError(f"give one orientation, not {' and '.join(given)}")

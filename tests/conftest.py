@@ -12,10 +12,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import socket  # noqa: E402
-from contextlib import contextmanager  # noqa: E402
 import subprocess  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Iterator  # noqa: E402
 
 import pytest  # noqa: E402
 
@@ -66,7 +66,9 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
     Mounting needs root, which the set-up and CI run as."""
     where = tmp_path / "disk"
     where.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(where)], capture_output=True, text=True)
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(where)], capture_output=True, text=True
+    )
     if mounted.returncode != 0:
         # Set-up and CI run as root, where this must work; elsewhere say so rather than skip quietly.
         pytest.fail(f"cannot mount a small tmpfs to fill: {mounted.stderr.strip()} (needs root, as set-up and CI run)")
@@ -85,13 +87,29 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 #: The ROS 2 message definitions the rmw_zenoh tests' third-party peer (zenoh-ros2-sdk) needs.
-ROS2_MESSAGES = ("tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform",
-                 "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion", "std_msgs/msg/Header", "builtin_interfaces/msg/Time",
-                 "geometry_msgs/msg/PoseWithCovarianceStamped", "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Pose",
-                 "geometry_msgs/msg/Point", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "sensor_msgs/msg/RegionOfInterest",
-                 "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/PointField", "vision_msgs/msg/Detection3DArray",
-                 "vision_msgs/msg/Detection3D", "vision_msgs/msg/ObjectHypothesisWithPose", "vision_msgs/msg/ObjectHypothesis",
-                 "vision_msgs/msg/BoundingBox3D")  # fmt: skip
+ROS2_MESSAGES = (
+    "tf2_msgs/msg/TFMessage",
+    "geometry_msgs/msg/TransformStamped",
+    "geometry_msgs/msg/Transform",
+    "geometry_msgs/msg/Vector3",
+    "geometry_msgs/msg/Quaternion",
+    "std_msgs/msg/Header",
+    "builtin_interfaces/msg/Time",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/PoseWithCovariance",
+    "geometry_msgs/msg/Pose",
+    "geometry_msgs/msg/Point",
+    "sensor_msgs/msg/Image",
+    "sensor_msgs/msg/CameraInfo",
+    "sensor_msgs/msg/RegionOfInterest",
+    "sensor_msgs/msg/PointCloud2",
+    "sensor_msgs/msg/PointField",
+    "vision_msgs/msg/Detection3DArray",
+    "vision_msgs/msg/Detection3D",
+    "vision_msgs/msg/ObjectHypothesisWithPose",
+    "vision_msgs/msg/ObjectHypothesis",
+    "vision_msgs/msg/BoundingBox3D",
+)
 
 
 @pytest.fixture(scope="session")
@@ -108,7 +126,9 @@ def ros2_messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for name in ROS2_MESSAGES:
         package, kind, msg = name.split("/")
         (root / package / kind).mkdir(parents=True, exist_ok=True)
-        (root / package / kind / f"{msg}.msg").write_text(store.generate_msgdef(name, ros_version=2)[0].split("=" * 80)[0].strip() + "\n")
+        (root / package / kind / f"{msg}.msg").write_text(
+            store.generate_msgdef(name, ros_version=2)[0].split("=" * 80)[0].strip() + "\n"
+        )
     registry = get_registry(str(root))
     if registry.messages_dir != root:
         pytest.fail(f"zenoh-ros2-sdk's registry was set up elsewhere first ({registry.messages_dir})")

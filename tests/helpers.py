@@ -7,8 +7,8 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 from google.protobuf.message import Message
@@ -19,7 +19,9 @@ from cellsight.launch import STOP_BOUND_S
 from schemas.geometry import pose_error
 
 
-def assert_pose_close(T_a: np.ndarray, T_b: np.ndarray, pos_tol_m: float, rot_tol_deg: float, what: str = "pose") -> None:
+def assert_pose_close(
+    T_a: np.ndarray, T_b: np.ndarray, pos_tol_m: float, rot_tol_deg: float, what: str = "pose"
+) -> None:
     """Fail unless the two 4x4 poses agree within the translation and rotation tolerances."""
     dp_mm, dr = pose_error(T_a, T_b)
     assert dp_mm <= pos_tol_m * 1000 and dr <= rot_tol_deg, (
@@ -42,7 +44,9 @@ def logged_messages(path: Path, log_time_order: bool = True) -> Iterator[tuple[s
     """(topic, decoded protobuf) of every message in an MCAP file, through mcap's own reader and
     the schemas embedded in the file: an independent check of what our writer wrote."""
     with path.open("rb") as f:
-        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(log_time_order=log_time_order):
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+            log_time_order=log_time_order
+        ):
             yield channel.topic, msg
 
 
@@ -52,8 +56,13 @@ def ros2_subscriber(endpoint: str, topic: str, msg_type: str) -> tuple[object, l
     from zenoh_ros2_sdk import ROS2Subscriber
 
     got: list = []
-    sub = ROS2Subscriber(topic=topic, msg_type=msg_type, callback=got.append, router_ip="127.0.0.1",
-                         router_port=int(endpoint.rsplit(":", 1)[1]))  # fmt: skip
+    sub = ROS2Subscriber(
+        topic=topic,
+        msg_type=msg_type,
+        callback=got.append,
+        router_ip="127.0.0.1",
+        router_port=int(endpoint.rsplit(":", 1)[1]),
+    )
     return sub, got
 
 
@@ -62,8 +71,17 @@ def ros_matrix(translation, rotation) -> np.ndarray:
     from CDR by a ROS 2 implementation; through our own message so the quaternion is checked."""
     from schemas import codec
 
-    return codec.pose_from_msg(codec.m.Pose(x=translation.x, y=translation.y, z=translation.z,
-                                            qx=rotation.x, qy=rotation.y, qz=rotation.z, qw=rotation.w))  # fmt: skip
+    return codec.pose_from_msg(
+        codec.m.Pose(
+            x=translation.x,
+            y=translation.y,
+            z=translation.z,
+            qx=rotation.x,
+            qy=rotation.y,
+            qz=rotation.z,
+            qw=rotation.w,
+        )
+    )
 
 
 def stop_launcher(proc: subprocess.Popen, run_dir: Path, sig: int = signal.SIGTERM) -> None:
@@ -87,5 +105,7 @@ def stop_launcher(proc: subprocess.Popen, run_dir: Path, sig: int = signal.SIGTE
             pass
     proc.kill()
     _, err = proc.communicate()
-    raise AssertionError(f"the launcher did not stop within {STOP_BOUND_S + 15.0:.0f} s; killed it and {alive}; "
-                         f"it said: {(err or '')[-1500:]}")
+    raise AssertionError(
+        f"the launcher did not stop within {STOP_BOUND_S + 15.0:.0f} s; killed it and {alive}; "
+        f"it said: {(err or '')[-1500:]}"
+    )

@@ -11,9 +11,10 @@ import json
 import os
 import shutil
 import subprocess
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO
 
 CELL_IP, EDGE_IP = "10.213.7.1", "10.213.7.2"
 CELL_DEV, EDGE_DEV = "cs-veth-c", "cs-veth-e"
@@ -56,7 +57,9 @@ def in_ns(ns: str, argv: list[str], log: Path | None = None, stdout: int | IO | 
 
 def rx_bytes(ns: str, dev: str = CELL_DEV) -> int:
     """Bytes received so far on a namespace's interface."""
-    out = subprocess.run(["ip", "-n", ns, "-j", "-s", "link", "show", dev], check=True, capture_output=True, text=True).stdout
+    out = subprocess.run(
+        ["ip", "-n", ns, "-j", "-s", "link", "show", dev], check=True, capture_output=True, text=True
+    ).stdout
     return int(json.loads(out)[0]["stats64"]["rx"]["bytes"])
 
 

@@ -330,7 +330,12 @@ def shade_rgb(color: np.ndarray, info: CameraInfo, noise, rng: np.random.Generat
         img = img + rng.normal(0.0, noise.rgb_sigma, size=img.shape).astype(np.float32)
     if noise.enabled and tuple(noise.rgb_shift_px) != (0, 0):
         shift = np.float32([[1, 0, noise.rgb_shift_px[0]], [0, 1, noise.rgb_shift_px[1]]])
-        img = cv2.warpAffine(np.ascontiguousarray(img, dtype=np.float32), shift, (info.width, info.height), borderMode=cv2.BORDER_REPLICATE)
+        img = cv2.warpAffine(
+            np.ascontiguousarray(img, dtype=np.float32),
+            shift,
+            (info.width, info.height),
+            borderMode=cv2.BORDER_REPLICATE,
+        )
     return np.clip(img, 0, 255).astype(np.uint8)
 
 

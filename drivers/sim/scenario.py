@@ -16,10 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from drivers.config import IntrinsicsConfig
 from drivers.errors import ScenarioError
 from schemas.codec import CameraInfo
-from schemas.geometry import make_pose
+from schemas.geometry import make_pose, rpy_matrix
 from schemas.keys import check_name
 from schemas.spec import PoseSpec, format_validation_error, read_toml
-from schemas.geometry import rpy_matrix
 
 DEMO_CELL = Path(__file__).with_name("demo_cell.toml")
 Vec3 = tuple[float, float, float]
@@ -37,7 +36,7 @@ class BoxSpec(_Strict):
     color: Vec3 = (0.6, 0.6, 0.6)
 
     @model_validator(mode="after")
-    def _positive(self) -> "BoxSpec":
+    def _positive(self) -> BoxSpec:
         if min(self.size) <= 0:
             raise ValueError(f"box size must be positive, got {self.size}")
         return self
@@ -61,7 +60,7 @@ class ObjectSpec(_Strict):
     motion: ObjectMotion = Field(default_factory=ObjectMotion)
 
     @model_validator(mode="after")
-    def _valid(self) -> "ObjectSpec":
+    def _valid(self) -> ObjectSpec:
         check_name(self.id, "object id")
         if self.shape == "mesh" and self.mesh is None:
             raise ValueError(f"object {self.id}: shape 'mesh' needs a mesh file")
@@ -69,15 +68,17 @@ class ObjectSpec(_Strict):
             raise ValueError(f"object {self.id}: size must be positive")
         return self
 
-    def still(self) -> "ObjectSpec":
+    def still(self) -> ObjectSpec:
         """The object standing still where it starts."""
         return self.model_copy(update={"motion": self.motion.model_copy(update={"kind": "static"})})
 
-    def laid_on_side(self, base_xy: tuple[float, float], yaw_deg: float, table_z: float) -> "ObjectSpec":
+    def laid_on_side(self, base_xy: tuple[float, float], yaw_deg: float, table_z: float) -> ObjectSpec:
         """The object still, lying on a table at height table_z (m): turned a quarter about its x
         axis (its height along the table), its base centre above base_xy (m), turned by yaw_deg."""
         up = self.size[0] if self.shape == "cylinder" else 0.5 * self.size[1]  # its y (a cylinder's radius) is now up
-        pose = PoseSpec(position=(float(base_xy[0]), float(base_xy[1]), table_z + up), rpy_deg=(90.0, 0.0, float(yaw_deg)))
+        pose = PoseSpec(
+            position=(float(base_xy[0]), float(base_xy[1]), table_z + up), rpy_deg=(90.0, 0.0, float(yaw_deg))
+        )
         return self.still().model_copy(update={"pose": pose})
 
     def world_T_object(self, t_s: float) -> np.ndarray:
@@ -100,7 +101,7 @@ class MarkerSpec(_Strict):
     sigma_rotation_deg: float = Field(default=0.1, gt=0, description="anchors: surveyed rotation sigma")
 
     @model_validator(mode="after")
-    def _role(self) -> "MarkerSpec":
+    def _role(self) -> MarkerSpec:
         if (self.role == "object") != (self.object is not None):
             raise ValueError(f"marker {self.id}: role 'object' and an 'object' id go together")
         return self
@@ -158,21 +159,25 @@ class CameraSpec(_Strict):
     motion: list[CameraMotion] = Field(default_factory=list)
 
     @model_validator(mode="after")
-    def _id(self) -> "CameraSpec":
+    def _id(self) -> CameraSpec:
         check_name(self.id, "camera id")
         return self
 
-    def moved_in(self, distance_m: float, height_m: float, look_at: Vec3) -> "CameraSpec":
+    def moved_in(self, distance_m: float, height_m: float, look_at: Vec3) -> CameraSpec:
         """The camera still, moved along its horizontal line to the world z axis until distance_m
         from it (m), height_m up, looking at look_at (m)."""
         xy = distance_m * np.array(self.pose.position[:2]) / np.hypot(*self.pose.position[:2])
-        return self.model_copy(update={"pose": PoseSpec(position=(float(xy[0]), float(xy[1]), height_m), look_at=look_at), "motion": []})
+        return self.model_copy(
+            update={"pose": PoseSpec(position=(float(xy[0]), float(xy[1]), height_m), look_at=look_at), "motion": []}
+        )
 
     def camera_info(self) -> CameraInfo:
         if self.intrinsics is None:
             return CameraInfo.kinect_v1(self.width, self.height)
         i = self.intrinsics
-        return CameraInfo(self.width, self.height, np.array([[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1.0]]), np.array(i.distortion))
+        return CameraInfo(
+            self.width, self.height, np.array([[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1.0]]), np.array(i.distortion)
+        )
 
     def world_T_camera(self, t_s: float) -> np.ndarray:
         T = self.pose.matrix()
@@ -197,17 +202,22 @@ class NoiseSpec(_Strict):
     grazing_cos: float = Field(default=0.12, ge=0, lt=1, description="drop depth where cos(incidence) is below")
     edge_jump_m: float = Field(default=0.04, gt=0, description="drop depth next to jumps larger than this x z")
     flying_pixels: bool = Field(
-        default=False, description="next to those jumps return a depth between the near and the far surface (a mixed "
+        default=False,
+        description="next to those jumps return a depth between the near and the far surface (a mixed "
         "pixel, as time-of-flight and some stereo sensors give) instead of none",
     )
     white_balance: Vec3 = Field(
-        default=(1.0, 1.0, 1.0), description="gain of each colour channel (r, g, b): a colour cast from the camera's white balance",
+        default=(1.0, 1.0, 1.0),
+        description="gain of each colour channel (r, g, b): a colour cast from the camera's white balance",
     )
     saturation: float = Field(
-        default=1.0, ge=0, description="colour saturation against the scene's (below 1: washed out, as many sensors' colour is)",
+        default=1.0,
+        ge=0,
+        description="colour saturation against the scene's (below 1: washed out, as many sensors' colour is)",
     )
     rgb_shift_px: tuple[int, int] = Field(
-        default=(0, 0), description="colour image shifted this many pixels (x, y) against the depth: a registration error",
+        default=(0, 0),
+        description="colour image shifted this many pixels (x, y) against the depth: a registration error",
     )
     rgb_sigma: float = Field(default=2.0, ge=0, description="RGB noise, 8-bit levels")
     blur_sigma_px: float = Field(default=0.6, ge=0)
@@ -229,13 +239,17 @@ class Scenario(_Strict):
     cameras: list[CameraSpec] = Field(default_factory=list)
     noise: NoiseSpec = Field(default_factory=NoiseSpec)
 
-    def still(self) -> "Scenario":
+    def still(self) -> Scenario:
         """The scenario with every object standing still where it starts."""
         return self.model_copy(update={"objects": [o.still() for o in self.objects]})
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Scenario":
-        for what, ids in (("camera", [c.id for c in self.cameras]), ("marker", [m.id for m in self.markers]), ("object", [o.id for o in self.objects])):
+    def _consistent(self) -> Scenario:
+        for what, ids in (
+            ("camera", [c.id for c in self.cameras]),
+            ("marker", [m.id for m in self.markers]),
+            ("object", [o.id for o in self.objects]),
+        ):
             dupes = sorted({i for i in ids if ids.count(i) > 1})
             if dupes:
                 raise ValueError(f"duplicate {what} ids: {dupes}")
@@ -252,7 +266,9 @@ class Scenario(_Strict):
         for c in self.cameras:
             if c.id == camera_id:
                 return c
-        raise ScenarioError(f"scenario {self.name!r} has no camera {camera_id!r}; it has {[c.id for c in self.cameras]}")
+        raise ScenarioError(
+            f"scenario {self.name!r} has no camera {camera_id!r}; it has {[c.id for c in self.cameras]}"
+        )
 
     def world_T_marker(self, marker: MarkerSpec, t_s: float) -> np.ndarray:
         T = marker.pose.matrix()

@@ -22,8 +22,16 @@ class SimSource:
     static scene: a looped frame shows what a new one would, up to its noise).
     """
 
-    def __init__(self, scenario: Scenario, camera_id: str, *, epoch_ns: int | None = None, realtime: bool = True, cell: SimCell | None = None,
-                 prerender: int = 0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        scenario: Scenario,
+        camera_id: str,
+        *,
+        epoch_ns: int | None = None,
+        realtime: bool = True,
+        cell: SimCell | None = None,
+        prerender: int = 0,
+    ) -> None:
         self.scenario = scenario
         self.camera = scenario.camera(camera_id)
         self.name = f"sim:{scenario.name}/{camera_id}"
@@ -49,11 +57,17 @@ class SimSource:
         self.t_s = self.index * period
         if self.t_s > self.scenario.duration_s:
             return None
-        f = self._loop[self.index % len(self._loop)] if self._loop else self.cell.render(self.camera.id, self.t_s, self.index)
+        f = (
+            self._loop[self.index % len(self._loop)]
+            if self._loop
+            else self.cell.render(self.camera.id, self.t_s, self.index)
+        )
         self.index += 1
         return Frame(self.camera.id, self.epoch_ns + int(round(self.t_s * 1e9)), f.rgb, f.depth_mm, f.info)
 
-    def truth(self, t_s: float, with_map: bool = True) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
+    def truth(
+        self, t_s: float, with_map: bool = True
+    ) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
         """(cameras, markers, objects) world poses at scenario time ``t_s``; stamps on the same clock.
         Without ``with_map`` only the camera (markers and objects empty: they cost most). A
         prerendered source's truth is that of the looped frame shown at ``t_s`` (what its pixels
@@ -64,10 +78,14 @@ class SimSource:
         shown = (int(round(t_s * self.camera.rate_hz)) % len(self._loop)) / self.camera.rate_hz
         if (shown, with_map) not in self._truth_cache:
             self._truth_cache[(shown, with_map)] = self._truth_at(shown, with_map, 0)
-        cams, markers, objects = ([replace(p, stamp_ns=stamp) for p in group] for group in self._truth_cache[(shown, with_map)])
+        cams, markers, objects = (
+            [replace(p, stamp_ns=stamp) for p in group] for group in self._truth_cache[(shown, with_map)]
+        )
         return cams, markers, objects
 
-    def _truth_at(self, t_s: float, with_map: bool, stamp: int) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
+    def _truth_at(
+        self, t_s: float, with_map: bool, stamp: int
+    ) -> tuple[list[StampedPose], list[StampedPose], list[StampedPose]]:
         s = self.scenario
         cams = [StampedPose("world", self.camera.id, stamp, self.camera.world_T_camera(t_s))]
         if not with_map:
@@ -78,5 +96,3 @@ class SimSource:
 
     def close(self) -> None:
         pass
-
-

@@ -13,9 +13,10 @@ import pickle
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, Callable, Iterator
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -48,7 +49,11 @@ class FrameFields:
 
 
 def frame_blocks(
-    path: Path, report: ReadReport, progress: Progress = None, on_message: OnMessage = None, cells: Cells = None,
+    path: Path,
+    report: ReadReport,
+    progress: Progress = None,
+    on_message: OnMessage = None,
+    cells: Cells = None,
 ) -> Iterator[FrameBlock]:
     """Each camera's marker frames in blocks of ``BLOCK_FRAMES``, validated a block at a time; every
     other message goes to ``on_message`` as it is read (one pass over the log). The cell names of
@@ -58,7 +63,11 @@ def frame_blocks(
 
 
 def frame_fields(
-    path: Path, report: ReadReport, progress: Progress = None, on_message: OnMessage = None, cells: Cells = None,
+    path: Path,
+    report: ReadReport,
+    progress: Progress = None,
+    on_message: OnMessage = None,
+    cells: Cells = None,
 ) -> Iterator[FrameFields]:
     """``frame_blocks`` before the checks: the part of the work that reads the log."""
     pending: dict[str, list[m.MarkerObservations]] = {}
@@ -78,7 +87,9 @@ def frame_fields(
 
 
 def _fields(cell: str, camera_id: str, msgs: list[m.MarkerObservations]) -> FrameFields:
-    return FrameFields(camera_id, np.array([msg.stamp_ns for msg in msgs], dtype=np.int64), codec.marker_fields(msgs), cell)
+    return FrameFields(
+        camera_id, np.array([msg.stamp_ns for msg in msgs], dtype=np.int64), codec.marker_fields(msgs), cell
+    )
 
 
 def checked(raw: FrameFields, report: ReadReport) -> Iterator[FrameBlock]:
@@ -91,13 +102,19 @@ def checked(raw: FrameFields, report: ReadReport) -> Iterator[FrameBlock]:
         where = (keys.markers(raw.cell, raw.camera_id), reason)
         report.refused[where] = report.refused.get(where, 0) + 1
         if report.refused[where] == 1:
-            log.warning("%s frame at %d ns skipped: %s (further ones only counted)", raw.camera_id[:40], int(raw.stamps[i]), why)
+            log.warning(
+                "%s frame at %d ns skipped: %s (further ones only counted)", raw.camera_id[:40], int(raw.stamps[i]), why
+            )
     if v.rows is not None:
         yield FrameBlock(raw.camera_id, raw.stamps[v.kept], v.rows)
 
 
 def background_frame_blocks(
-    path: Path, report: ReadReport, progress: Progress = None, on_message: OnMessage = None, cells: Cells = None,
+    path: Path,
+    report: ReadReport,
+    progress: Progress = None,
+    on_message: OnMessage = None,
+    cells: Cells = None,
 ) -> Iterator[FrameBlock]:
     """``frame_blocks`` with the log read in a child process (``python -m estimator.offline.logs``):
     the same blocks, messages, report and cells, in the same order, while the caller's solve runs
@@ -107,7 +124,9 @@ def background_frame_blocks(
     long the log is (a reader thread here to hold more was slower: it fights the solve for the
     GIL). The child is stopped if the caller stops early."""
     forward = "messages" if on_message is not None else "blocks"
-    child = subprocess.Popen([sys.executable, "-m", "estimator.offline.logs", str(path), forward], stdout=subprocess.PIPE)
+    child = subprocess.Popen(
+        [sys.executable, "-m", "estimator.offline.logs", str(path), forward], stdout=subprocess.PIPE
+    )
     assert child.stdout is not None
     try:  # a deeper pipe lets the child run a few blocks ahead through the solve's slower moments
         fcntl.fcntl(child.stdout.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
@@ -163,6 +182,7 @@ def _read_into(path: Path, forward_messages: bool, out: BinaryIO) -> None:
             put("progress", done, total)
 
     try:
+
         def forward(lm: LogMessage) -> None:
             put("message", lm.key, lm.msg.SerializeToString(), lm.log_time_ns, lm.publish_time_ns)
 

@@ -4,9 +4,10 @@ on the daemon's keys (``resolved.mcap``) and TUM trajectories (for evo and other
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Callable, Iterator, TextIO
+from typing import TextIO
 
 import numpy as np
 
@@ -27,8 +28,16 @@ class ObjectSpool:
     """Object-marker sightings from the log's static frames, kept on disk until the cameras are
     solved: an hour of four cameras at 10 Hz is ~10^5 rows per marker, and memory holds one chunk."""
 
-    DTYPE = np.dtype([("stamp", "<i8"), ("segment", "<i8"), ("marker", "<i8"), ("camera", "<i8"),
-                      ("pose", "<f8", (4, 4)), ("cov", "<f8", (6, 6))])  # fmt: skip
+    DTYPE = np.dtype(
+        [
+            ("stamp", "<i8"),
+            ("segment", "<i8"),
+            ("marker", "<i8"),
+            ("camera", "<i8"),
+            ("pose", "<f8", (4, 4)),
+            ("cov", "<f8", (6, 6)),
+        ]
+    )
 
     def __init__(self, directory: Path) -> None:
         self._file = tempfile.TemporaryFile(dir=directory, prefix=".objects-")
@@ -76,7 +85,9 @@ def object_poses(spool: ObjectSpool, result: ResolveResult) -> Iterator[StampedP
             rows = a[a["camera"] == ci]
             if not len(rows):
                 continue
-            T, cov, solved = place_objects(ObjectRows(cam, rows["stamp"], rows["segment"], rows["marker"], rows["pose"], rows["cov"]), segments)
+            T, cov, solved = place_objects(
+                ObjectRows(cam, rows["stamp"], rows["segment"], rows["marker"], rows["pose"], rows["cov"]), segments
+            )
             for stamp, mk, Ti, Ci in zip(rows["stamp"][solved].tolist(), rows["marker"][solved].tolist(), T, cov):
                 best.offer((mk, stamp // OBJECT_GAP_NS), Ci, StampedPose("world", keys.marker_frame(mk), stamp, Ti, Ci))
         # Sightings arrive in log order, a few frames apart across cameras: periods two behind are final.
@@ -97,24 +108,37 @@ def segment_at(result: ResolveResult, cam: str, stamp: int) -> SegmentResult | N
 
 
 def tum_pose(T: np.ndarray) -> str:
-    """"tx ty tz qx qy qz qw" of a 4x4 pose, as a TUM trajectory line has it after the time."""
+    """ "tx ty tz qx qy qz qw" of a 4x4 pose, as a TUM trajectory line has it after the time."""
     q, t = quat_from_matrix(T[:3, :3]), T[:3, 3]
     return f"{t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
 
 
 def write_solution(
-    result: ResolveResult, out: Path, cell: str, spool: ObjectSpool | None = None, object_markers: list[int] | None = None,
+    result: ResolveResult,
+    out: Path,
+    cell: str,
+    spool: ObjectSpool | None = None,
+    object_markers: list[int] | None = None,
     on_object: Callable[[StampedPose], None] | None = None,
-) -> None:  # fmt: skip
+) -> None:
     """``out/resolved.mcap`` and ``out/trajectories/*.tum``; ``on_object`` sees each object-marker
     pose as it is written (they are streamed: an hour is ~36,000 per marker)."""
     end = max((s.last_stamp_ns for s in result.segments), default=0)
     # resolved.mcap: each segment's pose at its first and last frame, moving frames, object markers
     # over time, static markers and tf at the end.
-    w = LogWriter(out / "resolved.mcap", metadata={"source": RESOLVE_SOURCE, "object_markers": " ".join(map(str, object_markers or []))})
-    cameras = [(stamp, StampedPose("world", s.camera_id, stamp, s.world_T_camera, s.covariance))
-               for s in result.segments for stamp in sorted({s.first_stamp_ns, s.last_stamp_ns})]  # fmt: skip
-    cameras += [(k.stamp_ns, StampedPose("world", k.camera_id, k.stamp_ns, k.world_T_camera, k.covariance)) for k in result.keyframes]
+    w = LogWriter(
+        out / "resolved.mcap",
+        metadata={"source": RESOLVE_SOURCE, "object_markers": " ".join(map(str, object_markers or []))},
+    )
+    cameras = [
+        (stamp, StampedPose("world", s.camera_id, stamp, s.world_T_camera, s.covariance))
+        for s in result.segments
+        for stamp in sorted({s.first_stamp_ns, s.last_stamp_ns})
+    ]
+    cameras += [
+        (k.stamp_ns, StampedPose("world", k.camera_id, k.stamp_ns, k.world_T_camera, k.covariance))
+        for k in result.keyframes
+    ]
     for stamp, p in cameras:
         w.write(keys.estimate_cameras(cell), codec.poses_to_msg(stamp, [p]), stamp)
     tdir = out / "trajectories"
@@ -132,12 +156,21 @@ def write_solution(
     markers = [StampedPose("world", keys.marker_frame(k), end, T, C) for k, (T, C) in result.markers.items()]
     w.write(keys.estimate_markers(cell), codec.poses_to_msg(end, markers), end)
     latest = {s.camera_id: s for s in result.segments}
-    w.write(keys.tf(cell), codec.transforms_to_msg(end, [("world", c, s.world_T_camera) for c, s in latest.items()] + [("world", p.child, p.T) for p in markers]), end)
+    w.write(
+        keys.tf(cell),
+        codec.transforms_to_msg(
+            end,
+            [("world", c, s.world_T_camera) for c, s in latest.items()] + [("world", p.child, p.T) for p in markers],
+        ),
+        end,
+    )
     w.close()
     # TUM: "t tx ty tz qx qy qz qw" per frame of a solved static segment and per moving frame.
     pose_text = {(s.camera_id, s.segment): tum_pose(s.world_T_camera) for s in result.segments}  # once: 10^5 frames/h
     for cam in sorted(set(result.frame_stamps) | {k.camera_id for k in result.keyframes}):
-        rows = [(stamp, pose_text[(cam, seg)]) for stamp, seg in result.frame_stamps.get(cam, []) if (cam, seg) in pose_text]
+        rows = [
+            (stamp, pose_text[(cam, seg)]) for stamp, seg in result.frame_stamps.get(cam, []) if (cam, seg) in pose_text
+        ]
         rows += [(k.stamp_ns, tum_pose(k.world_T_camera)) for k in result.keyframes if k.camera_id == cam]
         lines = [f"{stamp / 1e9:.9f} {text}" for stamp, text in sorted(rows)]
         (tdir / f"{cam}.tum").write_text("\n".join(lines) + ("\n" if lines else ""))

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from estimator.config import EstimatorConfig
 from estimator.offline.logs import background_frame_blocks, frame_blocks
@@ -45,7 +45,9 @@ def resolve_log(
     out.mkdir(parents=True, exist_ok=True)
     report, spool, cells = ReadReport(), ObjectSpool(out), set()
     try:
-        blocks = (background_frame_blocks if background else frame_blocks)(log_path, report, progress, on_message, cells)
+        blocks = (background_frame_blocks if background else frame_blocks)(
+            log_path, report, progress, on_message, cells
+        )
         result = resolve(blocks, config, objects=spool.add)
         cell = next(iter(sorted(cells)), cell)
         write_solution(result, out, cell, spool, config.object_markers, on_object)

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
 
 import gtsam
 import numpy as np
@@ -150,7 +150,9 @@ def resolve(
             if progress is not None:
                 progress(n_obs)
     if last_update is not None:
-        est.update(last_update + int(config.refresh_s * 1e9) + 1, refresh_all=True)  # every pair's final mean in the graph
+        est.update(
+            last_update + int(config.refresh_s * 1e9) + 1, refresh_all=True
+        )  # every pair's final mean in the graph
     graph = est.factor_graph()
     if graph.size() == 0 or est.values.size() == 0:
         return ResolveResult([], {}, [], sorted(est.tracks), n_obs, n_frames, [], 0.0, 0, stamps)
@@ -173,7 +175,17 @@ def resolve(
         if not values.exists(key):
             continue
         first, last, count = seg_span.get((cam, seg), [0, 0, 0])
-        segments.append(SegmentResult(cam, seg, values.atPose3(key).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(key)), first, last, count))
+        segments.append(
+            SegmentResult(
+                cam,
+                seg,
+                values.atPose3(key).matrix(),
+                cov_gtsam_to_ros(marginals.marginalCovariance(key)),
+                first,
+                last,
+                count,
+            )
+        )
     markers = {}
     for mk in sorted({m for (_, m) in est.pairs} | set(est.anchors)):
         key = marker_symbol(mk)
@@ -185,21 +197,43 @@ def resolve(
         if not (values.exists(ck) and values.exists(mkey)) or pair.n == 0:
             continue
         cov = cov_ros_to_gtsam(pair.factor_covariance(config.max_fused, est.rotation_floor_rad))
-        factor = gtsam.BetweenFactorPose3(ck, mkey, gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov))
+        factor = gtsam.BetweenFactorPose3(
+            ck, mkey, gtsam.Pose3(pair.mean(exact=True)), gtsam.noiseModel.Gaussian.Covariance(cov)
+        )
         residuals.append(PairResidual(cam, seg, mk, pair.n, pair.rejected, math.sqrt(2.0 * factor.error(values))))
-    keyframes = [KeyframeResult(f.camera_id, f.stamp_ns, values.atPose3(k).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(k)), n)
-                 for k, f, n in added]  # fmt: skip
+    keyframes = [
+        KeyframeResult(
+            f.camera_id, f.stamp_ns, values.atPose3(k).matrix(), cov_gtsam_to_ros(marginals.marginalCovariance(k)), n
+        )
+        for k, f, n in added
+    ]
     placed = {cam for cam, _ in segment_keys}
     flagged = est.estimate(last_update or 0, with_covariance=False).flagged_anchors
     return ResolveResult(
-        segments, markers, residuals, sorted(set(est.tracks) - placed), n_obs, n_frames, flagged,
-        float(graph.error(values)), int(optimizer.iterations()), stamps, keyframes, linked, scale, left_out,
-    )  # fmt: skip
+        segments,
+        markers,
+        residuals,
+        sorted(set(est.tracks) - placed),
+        n_obs,
+        n_frames,
+        flagged,
+        float(graph.error(values)),
+        int(optimizer.iterations()),
+        stamps,
+        keyframes,
+        linked,
+        scale,
+        left_out,
+    )
 
 
 def _add_moving_frames(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, est: Estimator, frames: list[MovingFrame],
-    segment_keys: dict[tuple[str, int], int], robust: gtsam.noiseModel.mEstimator.Base,
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    est: Estimator,
+    frames: list[MovingFrame],
+    segment_keys: dict[tuple[str, int], int],
+    robust: gtsam.noiseModel.mEstimator.Base,
 ) -> tuple[list[tuple[int, MovingFrame, int]], float, int]:
     """``add_keyframes`` against the static solution ``values``: its markers place the frames, its
     solved segments (``segment_keys``) are the views a frame must differ from, and how its pairs
@@ -216,36 +250,63 @@ def _add_moving_frames(
         return [], 1.0, 0
     factor, left_out = weighed(est.static_fit(values), fit_of(selected), config)
     if left_out:
-        log.info("%d moving frames left out: the static pairs fit %.3g times better than the frames against what each claims",
-                 len(selected), factor)  # fmt: skip
+        log.info(
+            "%d moving frames left out: the static pairs fit %.3g times better than the frames against what each claims",
+            len(selected),
+            factor,
+        )
         return [], factor, len(selected)
     if factor > 1.0:
-        log.info("%d moving frames enter with their covariances x %.3g: the static pairs fit better than they claim", len(selected), factor)
+        log.info(
+            "%d moving frames enter with their covariances x %.3g: the static pairs fit better than they claim",
+            len(selected),
+            factor,
+        )
     return add_keyframes(graph, values, selected, est.rotation_floor_rad, robust, covariance_scale=factor), factor, 0
 
 
-def _moving_frames(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames, segment_now: int) -> None:
+def _moving_frames(
+    block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: MovingFrames, segment_now: int
+) -> None:
     """The static markers seen in the block's frames that joined no segment (the camera moved).
     ``segment_now``: the camera's segment after the block; a moving frame's move is the segment
     it left (one before the next static frame's, if the camera settled within the block)."""
     a = block.arrays
     for f in [i for i, g in enumerate(segs) if g is None]:
         rows = (a.frame == f) & ~np.isin(a.ids, list(object_markers))
-        later = next((g for g in segs[f + 1:] if g is not None), None)
+        later = next((g for g in segs[f + 1 :] if g is not None), None)
         move = segment_now if later is None else later - 1
-        sink.add(MovingFrame(block.camera_id, int(block.stamps[f]), a.ids[rows], a.poses[rows], a.alternatives[rows], a.covariances[rows], move))
+        sink.add(
+            MovingFrame(
+                block.camera_id,
+                int(block.stamps[f]),
+                a.ids[rows],
+                a.poses[rows],
+                a.alternatives[rows],
+                a.covariances[rows],
+                move,
+            )
+        )
 
 
-def _object_rows(block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]) -> None:
+def _object_rows(
+    block: FrameBlock, segs: list[int | None], object_markers: set[int], sink: Callable[[ObjectRows], None]
+) -> None:
     seg_of_frame = np.array([-1 if g is None else g for g in segs], dtype=np.int64)
     a = block.arrays
     keep = np.isin(a.ids, list(object_markers)) & (seg_of_frame[a.frame] >= 0)
     if keep.any():
         f = a.frame[keep]
-        sink(ObjectRows(block.camera_id, block.stamps[f], seg_of_frame[f], a.ids[keep], a.poses[keep], a.covariances[keep]))
+        sink(
+            ObjectRows(
+                block.camera_id, block.stamps[f], seg_of_frame[f], a.ids[keep], a.poses[keep], a.covariances[keep]
+            )
+        )
 
 
-def place_objects(rows: ObjectRows, segments: dict[tuple[str, int], SegmentResult]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def place_objects(
+    rows: ObjectRows, segments: dict[tuple[str, int], SegmentResult]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """world_T_marker (M, 4, 4) and covariances (M, 6, 6; ROS order, marker frame) of the rows
     whose segment was solved, and the mask (N,) of those rows."""
     solved = np.array([(rows.camera_id, int(g)) in segments for g in rows.segments], dtype=bool)

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from schemas import codec, keys
-from schemas import geometry
+from schemas import codec, geometry, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig, memory_lock_problem
 from schemas.errors import BusError, SchemaError
@@ -93,7 +92,9 @@ def test_bad_payloads_are_counted_and_good_ones_still_arrive(client_transport: T
     with Bus(client_transport, CELL) as pub_bus, Bus(client_transport, CELL) as sub_bus:
         sub = sub_bus.subscribe(keys.everything(CELL), capacity=10_000)
         raw = {k: pub_bus.session.declare_publisher(k) for k in msgs}
-        wait_until(lambda: _probe({keys.status(CELL, "cam1"): pub_bus.publisher(keys.status(CELL, "cam1"))}, sub), 5.0, "route")
+        wait_until(
+            lambda: _probe({keys.status(CELL, "cam1"): pub_bus.publisher(keys.status(CELL, "cam1"))}, sub), 5.0, "route"
+        )
         sub.drain()
         wrong_type = m.RawImage(width=3, height=3, encoding="rgb8", data=b"x").SerializeToString()
         bad_per_key = {}
@@ -161,6 +162,7 @@ def test_the_cell_tap_expressions_cover_every_key_but_images_once() -> None:
         assert matches == (0 if keys.message_type(key) is m.RawImage else 1), (key, matches)
 
 
+@pytest.mark.slow
 def test_the_cell_tap_takes_images_only_when_due(client_transport: TransportConfig) -> None:
     """Every other key arrives once per message; an image key is subscribed only while one is due,
     so a driver that builds images only for a subscriber builds about as many as the tap keeps."""
@@ -257,8 +259,14 @@ def _cap_locked_memory() -> None:
 
 def peer(*args: str, limited: bool = False) -> subprocess.Popen:
     prefix = NO_IPC_LOCK if limited and os.geteuid() == 0 else []
-    return subprocess.Popen(prefix + PEER + list(args), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=_cap_locked_memory if limited else None)  # fmt: skip
+    return subprocess.Popen(
+        prefix + PEER + list(args),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_cap_locked_memory if limited else None,
+    )
 
 
 def need_shared_memory() -> None:

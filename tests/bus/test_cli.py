@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from google.protobuf.message import Message
 
-from schemas import codec, keys
-from schemas import geometry
+from schemas import codec, geometry, keys
 from schemas import messages as m
 from schemas.bus import Bus, TransportConfig
 
@@ -24,7 +23,9 @@ def run(args: list[str], timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(CLI + args, capture_output=True, text=True, timeout=timeout)
 
 
-def publish_until_exit(proc: subprocess.Popen, endpoint: str, cell: str, messages: dict[str, Message]) -> tuple[str, str]:
+def publish_until_exit(
+    proc: subprocess.Popen, endpoint: str, cell: str, messages: dict[str, Message]
+) -> tuple[str, str]:
     """Keep publishing ``messages`` (key -> message) until the CLI process, which must first
     subscribe, has printed and exited; its (stdout, stderr)."""
     try:
@@ -69,6 +70,7 @@ def test_config_check_rejects_broken_toml(tmp_path: Path) -> None:
     assert out.returncode == 2 and "not valid TOML" in out.stderr
 
 
+@pytest.mark.slow
 def test_bus_echo_prints_a_message_from_another_process(router_endpoint: str) -> None:
     key = keys.markers("demo", "cam7")
     msg = m.MarkerObservations(camera_id="cam7", stamp_ns=123456789)
@@ -78,8 +80,10 @@ def test_bus_echo_prints_a_message_from_another_process(router_endpoint: str) ->
     obs.covariance.extend(codec.covariance_to_list(np.eye(6) * 1e-4))
     proc = subprocess.Popen(
         CLI + ["bus", "echo", key, "--once", "--json", "--timeout", "20", "--connect", router_endpoint],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     out, err = publish_until_exit(proc, router_endpoint, "demo", {key: msg})
     assert proc.returncode == 0, err
     line = json.loads(out.strip().splitlines()[0])
@@ -96,16 +100,24 @@ def test_bus_echo_times_out_with_exit_1(router_endpoint: str) -> None:
 
 @pytest.mark.slow
 def test_status_shows_cameras_with_poses_and_objects(router_endpoint: str) -> None:
-    proc = subprocess.Popen(CLI + ["status", "--duration", "3", "--cell", "lab", "--connect", router_endpoint],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        CLI + ["status", "--duration", "3", "--cell", "lab", "--connect", router_endpoint],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     status = m.EstimatorStatus(stamp_ns=1, observations=7)
     status.cameras.add(camera_id="cam1", state=m.CameraState.LOCALIZED, position_sigma_m=0.004)
     cameras = codec.poses_to_msg(1, [codec.StampedPose("world", "cam1", 1, geometry.make_pose(t=[1.25, -0.5, 2.0]))])
     objects = m.ObjectDetections(stamp_ns=1)
     crate = objects.objects.add(object_id="crate", fitness=0.93, rmse_m=0.0052, camera_ids=["cam1"])
     codec.pose_to_msg(geometry.make_pose(t=[0.1, 0.2, 0.75]), crate.world_T_object)
-    out, err = publish_until_exit(proc, router_endpoint, "lab", {
-        keys.estimate_status("lab"): status, keys.estimate_cameras("lab"): cameras, keys.objects("lab"): objects})  # fmt: skip
+    out, err = publish_until_exit(
+        proc,
+        router_endpoint,
+        "lab",
+        {keys.estimate_status("lab"): status, keys.estimate_cameras("lab"): cameras, keys.objects("lab"): objects},
+    )
     assert proc.returncode == 0, err
     cam1 = next(line for line in out.splitlines() if "cam1" in line and "localized" in line)
     assert "+1.250, -0.500, +2.000" in cam1 and "4.0" in cam1

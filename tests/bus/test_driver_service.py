@@ -38,7 +38,11 @@ def test_images_are_built_only_while_someone_subscribes(client_transport: Transp
 
         client.subscribe(keys.color(CELL, cam), m.RawImage, callback=count("color"))
         client.subscribe(keys.depth(CELL, cam), m.RawImage, callback=count("depth"))
-        wait_until(lambda: driver._pub["color"].wanted() and driver._pub["depth"].wanted(), 5.0, "the image subscribers to be matched")
+        wait_until(
+            lambda: driver._pub["color"].wanted() and driver._pub["depth"].wanted(),
+            5.0,
+            "the image subscribers to be matched",
+        )
         for _ in range(3):
             driver.step()
         wait_until(lambda: got["color"] >= 3 and got["depth"] >= 3, 5.0, "three colour and depth images")
@@ -63,12 +67,24 @@ def test_truth_is_computed_only_while_someone_scores_against_it(client_transport
         assert sum(p.published for p in truth.values()) == 0
         seen: list[str] = []
         for what in ("cameras", "marker_poses"):
-            client.subscribe(keys.truth(CELL, what), m.PosesWithCovariance, callback=lambda r, what=what: seen.append(what))
-        wait_until(lambda: truth["cameras"].wanted() and truth["marker_poses"].wanted(), 5.0, "the truth subscribers to be matched")
+            client.subscribe(
+                keys.truth(CELL, what), m.PosesWithCovariance, callback=lambda r, what=what: seen.append(what)
+            )
+        wait_until(
+            lambda: truth["cameras"].wanted() and truth["marker_poses"].wanted(),
+            5.0,
+            "the truth subscribers to be matched",
+        )
         for _ in range(3):
             driver.step()
-        wait_until(lambda: seen.count("cameras") >= 3 and "marker_poses" in seen, 5.0, "every frame's camera truth and the map's")
-        assert truth["cameras"].published == 3 and truth["marker_poses"].published >= 1 and truth["objects"].published == 0
+        wait_until(
+            lambda: seen.count("cameras") >= 3 and "marker_poses" in seen,
+            5.0,
+            "every frame's camera truth and the map's",
+        )
+        assert (
+            truth["cameras"].published == 3 and truth["marker_poses"].published >= 1 and truth["objects"].published == 0
+        )
 
 
 def test_opencv_threads_zero_is_opencvs_default_pool_not_none() -> None:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -23,14 +23,23 @@ CELL = "svc"
 
 
 def scene() -> Scenario:
-    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    wall = lambda i, x, role="static": MarkerSpec(  # noqa: E731
+        id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0))
+    )
     return Scenario(
         markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2)],
         cameras=[CameraSpec(id="a", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))],
     )
 
 
-def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = False, clock_step_ns: Callable[[str, int], int] | None = None) -> None:
+def feed(
+    bus: Bus,
+    s: Scenario,
+    seconds: float,
+    start_ns: int,
+    garbage: bool = False,
+    clock_step_ns: Callable[[str, int], int] | None = None,
+) -> None:
     """Publish observations of every camera at 30 Hz (real time / 3 to keep the test short);
     ``clock_step_ns(camera, frame)`` sets how far that camera's clock is off at that frame."""
     pubs = {c.id: bus.publisher(keys.markers(CELL, c.id)) for c in s.cameras}
@@ -46,8 +55,15 @@ def feed(bus: Bus, s: Scenario, seconds: float, start_ns: int, garbage: bool = F
         time.sleep(1 / 90)
 
 
-def run_service(transport: TransportConfig, s: Scenario, state: Path, seconds: float, start_ns: int, garbage: bool = False,
-                clock_step_ns: Callable[[str, int], int] | None = None) -> tuple[EstimatorService, list]:
+def run_service(
+    transport: TransportConfig,
+    s: Scenario,
+    state: Path,
+    seconds: float,
+    start_ns: int,
+    garbage: bool = False,
+    clock_step_ns: Callable[[str, int], int] | None = None,
+) -> tuple[EstimatorService, list]:
     cfg = estimator_config(s, state_file=state, update_hz=20.0)
     statuses: list[m.EstimatorStatus] = []
     with Bus(transport, CELL) as svc_bus, Bus(transport, CELL) as client:
@@ -73,7 +89,12 @@ def test_an_update_of_several_cameras_frames_is_what_each_camera_alone_gives(cli
     camera: the same estimate as each camera's frames ingested on their own, and a malformed frame
     counted against its own camera only."""
     s = scene()
-    s = s.model_copy(update={"cameras": s.cameras + [CameraSpec(id="b", pose=PoseSpec(position=(0.6, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))]})
+    s = s.model_copy(
+        update={
+            "cameras": s.cameras
+            + [CameraSpec(id="b", pose=PoseSpec(position=(0.6, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))]
+        }
+    )
     rng = np.random.default_rng(3)
     updates = []
     for k in range(0, 60, 3):
@@ -87,7 +108,10 @@ def test_an_update_of_several_cameras_frames_is_what_each_camera_alone_gives(cli
                 items.append(Received(keys.markers(CELL, cam), msg, stamp))
         updates.append(items)
     with Bus(client_transport, CELL) as bus_together, Bus(client_transport, CELL) as bus_apart:
-        together, apart = EstimatorService(bus_together, estimator_config(s)), EstimatorService(bus_apart, estimator_config(s))
+        together, apart = (
+            EstimatorService(bus_together, estimator_config(s)),
+            EstimatorService(bus_apart, estimator_config(s)),
+        )
         for items in updates:
             together.ingest(items)
             for cam in ("a", "b"):
@@ -102,15 +126,20 @@ def test_an_update_of_several_cameras_frames_is_what_each_camera_alone_gives(cli
         np.testing.assert_allclose(est_together.cameras[cam].pose.T, est_apart.cameras[cam].pose.T, atol=1e-9)
 
 
-def test_camera_poses_follow_every_update_and_the_map_at_most_update_hz(client_transport: TransportConfig, tmp_path: Path) -> None:
+@pytest.mark.slow
+def test_camera_poses_follow_every_update_and_the_map_at_most_update_hz(
+    client_transport: TransportConfig, tmp_path: Path
+) -> None:
     s = scene()
     cfg = estimator_config(s, update_hz=5.0, max_update_hz=30.0)
     stamps: dict[str, list[float]] = {"cameras": [], "markers": [], "status": []}
     with Bus(client_transport, CELL) as svc_bus, Bus(client_transport, CELL) as client:
         svc = EstimatorService(svc_bus, cfg)
-        for what, key, typ in (("cameras", keys.estimate_cameras(CELL), m.PosesWithCovariance),
-                               ("markers", keys.estimate_markers(CELL), m.PosesWithCovariance),
-                               ("status", keys.estimate_status(CELL), m.EstimatorStatus)):  # fmt: skip
+        for what, key, typ in (
+            ("cameras", keys.estimate_cameras(CELL), m.PosesWithCovariance),
+            ("markers", keys.estimate_markers(CELL), m.PosesWithCovariance),
+            ("status", keys.estimate_status(CELL), m.EstimatorStatus),
+        ):
             client.subscribe(key, typ, callback=lambda r, what=what: stamps[what].append(time.monotonic()))
         stop = threading.Event()
         thread = threading.Thread(target=svc.run, args=(stop,))
@@ -131,7 +160,9 @@ def test_camera_poses_follow_every_update_and_the_map_at_most_update_hz(client_t
 
 
 @pytest.mark.slow
-def test_daemon_publishes_answers_the_map_and_survives_garbage(client_transport: TransportConfig, tmp_path: Path) -> None:
+def test_daemon_publishes_answers_the_map_and_survives_garbage(
+    client_transport: TransportConfig, tmp_path: Path
+) -> None:
     s = scene()
     svc, statuses, replies = run_service(client_transport, s, tmp_path / "state.json", 2.0, 10**18, garbage=True)
     assert statuses and statuses[-1].cameras[0].state == m.CameraState.LOCALIZED
@@ -159,6 +190,7 @@ def test_restart_restores_the_map(client_transport: TransportConfig, tmp_path: P
     assert statuses[-1].cameras[0].state == m.CameraState.LOCALIZED
 
 
+@pytest.mark.slow
 def test_corrupt_state_is_set_aside_not_trusted(client_transport: TransportConfig, tmp_path: Path) -> None:
     s = scene()
     state = tmp_path / "state.json"
@@ -170,7 +202,9 @@ def test_corrupt_state_is_set_aside_not_trusted(client_transport: TransportConfi
 
 
 @pytest.mark.slow
-def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(client_transport: TransportConfig, tmp_path: Path) -> None:
+def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(
+    client_transport: TransportConfig, tmp_path: Path
+) -> None:
     """Camera a's clock steps an hour ahead after 1 s, then two hours back after 2 s (an NTP step
     each way); camera b's clock stays put. Both must stay localized throughout: without the
     correction the first step makes b stale (the daemon's clock follows a) and the second makes a
@@ -182,14 +216,19 @@ def test_a_sensor_clock_that_jumps_is_taken_out_and_no_camera_goes_stale(client_
     svc, statuses, _ = run_service(client_transport, s, tmp_path / "state.json", 3.0, 10**18, clock_step_ns=step)
     assert dict(svc.clock_jumps.jumps) == {"a": 2}
     assert len(statuses) > 20
-    late = statuses[len(statuses) // 2:]  # after the first jump (1 s of 3 s; statuses from 0.5 s on)
+    late = statuses[len(statuses) // 2 :]  # after the first jump (1 s of 3 s; statuses from 0.5 s on)
     for st_ in late:
-        assert {c.camera_id: c.state for c in st_.cameras} == {"a": m.CameraState.LOCALIZED, "b": m.CameraState.LOCALIZED}
+        assert {c.camera_id: c.state for c in st_.cameras} == {
+            "a": m.CameraState.LOCALIZED,
+            "b": m.CameraState.LOCALIZED,
+        }
     assert abs(late[-1].stamp_ns - (10**18 + 3 * 10**9)) < 2 * 10**9  # published on the timeline it started with
 
 
 @pytest.mark.slow
-def test_a_full_disk_keeps_the_saved_state_and_saving_resumes(client_transport: TransportConfig, small_disk: Path, caplog) -> None:
+def test_a_full_disk_keeps_the_saved_state_and_saving_resumes(
+    client_transport: TransportConfig, small_disk: Path, caplog
+) -> None:
     s = scene()
     state = small_disk / "state.json"
     run_service(client_transport, s, state, 1.0, 10**18)

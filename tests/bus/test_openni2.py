@@ -47,14 +47,23 @@ def test_dummy_device_frames_have_increasing_stamps() -> None:
     assert got["width"] == 320 and got["fx"] == 262.5  # Kinect v1 defaults scaled to 320x240
 
 
-def test_driver_process_publishes_dummy_frames_over_zenoh(client_transport: TransportConfig, router_endpoint: str) -> None:
-    proc = subprocess.Popen(CLI + ["driver", "openni2", "--camera", "kinect", "--uri", "Dummy", "--duration", "20", "-e", router_endpoint],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+@pytest.mark.slow
+def test_driver_process_publishes_dummy_frames_over_zenoh(
+    client_transport: TransportConfig, router_endpoint: str
+) -> None:
+    proc = subprocess.Popen(
+        CLI + ["driver", "openni2", "--camera", "kinect", "--uri", "Dummy", "--duration", "20", "-e", router_endpoint],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         with Bus(client_transport, "demo") as bus:
             depth = bus.subscribe(keys.depth("demo", "kinect"), m.RawImage, capacity=100)
             markers = bus.subscribe(keys.markers("demo", "kinect"), m.MarkerObservations, capacity=100)
-            wait_until(lambda: depth.received >= 10 and markers.received >= 10, 20.0, "10 frames from the driver process")
+            wait_until(
+                lambda: depth.received >= 10 and markers.received >= 10, 20.0, "10 frames from the driver process"
+            )
             frames = depth.drain()
             obs = markers.drain()
     finally:
@@ -69,8 +78,12 @@ def test_driver_process_publishes_dummy_frames_over_zenoh(client_transport: Tran
 
 @pytest.mark.slow
 def test_no_device_is_a_clear_error_with_exit_code_2(router_endpoint: str) -> None:
-    out = subprocess.run(CLI + ["driver", "openni2", "--camera", "k", "--uri", "no-such-device", "-e", router_endpoint],
-                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    out = subprocess.run(
+        CLI + ["driver", "openni2", "--camera", "k", "--uri", "no-such-device", "-e", router_endpoint],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 2
     text = " ".join(out.stderr.split())
     assert "no-such-device" in text and "udev" in text and "libopenni2-dev" in text

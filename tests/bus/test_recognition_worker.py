@@ -14,11 +14,20 @@ from drivers.sim.render import SimCell, object_mesh
 from drivers.sim.scenario import load_scenario
 from recognition.align import rot_z
 from recognition.cloud import depth_to_cloud, voxel_downsample
-from recognition.models import ModelDatabase
+from recognition.fusion import (
+    REFINE_VOXEL_M,
+    CameraPoints,
+    CameraView,
+    FusedObject,
+    WorldDetection,
+    found_in_cloud,
+    fuse,
+    refined_in_cloud,
+)
 from recognition.hypotheses import Detection
+from recognition.models import ModelDatabase
 from recognition.pipeline import Recognizer
 from recognition.verify import DepthView
-from recognition.fusion import REFINE_VOXEL_M, CameraPoints, CameraView, FusedObject, WorldDetection, found_in_cloud, fuse, refined_in_cloud
 from recognition.worker import RecognitionWorker
 from schemas import codec, geometry, keys
 from schemas import messages as m
@@ -36,18 +45,25 @@ def det(camera: str, oid: str, xyz, yaw_deg: float = 0.0, fitness: float = 0.9, 
 
 
 def test_fuse_averages_agreeing_cameras_and_outvotes_the_rest() -> None:
-    fused = {o.object_id: o for o in fuse([
-        det("cam1", "crate", (0.0, 0.0, 0.75), yaw_deg=0.0, rmse=0.004),
-        det("cam2", "crate", (0.02, 0.0, 0.75), yaw_deg=180.0, rmse=0.008),  # the symmetric twin
-        det("cam3", "crate", (0.3, 0.0, 0.75), rmse=0.002, fitness=0.2),  # far off: not the same
-        det("cam1", "can", (1.0, 1.0, 0.75)),
-    ])}  # fmt: skip
+    fused = {
+        o.object_id: o
+        for o in fuse(
+            [
+                det("cam1", "crate", (0.0, 0.0, 0.75), yaw_deg=0.0, rmse=0.004),
+                det("cam2", "crate", (0.02, 0.0, 0.75), yaw_deg=180.0, rmse=0.008),  # the symmetric twin
+                det("cam3", "crate", (0.3, 0.0, 0.75), rmse=0.002, fitness=0.2),  # far off: not the same
+                det("cam1", "can", (1.0, 1.0, 0.75)),
+            ]
+        )
+    }
     assert sorted(fused) == ["can", "crate"]
     crate = fused["crate"]
     assert crate.camera_ids == ["cam1", "cam2"]
     # Weights fitness x coverage / rmse^2: cam1 counts 4x cam2, so x = 0.02 / 5.
     np.testing.assert_allclose(crate.world_T_object[:3, 3], [0.004, 0.0, 0.75], atol=1e-9)
-    assert math.degrees(rotation_angle(crate.world_T_object[:3, :3], np.eye(3))) < 1e-9, "rotation of the best, never averaged"
+    assert math.degrees(rotation_angle(crate.world_T_object[:3, :3], np.eye(3))) < 1e-9, (
+        "rotation of the best, never averaged"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +107,9 @@ def test_worker_publishes_world_poses_from_frames_and_tf(client_transport: Trans
             time.sleep(0.5)  # routes
             client.publisher(keys.camera_info(CELL, "cam2")).put(frame.info.to_msg(frame.stamp_ns, "cam2"))
             # The estimator's part, here from the simulator: where cam2 is.
-            client.publisher(keys.tf(CELL)).put(codec.transforms_to_msg(frame.stamp_ns, [("world", "cam2", frame.world_T_camera)]))
+            client.publisher(keys.tf(CELL)).put(
+                codec.transforms_to_msg(frame.stamp_ns, [("world", "cam2", frame.world_T_camera)])
+            )
             wait_until(lambda: worker.errors == 1, 10.0, "the bad frame to be rejected")
             depth[0] = codec.image_to_msg(frame.depth_mm, frame.stamp_ns, "cam2", "16UC1")
             worker.last_run.clear()
@@ -128,7 +146,9 @@ def test_worker_publishes_world_poses_from_frames_and_tf(client_transport: Trans
     before = {d.detection.object_id: d.world_T_object for d in worker.current_detections()}
     worker.world_T_camera["cam2"] = make_pose(t=[0.004, 0.0, 0.0]) @ frame.world_T_camera
     for d in worker.current_detections():
-        np.testing.assert_allclose(d.world_T_object[:3, 3] - before[d.detection.object_id][:3, 3], [0.004, 0, 0], atol=1e-9)
+        np.testing.assert_allclose(
+            d.world_T_object[:3, 3] - before[d.detection.object_id][:3, 3], [0.004, 0, 0], atol=1e-9
+        )
     worker.world_T_camera["cam2"] = make_pose(t=[0.2, 0.0, 0.0]) @ frame.world_T_camera
     assert worker.current_detections() == []
     worker.world_T_camera["cam2"] = frame.world_T_camera
@@ -146,8 +166,11 @@ def test_the_worker_judges_colour_sent_with_the_depth(client_transport: Transpor
     worker recognises on depth alone, and the grey can is a `can` again."""
     cfg, db = demo_database
     red = load_scenario()
-    grey = red.model_copy(update={"objects": [o.model_copy(update={"color": (0.5, 0.5, 0.5)}) if o.id == "can" else o
-                                              for o in red.objects]})  # fmt: skip
+    grey = red.model_copy(
+        update={
+            "objects": [o.model_copy(update={"color": (0.5, 0.5, 0.5)}) if o.id == "can" else o for o in red.objects]
+        }
+    )
     frame = SimCell(grey).render("cam2", 1.0, 30)
     got: list[m.ObjectDetections] = []
     colour_msg = [codec.image_to_msg(frame.rgb, frame.stamp_ns, "cam2", "rgb8")]
@@ -179,7 +202,9 @@ def test_the_worker_judges_colour_sent_with_the_depth(client_transport: Transpor
         try:
             time.sleep(0.5)  # routes
             client.publisher(keys.camera_info(CELL, "cam2")).put(frame.info.to_msg(frame.stamp_ns, "cam2"))
-            client.publisher(keys.tf(CELL)).put(codec.transforms_to_msg(frame.stamp_ns, [("world", "cam2", frame.world_T_camera)]))
+            client.publisher(keys.tf(CELL)).put(
+                codec.transforms_to_msg(frame.stamp_ns, [("world", "cam2", frame.world_T_camera)])
+            )
             with_colour = published()
             colour_msg[0] = codec.image_to_msg(frame.rgb[:240], frame.stamp_ns, "cam2", "rgb8")  # not the depth's size
             wait_until(lambda: "can" in published(), 20.0, "the can, on depth alone")
@@ -214,6 +239,7 @@ def check_cloud_lies_on_the_cell(msg: m.PointCloud, cell: SimCell, scenario, t_s
     assert np.median(dist) < 0.01 and np.percentile(dist, 95) < 0.045, (np.median(dist), np.percentile(dist, 95))
 
 
+@pytest.mark.slow
 def test_a_fused_object_is_fitted_to_every_cameras_points(demo_models: dict) -> None:
     """The demo cell's four rendered frames (true camera poses) and each object put 6 mm and 2 deg
     of yaw off its true pose, as fused detections may be: fitted to the cameras' points around it
@@ -230,22 +256,43 @@ def test_a_fused_object_is_fitted_to_every_cameras_points(demo_models: dict) -> 
     for cam in scenario.cameras:
         frame = cell.render(cam.id, 0.0, 3)
         cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
-        cameras.append(CameraPoints(cam.id, 0, voxel_downsample(recognizer.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
-                                    frame.world_T_camera))  # fmt: skip
+        cameras.append(
+            CameraPoints(
+                cam.id,
+                0,
+                voxel_downsample(recognizer.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
+                frame.world_T_camera,
+            )
+        )
     truth = {o.id: o.world_T_object(0.0) for o in scenario.objects}
     off = {oid: make_pose(rot_z(np.radians(2.0)), [0.004, -0.0045, 0.0]) @ T for oid, T in truth.items()}
     objects = [FusedObject(oid, 0, T, ["cam1"], 0.9, 0.005) for oid, T in off.items()]
-    for o in refined_in_cloud(objects, cameras, db, cfg.icp_distance_m, cfg.descriptor.normal_radius_m, cfg.min_fitness):
+    for o in refined_in_cloud(
+        objects, cameras, db, cfg.icp_distance_m, cfg.descriptor.normal_radius_m, cfg.min_fitness
+    ):
         assert np.linalg.norm(o.world_T_object[:3, 3] - truth[o.object_id][:3, 3]) < 0.003, o.object_id
-    tilted = make_pose(t=truth["crate"][:3, 3]) @ make_pose(so3_exp([np.radians(6.0), 0.0, 0.0])) @ make_pose(t=-truth["crate"][:3, 3]) @ truth["crate"]
+    tilted = (
+        make_pose(t=truth["crate"][:3, 3])
+        @ make_pose(so3_exp([np.radians(6.0), 0.0, 0.0]))
+        @ make_pose(t=-truth["crate"][:3, 3])
+        @ truth["crate"]
+    )
     away = make_pose(t=[0.0, 0.0, 0.3]) @ truth["crate"]
     for T in (tilted, away):
-        kept = refined_in_cloud([FusedObject("crate", 0, T, ["cam1"], 0.9, 0.005)], cameras, db, cfg.icp_distance_m,
-                                cfg.descriptor.normal_radius_m, cfg.min_fitness)  # fmt: skip
+        kept = refined_in_cloud(
+            [FusedObject("crate", 0, T, ["cam1"], 0.9, 0.005)],
+            cameras,
+            db,
+            cfg.icp_distance_m,
+            cfg.descriptor.normal_radius_m,
+            cfg.min_fitness,
+        )
         np.testing.assert_array_equal(kept[0].world_T_object, T)
 
 
-def test_between_fits_an_object_keeps_its_fitted_pose_while_it_stays_put(client_transport: TransportConfig, demo_database) -> None:
+def test_between_fits_an_object_keeps_its_fitted_pose_while_it_stays_put(
+    client_transport: TransportConfig, demo_database
+) -> None:
     """The worker fits the fused objects at most every ``refine_period_s``: between fits an object
     whose fused pose stayed within 5 mm of the one fitted keeps the fitted pose; one that moved 1 cm
     is reported as fused until the next fit."""
@@ -262,7 +309,13 @@ def test_between_fits_an_object_keeps_its_fitted_pose_while_it_stays_put(client_
         crate = next(o for o in scenario.objects if o.id == "crate").world_T_object(0.0)
 
         def seen_at(world_T_object: np.ndarray) -> np.ndarray:
-            det = WorldDetection("cam2", 0, world_T_object, Detection("crate", geometry.invert_pose(frame.world_T_camera) @ world_T_object, 0.9, 1.0, 0.005, 100), frame.world_T_camera)
+            det = WorldDetection(
+                "cam2",
+                0,
+                world_T_object,
+                Detection("crate", geometry.invert_pose(frame.world_T_camera) @ world_T_object, 0.9, 1.0, 0.005, 100),
+                frame.world_T_camera,
+            )
             worker.latest = {("cam2", "crate"): det}
             return worker.fused()[0].world_T_object
 
@@ -281,11 +334,18 @@ def _demo_frames(recognizer: Recognizer, seed: int) -> tuple[list[CameraView], l
         frame = SimCell(load_scenario()).render(cam.id, 0.0, seed)
         cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
         views.append(CameraView(cam.id, 0, DepthView.of(cloud, frame.rgb), frame.world_T_camera))
-        points.append(CameraPoints(cam.id, 0, voxel_downsample(recognizer.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
-                                   frame.world_T_camera))  # fmt: skip
+        points.append(
+            CameraPoints(
+                cam.id,
+                0,
+                voxel_downsample(recognizer.workspace_points(cloud, frame.world_T_camera), REFINE_VOXEL_M),
+                frame.world_T_camera,
+            )
+        )
     return views, points
 
 
+@pytest.mark.slow
 def test_objects_are_found_in_every_cameras_points_together(demo_models: dict) -> None:
     """`found_in_cloud`: the four demo cameras' points put in cam1's frame and verified against
     cam1's; each object asked for is found within 2 cm of where it stands, only those asked for
@@ -304,11 +364,17 @@ def test_objects_are_found_in_every_cameras_points_together(demo_models: dict) -
     assert sorted(d.detection.object_id for d in found) == ["can", "tote"]
     assert calls == [sum(len(p.points) for p in points)]  # every camera's points, in one search
     for d in found:
-        assert d.camera_id == "cam1" and np.linalg.norm(d.world_T_object[:3, 3] - truth[d.detection.object_id][:3, 3]) < 0.02
+        assert (
+            d.camera_id == "cam1"
+            and np.linalg.norm(d.world_T_object[:3, 3] - truth[d.detection.object_id][:3, 3]) < 0.02
+        )
     assert found_in_cloud(set(), views[0], points, recognise) == [] and len(calls) == 1
 
 
-def test_the_worker_searches_the_cameras_points_for_what_no_camera_found(client_transport: TransportConfig, demo_database) -> None:
+@pytest.mark.slow
+def test_the_worker_searches_the_cameras_points_for_what_no_camera_found(
+    client_transport: TransportConfig, demo_database
+) -> None:
     """With the crate and the can detected and the tote not, `fused` adds the tote found in the
     cameras' points together (within 2 cm); within `search_period_s` it holds that result without
     searching again, and once a camera detects the tote itself the search's result is not added."""
@@ -319,18 +385,27 @@ def test_the_worker_searches_the_cameras_points_for_what_no_camera_found(client_
         worker = RecognitionWorker(bus, config, db)
         views, points = _demo_frames(worker.recognizer, 5)
         for v, p in zip(views, points):
-            worker.views[v.camera_id], worker.scenes[p.camera_id], worker.world_T_camera[v.camera_id] = v, p, v.world_T_camera
+            worker.views[v.camera_id], worker.scenes[p.camera_id], worker.world_T_camera[v.camera_id] = (
+                v,
+                p,
+                v.world_T_camera,
+            )
             worker.camera_state[v.camera_id] = m.CameraState.State.LOCALIZED
 
         def seen(oid: str) -> WorldDetection:
             camera_T_object = geometry.invert_pose(views[1].world_T_camera) @ truth[oid]
-            return WorldDetection("cam2", 0, truth[oid], Detection(oid, camera_T_object, 0.9, 1.0, 0.005, 100), views[1].world_T_camera)
+            return WorldDetection(
+                "cam2", 0, truth[oid], Detection(oid, camera_T_object, 0.9, 1.0, 0.005, 100), views[1].world_T_camera
+            )
 
         worker.latest = {("cam2", oid): seen(oid) for oid in ("crate", "can")}
         objects = {o.object_id: o for o in worker.fused()}
         assert sorted(objects) == ["can", "crate", "tote"]
         assert np.linalg.norm(objects["tote"].world_T_object[:3, 3] - truth["tote"][:3, 3]) < 0.02
         searched_at = worker._searched_at
-        assert sorted(o.object_id for o in worker.fused()) == ["can", "crate", "tote"] and worker._searched_at == searched_at
+        assert (
+            sorted(o.object_id for o in worker.fused()) == ["can", "crate", "tote"]
+            and worker._searched_at == searched_at
+        )
         worker.latest[("cam2", "tote")] = seen("tote")
         assert [o.camera_ids for o in worker.fused() if o.object_id == "tote"] == [["cam2"]]

@@ -45,7 +45,9 @@ def test_recorder_writes_what_decodes_and_skips_garbage(client_transport: Transp
     assert rec.bad[keys.status(CELL, "cam1")] == 50
 
 
-def test_recorder_keeps_what_a_faulty_producer_sent_and_the_reader_skips_it(client_transport: TransportConfig, tmp_path: Path) -> None:
+def test_recorder_keeps_what_a_faulty_producer_sent_and_the_reader_skips_it(
+    client_transport: TransportConfig, tmp_path: Path
+) -> None:
     """The recorder checks a payload against its key's schema only: a pose message with a NaN in it
     parses, so it is recorded as sent, and reading the log skips and counts it as every subscriber
     would."""
@@ -71,6 +73,7 @@ def test_recorder_keeps_what_a_faulty_producer_sent_and_the_reader_skips_it(clie
     assert all(np.isfinite(msg.poses[0].pose.x) for msg in read)
 
 
+@pytest.mark.slow
 def test_replay_republishes_in_order_and_skips_estimates(client_transport: TransportConfig, tmp_path: Path) -> None:
     path = tmp_path / "log.mcap"
     w = LogWriter(path)
@@ -93,8 +96,11 @@ def test_replay_republishes_in_order_and_skips_estimates(client_transport: Trans
 @pytest.mark.slow
 def test_recorder_killed_with_sigkill_leaves_a_readable_file(router_endpoint: str, tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "record", "--out", str(path), "--cell", CELL, "-e", router_endpoint],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cellsight.cli", "record", "--out", str(path), "--cell", CELL, "-e", router_endpoint],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         with Bus(TransportConfig(connect=[router_endpoint]), CELL) as bus:
             pub = bus.publisher(keys.depth(CELL, "cam1"), frames=True)
@@ -126,6 +132,7 @@ def test_a_restarted_recorder_never_overwrites_a_recording(client_transport: Tra
     assert path.read_bytes() == kept
 
 
+@pytest.mark.slow
 def test_a_camera_falling_silent_is_marked_in_the_log(client_transport: TransportConfig, tmp_path: Path) -> None:
     """cam1 stops for ~1.5 s (a dropped link) and comes back; cam2 goes on throughout, and stops for
     good before the end: one gap each, cam1's within the silence, nothing for a camera that kept talking."""

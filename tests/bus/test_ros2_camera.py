@@ -22,13 +22,26 @@ from schemas.geometry import pose_error
 from schemas.ros2 import ros2_types
 from tests.helpers import wait_until
 
+
 @pytest.mark.slow
 def test_markers_from_ros2_camera_topics_equal_the_sim_drivers(ros2_router: str, ros2_messages: Path) -> None:
     from zenoh_ros2_sdk import ROS2Publisher
+
     port = int(ros2_router.rsplit(":", 1)[1])
-    topics = {"color": "/cam/color/image_raw", "depth": "/cam/aligned_depth_to_color/image_raw", "info": "/cam/color/camera_info"}
-    pubs = {k: ROS2Publisher(topic=t, msg_type="sensor_msgs/msg/CameraInfo" if k == "info" else "sensor_msgs/msg/Image",
-                             router_ip="127.0.0.1", router_port=port) for k, t in topics.items()}  # fmt: skip
+    topics = {
+        "color": "/cam/color/image_raw",
+        "depth": "/cam/aligned_depth_to_color/image_raw",
+        "info": "/cam/color/camera_info",
+    }
+    pubs = {
+        k: ROS2Publisher(
+            topic=t,
+            msg_type="sensor_msgs/msg/CameraInfo" if k == "info" else "sensor_msgs/msg/Image",
+            router_ip="127.0.0.1",
+            router_port=port,
+        )
+        for k, t in topics.items()
+    }
     store = pubs["color"].session_mgr.store.types
     frames = [f for f in (SimSource(load_scenario(), "cam1", epoch_ns=10**18, realtime=False).read() for _ in range(4))]
     session = open_session(TransportConfig(connect=[ros2_router]))
@@ -45,15 +58,38 @@ def test_markers_from_ros2_camera_topics_equal_the_sim_drivers(ros2_router: str,
     for f in frames:
         before = len(got)
         info = f.info
-        pubs["info"].publish(header=header(f.stamp_ns), height=info.height, width=info.width, distortion_model="plumb_bob",
-                             d=info.D.astype(np.float64), k=info.K.reshape(9), r=np.eye(3).reshape(9),
-                             p=np.hstack([info.K, np.zeros((3, 1))]).reshape(12), binning_x=0, binning_y=0,
-                             roi=store["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))  # fmt: skip
+        pubs["info"].publish(
+            header=header(f.stamp_ns),
+            height=info.height,
+            width=info.width,
+            distortion_model="plumb_bob",
+            d=info.D.astype(np.float64),
+            k=info.K.reshape(9),
+            r=np.eye(3).reshape(9),
+            p=np.hstack([info.K, np.zeros((3, 1))]).reshape(12),
+            binning_x=0,
+            binning_y=0,
+            roi=store["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+        )
         bgr = np.ascontiguousarray(f.rgb[:, :, ::-1])
-        pubs["color"].publish(header=header(f.stamp_ns), height=info.height, width=info.width, encoding="bgr8", is_bigendian=0,
-                              step=info.width * 3, data=bgr.reshape(-1))  # fmt: skip
-        pubs["depth"].publish(header=header(f.stamp_ns), height=info.height, width=info.width, encoding="16UC1", is_bigendian=0,
-                              step=info.width * 2, data=f.depth_mm.view(np.uint8).reshape(-1))  # fmt: skip
+        pubs["color"].publish(
+            header=header(f.stamp_ns),
+            height=info.height,
+            width=info.width,
+            encoding="bgr8",
+            is_bigendian=0,
+            step=info.width * 3,
+            data=bgr.reshape(-1),
+        )
+        pubs["depth"].publish(
+            header=header(f.stamp_ns),
+            height=info.height,
+            width=info.width,
+            encoding="16UC1",
+            is_bigendian=0,
+            step=info.width * 2,
+            data=f.depth_mm.view(np.uint8).reshape(-1),
+        )
         # One frame at a time (the source keeps the newest pair only): the next goes once this one is read.
         wait_until(lambda: len(got) > before or not reader.is_alive(), 20.0, "the ROS 2 source to read the frame")
     reader.join(20)

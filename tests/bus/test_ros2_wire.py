@@ -20,21 +20,35 @@ from schemas.ros2 import Ros2Config, ros2_types
 from tests.bus.test_estimator_service import CELL, scene
 from tests.helpers import ros2_subscriber, wait_until
 
+
 def test_keys_hashes_and_attachment_as_rmw_zenoh_states_them() -> None:
     """ros2/rmw_zenoh docs/design.md: topic keys are ``<domain>/<topic>/<DDS type>/<type hash>``,
     liveliness names mangle ``/`` to ``%``; the attachment is sequence, source time, GID."""
     assert dds_type_name("std_msgs/msg/String") == "std_msgs::msg::dds_::String_"
     humble, jazzy = ros2_types("humble"), ros2_types("jazzy")
-    assert topic_key(0, "/chatter", "std_msgs/msg/String", humble.type_hash("std_msgs/msg/String")) == \
-        "0/chatter/std_msgs::msg::dds_::String_/TypeHashNotSupported"
+    assert (
+        topic_key(0, "/chatter", "std_msgs/msg/String", humble.type_hash("std_msgs/msg/String"))
+        == "0/chatter/std_msgs::msg::dds_::String_/TypeHashNotSupported"
+    )
     # REP-2011's hash of tf2_msgs/msg/TFMessage, as rmw_zenoh puts it in Jazzy keys
-    assert jazzy.type_hash("tf2_msgs/msg/TFMessage") == "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+    assert (
+        jazzy.type_hash("tf2_msgs/msg/TFMessage")
+        == "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+    )
     # ... and of the cloud and (from the vision_msgs definitions we ship) the objects, as
     # `ros2 topic info -v` on Jazzy prints them: our definitions hash like the real packages'.
-    assert jazzy.type_hash("sensor_msgs/msg/PointCloud2") == "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"
-    assert jazzy.type_hash("vision_msgs/msg/Detection3DArray") == "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018"
-    assert topic_key(3, "/cellsight/cam1/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", "H") == \
-        "3/cellsight/cam1/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/H"
+    assert (
+        jazzy.type_hash("sensor_msgs/msg/PointCloud2")
+        == "RIHS01_9198cabf7da3796ae6fe19c4cb3bdd3525492988c70522628af5daa124bae2b5"
+    )
+    assert (
+        jazzy.type_hash("vision_msgs/msg/Detection3DArray")
+        == "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018"
+    )
+    assert (
+        topic_key(3, "/cellsight/cam1/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", "H")
+        == "3/cellsight/cam1/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/H"
+    )
     assert mangle("/cellsight/cam1/pose") == "%cellsight%cam1%pose" and mangle("/") == "%"
     gid = bytes(range(16))
     assert attachment(7, 123, gid) == struct.pack("<QQB", 7, 123, 16) + gid
@@ -58,8 +72,11 @@ def test_a_ros2_node_reads_the_estimators_tf_and_poses(ros2_router: str, ros2_me
                 stamp = 10**18 + int(k * 1e9 / 30)
                 pub.put(observations_msg("a", stamp, frame_observations(s, "a", 0.0, stamp, rng, NoiseSettings())))
                 time.sleep(1 / 60)
-            wait_until(lambda: any(t.child_frame_id == "a_color_optical_frame" for m in tf for t in m.transforms) and poses, 5.0,
-                       "the ROS 2 subscriber to get the camera's tf and pose")  # fmt: skip
+            wait_until(
+                lambda: any(t.child_frame_id == "a_color_optical_frame" for m in tf for t in m.transforms) and poses,
+                5.0,
+                "the ROS 2 subscriber to get the camera's tf and pose",
+            )
             tokens = [str(r.ok.key_expr) for r in client.session.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
         finally:
             stop.set()

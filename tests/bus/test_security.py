@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pytest
@@ -51,11 +51,16 @@ def test_each_role_publishes_only_its_own_topics_and_everyone_reads(profile: Pro
             got.append(key)
 
     viewer, driver, estimator, recognition, other_viewer = (
-        _as(profile, r) for r in ("viewer", "driver", "estimator", "recognition", "viewer"))
+        _as(profile, r) for r in ("viewer", "driver", "estimator", "recognition", "viewer")
+    )
     try:
         viewer.subscribe_raw(f"{keys.ROOT}/{CELL}/**", seen)
-        estimator.session.declare_queryable(keys.estimate_map(CELL), lambda q: q.reply(q.key_expr, m.Map().SerializeToString()))
-        driver.session.declare_queryable(keys.estimate_map(CELL), lambda q: q.reply(q.key_expr, m.Map().SerializeToString()))
+        estimator.session.declare_queryable(
+            keys.estimate_map(CELL), lambda q: q.reply(q.key_expr, m.Map().SerializeToString())
+        )
+        driver.session.declare_queryable(
+            keys.estimate_map(CELL), lambda q: q.reply(q.key_expr, m.Map().SerializeToString())
+        )
         estimator.declare_alive("estimator", "main")
         wait_until(lambda: len(viewer.alive()) == 1, 5.0, "the estimator's liveliness token")
         # Each session puts what it may not before what it may: zenoh keeps one session's order, so
@@ -87,6 +92,7 @@ def test_each_role_publishes_only_its_own_topics_and_everyone_reads(profile: Pro
             bus.close()
 
 
+@pytest.mark.slow
 def test_every_cell_of_the_access_matrix_holds_at_the_real_router(profile: Profile) -> None:
     """Each role's certificate tries every cell of the matrix (``docs/deployment.md``) through the
     real router (the edge role through a real edge router): every disallowed put, token and answer
@@ -98,6 +104,7 @@ def test_every_cell_of_the_access_matrix_holds_at_the_real_router(profile: Profi
     assert not result.violations, [(c.role, c.family, c.operation, what) for c, what in result.violations]
 
 
+@pytest.mark.slow
 def test_a_driver_cannot_forge_the_estimators_status_nor_its_liveliness(profile: Profile) -> None:
     """The two findings as an operator met them: a driver certificate's put on ``estimate/status``
     reached ``cellsight status``, and a robot's ``alive/estimator/main`` token listed an estimator."""
@@ -127,7 +134,9 @@ def test_on_ros2_keys_only_the_estimator_puts_tf_only_recognition_objects_and_a_
     p = write_profile(tmp_path / "secure", CELL, listen=f"tls/127.0.0.1:{free_port()}", ros2_domain=7)
     router = open_session(TransportConfig(zenoh_config=p.router_config))
     types = ros2_types("jazzy")
-    robot, other_robot, estimator, recognition, driver = (_as(p, r) for r in ("robot", "robot", "estimator", "recognition", "driver"))
+    robot, other_robot, estimator, recognition, driver = (
+        _as(p, r) for r in ("robot", "robot", "estimator", "recognition", "driver")
+    )
     got: list[str] = []
     lock = threading.Lock()
 
@@ -138,20 +147,28 @@ def test_on_ros2_keys_only_the_estimator_puts_tf_only_recognition_objects_and_a_
     nodes = []
     try:
         robot.subscribe_raw("7/**", seen)
-        est, rec = (Ros2Node(b.session, NodeName(7, name), types) for b, name in ((estimator, "est"), (recognition, "rec")))
+        est, rec = (
+            Ros2Node(b.session, NodeName(7, name), types) for b, name in ((estimator, "est"), (recognition, "rec"))
+        )
         nodes += [est, rec]
-        wait_until(lambda: len([r for r in robot.session.liveliness().get("@ros2_lv/7/**", timeout=1.0) if r.ok]) >= 2, 5.0,
-                   "the robot to see both nodes in the ROS 2 graph")  # fmt: skip
+        wait_until(
+            lambda: len([r for r in robot.session.liveliness().get("@ros2_lv/7/**", timeout=1.0) if r.ok]) >= 2,
+            5.0,
+            "the robot to see both nodes in the ROS 2 graph",
+        )
         tf = types.tf_message(1, [("world", "cam1_color_optical_frame", np.eye(4))])
         objects = types.detections(m.ObjectDetections(stamp_ns=1))
         # Denied first (one session's order is kept, so one that got through would arrive early).
         rec.publisher("/tf", "tf2_msgs/msg/TFMessage").put(tf)
         est.publisher("/cellsight/objects", DETECTIONS).put(objects)
-        other_robot.session.put(topic_key(7, "/tf", "tf2_msgs/msg/TFMessage", types.type_hash("tf2_msgs/msg/TFMessage")), b"spoof")
+        other_robot.session.put(
+            topic_key(7, "/tf", "tf2_msgs/msg/TFMessage", types.type_hash("tf2_msgs/msg/TFMessage")), b"spoof"
+        )
         driver.session.put(topic_key(7, "/cellsight/cam1/pose", "x/msg/Y", "H"), b"spoof")
         est.publisher("/tf", "tf2_msgs/msg/TFMessage").put(tf)
         est.publisher("/cellsight/cam1/pose", "geometry_msgs/msg/PoseWithCovarianceStamped").put(
-            types.pose_with_covariance(1, "world", np.eye(4), None))
+            types.pose_with_covariance(1, "world", np.eye(4), None)
+        )
         rec.publisher("/cellsight/objects", DETECTIONS).put(objects)
         expected = ["cellsight/cam1", "cellsight/objects", "tf/tf2_msgs::msg::dds_::TFMessage_"]
         wait_until(lambda: len(got) >= len(expected), 5.0, "every allowed ROS 2 message")
@@ -166,14 +183,18 @@ def test_on_ros2_keys_only_the_estimator_puts_tf_only_recognition_objects_and_a_
         router.close()
 
 
+@pytest.mark.slow
 def test_a_client_without_a_certificate_is_refused(profile: Profile) -> None:
     """Server-side TLS alone (it trusts the router) is not enough: the router wants a client certificate."""
-    transport = TransportConfig(connect=[profile.endpoint], overrides={
-        "transport/link/tls/root_ca_certificate": str(profile.ca_certificate), "connect/timeout_ms": 500})
+    transport = TransportConfig(
+        connect=[profile.endpoint],
+        overrides={"transport/link/tls/root_ca_certificate": str(profile.ca_certificate), "connect/timeout_ms": 500},
+    )
     with pytest.raises(BusError, match="cannot open zenoh session"):
         open_session(transport)
 
 
+@pytest.mark.slow
 def test_a_certificate_from_another_authority_is_refused(profile: Profile, tmp_path: Path) -> None:
     stranger = write_profile(tmp_path / "stranger", CELL, listen=profile.endpoint)
     transport = TransportConfig(zenoh_config=stranger.role_configs["estimator"], overrides={"connect/timeout_ms": 500})
@@ -192,6 +213,7 @@ def test_the_default_local_profile_stays_on_loopback() -> None:
     assert client.get_json("connect/endpoints") == '["tcp/127.0.0.1:7447"]'
 
 
+@pytest.mark.slow
 def test_an_edge_router_passes_its_cameras_topics_and_the_cell_drops_anything_else_from_it(profile: Profile) -> None:
     """The edge router only authenticates; the cell's router holds it to what a driver may put. A
     process on the edge host (with the driver's certificate) puts markers and, as a compromised host
@@ -203,8 +225,11 @@ def test_an_edge_router_passes_its_cameras_topics_and_the_cell_drops_anything_el
     got: list[str] = []
     try:
         viewer.subscribe_raw(f"{keys.ROOT}/{CELL}/**", lambda key, _p, _ns: got.append(key))
-        wait_until(lambda: on_edge.session.put(keys.status(CELL, "probe"), b"") or got, 10.0,
-                   "the edge host's messages at the cell, router to router")  # fmt: skip
+        wait_until(
+            lambda: on_edge.session.put(keys.status(CELL, "probe"), b"") or got,
+            10.0,
+            "the edge host's messages at the cell, router to router",
+        )
         got.clear()
         for k in (keys.tf(CELL), keys.objects(CELL), keys.estimate_cameras(CELL), keys.markers(CELL, "cam1")):
             on_edge.session.put(k, b"x")  # denied first: one session's order is kept

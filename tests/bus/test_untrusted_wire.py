@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cellsight.record import Recorder
 from cellsight.status import StatusBoard
@@ -26,7 +27,9 @@ CELL = "wire"
 
 
 def scene() -> Scenario:
-    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    wall = lambda i, x, role="static": MarkerSpec(  # noqa: E731
+        id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0))
+    )
     return Scenario(
         markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2)],
         cameras=[CameraSpec(id="cam1", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))],
@@ -42,7 +45,10 @@ def good_frames(s: Scenario, n: int, start_ns: int, camera: str = "cam1") -> lis
     return out
 
 
-def test_absurd_positions_and_a_ghost_camera_are_refused_and_the_estimator_runs_on(client_transport: TransportConfig) -> None:
+@pytest.mark.slow
+def test_absurd_positions_and_a_ghost_camera_are_refused_and_the_estimator_runs_on(
+    client_transport: TransportConfig,
+) -> None:
     """z = 1e300 (finite) made the estimator exit on its own output check; z = 1e6 m made iSAM2's
     system indeterminate; ``ghost_cam`` on cam1's key became a camera. Now each is refused at the
     subscription or the frame check, counted by key and reason in the estimator's status, and
@@ -54,7 +60,11 @@ def test_absurd_positions_and_a_ghost_camera_are_refused_and_the_estimator_runs_
     far.markers[0].camera_T_marker.z = 1e300
     very_far.markers[1].camera_T_marker.z = 1e6
     ghost.camera_id = "ghost_cam"
-    with Bus(client_transport, CELL) as svc_bus, Bus(client_transport, CELL) as driver, Bus(client_transport, CELL) as viewer:
+    with (
+        Bus(client_transport, CELL) as svc_bus,
+        Bus(client_transport, CELL) as driver,
+        Bus(client_transport, CELL) as viewer,
+    ):
         svc = EstimatorService(svc_bus, estimator_config(s, update_hz=20.0))
         board = StatusBoard(viewer)
         pub = driver.publisher(keys.markers(CELL, "cam1"))
@@ -76,7 +86,10 @@ def test_absurd_positions_and_a_ghost_camera_are_refused_and_the_estimator_runs_
     assert refused[key, "out_of_bounds"] == 2 and refused[key, "id_mismatch"] == 1, refused
 
 
-def test_a_negative_stamp_is_refused_by_the_recorder_and_the_log_reads_to_its_end(client_transport: TransportConfig, tmp_path: Path) -> None:
+@pytest.mark.slow
+def test_a_negative_stamp_is_refused_by_the_recorder_and_the_log_reads_to_its_end(
+    client_transport: TransportConfig, tmp_path: Path
+) -> None:
     """``stamp_ns = -5`` made the MCAP writer fail half-way through a record: the log could not be read
     past it and the run's summary was built from a quarter of its messages. Now the message is
     refused and counted, and every message after it is in the log."""
@@ -100,7 +113,10 @@ def test_a_negative_stamp_is_refused_by_the_recorder_and_the_log_reads_to_its_en
     assert stamps == [f.stamp_ns for k, f in enumerate(frames) if k not in (20, 25)]
 
 
-def test_ten_thousand_unknown_marker_ids_write_a_few_lines_not_ten_thousand(client_transport: TransportConfig, caplog) -> None:
+@pytest.mark.slow
+def test_ten_thousand_unknown_marker_ids_write_a_few_lines_not_ten_thousand(
+    client_transport: TransportConfig, caplog
+) -> None:
     s = scene()
     msg = good_frames(s, 1, time.time_ns())[0]
     with Bus(client_transport, CELL) as svc_bus:

@@ -8,7 +8,17 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from recognition.align import RAN_OFF, Surface, facing_camera, fit_at, icp_pass, icp_passes, projective_icp, refine_icp, rot_z
+from recognition.align import (
+    RAN_OFF,
+    Surface,
+    facing_camera,
+    fit_at,
+    icp_pass,
+    icp_passes,
+    projective_icp,
+    refine_icp,
+    rot_z,
+)
 from recognition.cloud import estimate_normals
 from recognition.config import RecognitionConfig
 from schemas.geometry import make_pose, rotation_angle
@@ -74,8 +84,9 @@ def box_surface(size_m: tuple[float, float, float], step_m: float) -> tuple[np.n
     return np.concatenate(points), np.concatenate(normals)
 
 
-def ray_cast(boxes: list[tuple[np.ndarray, tuple[float, float, float]]], K: np.ndarray,
-             size: tuple[int, int]) -> np.ndarray:  # fmt: skip
+def ray_cast(
+    boxes: list[tuple[np.ndarray, tuple[float, float, float]]], K: np.ndarray, size: tuple[int, int]
+) -> np.ndarray:
     """Depth image (H, W, m, NaN: nothing) of boxes (camera_T_box (4, 4), size (3,) m) along each
     pixel centre's ray (the slab test), as a depth sensor measures it without noise."""
     v, u = np.mgrid[0 : size[0], 0 : size[1]]
@@ -131,6 +142,7 @@ def test_the_screens_passes_from_every_start_at_once_are_open3ds_one_by_one() ->
     ok = np.all(np.isfinite(scene_normals), axis=1)
     surface = Surface.of(p[ok], scene_normals[ok])
     model, model_normals = box_surface((0.24, 0.18, 0.14), 0.03)  # ~100 points, as the screen's thinned models
+
     def off(shift_m: float, turn_deg: float) -> np.ndarray:
         axis, way = rng.normal(size=3), rng.normal(size=3)
         turn = np.radians(turn_deg) * axis / np.linalg.norm(axis)

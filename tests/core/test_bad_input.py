@@ -29,8 +29,8 @@ from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
 from estimator.errors import StateFileError
 from estimator.state import SavedMarker, load_state, save_state
 from recognition.cloud import read_cloud, read_coloured_cloud
-from recognition.errors import CloudError, ModelError
 from recognition.config import DescriptorConfig
+from recognition.errors import CloudError, ModelError
 from recognition.models import model_from_cloud, model_from_mesh, model_from_points, read_mesh
 from tests.core.test_config import EXAMPLE
 
@@ -159,8 +159,13 @@ for k in range(int(sys.argv[4])):
 def test_damaged_clouds_are_cloud_errors_never_a_crash(tmp_path: Path, cloud: str) -> None:
     """In a child process: before the header checks, Open3D's reader killed the process (SIGSEGV)."""
     out = tmp_path / f"damaged{Path(cloud).suffix}"
-    run = subprocess.run([sys.executable, "-c", FUZZ_CLOUDS, str(PCL / cloud), str(out), "3", "300"],
-                         capture_output=True, text=True, timeout=300, cwd=HERE.parents[1])
+    run = subprocess.run(
+        [sys.executable, "-c", FUZZ_CLOUDS, str(PCL / cloud), str(out), "3", "300"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=HERE.parents[1],
+    )
     assert run.returncode == 0, f"exit {run.returncode}: {run.stderr[-2000:]}"
 
 
@@ -192,8 +197,11 @@ def test_a_model_in_millimetres_is_named_as_such() -> None:
     box = o3d.geometry.TriangleMesh.create_box(0.1, 0.2, 0.3)
     points = np.asarray(box.sample_points_uniformly(3000).points)
     params = DescriptorConfig()
-    for build in (lambda k: model_from_points("box", points * k, params), lambda k: model_from_cloud("box", points * k, params),
-                  lambda k: model_from_mesh("box", o3d.geometry.TriangleMesh(box).scale(k, np.zeros(3)), params)):  # fmt: skip
+    for build in (
+        lambda k: model_from_points("box", points * k, params),
+        lambda k: model_from_cloud("box", points * k, params),
+        lambda k: model_from_mesh("box", o3d.geometry.TriangleMesh(box).scale(k, np.zeros(3)), params),
+    ):
         with pytest.raises(ModelError, match=r"'box' is 37[0-9.]+ across.*millimetres\? scale it by 0.001"):
             build(1000.0)
     assert len(model_from_points("box", points, params).views) > 0
@@ -206,8 +214,12 @@ def test_a_scene_in_millimetres_is_named_as_such(tmp_path: Path) -> None:
     cloud, _ = load_scene(scene)
     pts = cloud.reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
-    o3d.io.write_point_cloud(str(tmp_path / "mm.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts * 1000.0)))
-    with pytest.raises(CloudError, match=r"mm.ply: its points lie [0-9.]+ from the camera.*millimetres\? give --scale 0.001"):
+    o3d.io.write_point_cloud(
+        str(tmp_path / "mm.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts * 1000.0))
+    )
+    with pytest.raises(
+        CloudError, match=r"mm.ply: its points lie [0-9.]+ from the camera.*millimetres\? give --scale 0.001"
+    ):
         load_scene(tmp_path / "mm.ply")
     scaled, _ = load_scene(tmp_path / "mm.ply", scale=0.001)  # what the error says to do
     np.testing.assert_allclose(scaled, pts, atol=1e-6)
@@ -221,7 +233,9 @@ def test_a_depth_image_takes_its_colour_from_the_registered_colour_image(tmp_pat
     colour given to a cloud that has its own, is an error naming both."""
     tiff = PCL / "grabber_sequences" / "tiff"
     frame = "frame_20121214T142255.814212"
-    cloud, rgb = load_scene(tiff / f"{frame}_depth.tiff", fx=525.0, fy=525.0, cx=320.0, cy=240.0, rgb=tiff / f"{frame}_rgb.tiff")
+    cloud, rgb = load_scene(
+        tiff / f"{frame}_depth.tiff", fx=525.0, fy=525.0, cx=320.0, cy=240.0, rgb=tiff / f"{frame}_rgb.tiff"
+    )
     pcl_points, pcl_rgb = read_coloured_cloud(PCL / "grabber_sequences" / "pcd" / f"{frame}.pcd", organised=True)
     finite = np.all(np.isfinite(pcl_points), axis=2)
     assert finite.mean() > 0.5 and rgb.shape == pcl_rgb.shape
@@ -234,6 +248,7 @@ def test_a_depth_image_takes_its_colour_from_the_registered_colour_image(tmp_pat
         load_scene(PCL / "milk_cartoon_all_small_clorox.pcd", rgb=small)
 
 
+@pytest.mark.slow
 def test_model_files_in_millimetres_build_with_their_scale(tmp_path: Path) -> None:
     """The millimetre box of the test above, as a points file and a mesh file: with ``scale`` 0.001
     (``cellsight model build --scale``) each builds the model the metre files build."""
@@ -258,6 +273,7 @@ def test_model_files_in_millimetres_build_with_their_scale(tmp_path: Path) -> No
 @pytest.mark.parametrize("suffix", [".ply", ".stl", ".obj"])
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
+@pytest.mark.slow
 def test_a_damaged_mesh_is_a_model_error_or_a_valid_mesh(tmp_path: Path, suffix: str, data: st.DataObject) -> None:
     """Every read runs in a child forked from read_mesh's fork server (milliseconds each)."""
     path = tmp_path / f"mesh{suffix}"
@@ -288,18 +304,30 @@ def junk_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, ...]:
     """Paths a confused user might pass: missing, a folder, empty and garbage files of each kind."""
     where = tmp_path_factory.mktemp("cli-fuzz")
     paths = [where / "missing.toml", where, where / ""]
-    for name, data in [("empty.toml", b""), ("junk.toml", b"[cell\nname = 3"), ("junk.mcap", b"\x89MCAP0\r\n" + bytes(100)),
-                       ("junk.pcd", b"# .PCD\nFIELDS x\n"), ("junk.png", b"\x89PNG\r\n\x1a\n garbage"), ("junk.yml", b"%YAML:1.0\nfoo: [")]:  # fmt: skip
+    for name, data in [
+        ("empty.toml", b""),
+        ("junk.toml", b"[cell\nname = 3"),
+        ("junk.mcap", b"\x89MCAP0\r\n" + bytes(100)),
+        ("junk.pcd", b"# .PCD\nFIELDS x\n"),
+        ("junk.png", b"\x89PNG\r\n\x1a\n garbage"),
+        ("junk.yml", b"%YAML:1.0\nfoo: ["),
+    ]:
         (where / name).write_bytes(data)
         paths.append(where / name)
     return tuple(str(p) for p in paths)
 
 
-NUMBERS = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(str), st.integers(-10**12, 10**12).map(str), st.text(max_size=6))
+NUMBERS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(str),
+    st.integers(-(10**12), 10**12).map(str),
+    st.text(max_size=6),
+)
 
 
 @pytest.mark.slow
-@settings(max_examples=100, deadline=None, phases=[Phase.explicit, Phase.reuse, Phase.generate])  # the message names the args: no shrinking
+@settings(
+    max_examples=100, deadline=None, phases=[Phase.explicit, Phase.reuse, Phase.generate]
+)  # the message names the args: no shrinking
 @given(data=st.data())
 def test_cli_arguments_give_an_exit_code_never_a_traceback(junk_files: tuple[str, ...], data: st.DataObject) -> None:
     """Any mix of junk arguments to the offline commands ends in a clean exit 0, 1 or 2."""
@@ -313,9 +341,15 @@ def test_cli_arguments_give_an_exit_code_never_a_traceback(junk_files: tuple[str
             continue  # a missing argument or option value
         word = data.draw(st.text(st.characters(codec="ascii", categories=["L", "N", "P"]), min_size=0, max_size=8))
         path = data.draw(st.sampled_from(junk_files))
-        args.append(token.replace("S=P", f"{word}={path}").replace("OUT", f"{junk_files[1]}/out")
-                    .replace("P", path) if token in ("P", "S=P", "OUT") else data.draw(NUMBERS) if token == "N"
-                    else word if token == "S" else token)  # fmt: skip
+        args.append(
+            token.replace("S=P", f"{word}={path}").replace("OUT", f"{junk_files[1]}/out").replace("P", path)
+            if token in ("P", "S=P", "OUT")
+            else data.draw(NUMBERS)
+            if token == "N"
+            else word
+            if token == "S"
+            else token
+        )
     result = CliRunner().invoke(app, args, catch_exceptions=True)
     assert result.exception is None or isinstance(result.exception, SystemExit), f"{args}: {result.exception!r}"
     assert result.exit_code in (0, 1, 2), f"{args}: exit {result.exit_code}\n{result.output[-1000:]}"

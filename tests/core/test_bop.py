@@ -15,8 +15,8 @@ from cellsight.bop import ADDS_SHARE, BopDataset, BopInstance, BopWriter, adds_m
 from cellsight.errors import DatasetError
 from recognition.cloud import depth_to_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
-from recognition.pipeline import Recognizer
 from recognition.models import ModelDatabase
+from recognition.pipeline import Recognizer
 from schemas.geometry import invert_pose, make_pose, matrix_from_quat
 from tests.core.test_recognition import PCL
 from tests.helpers import assert_pose_close
@@ -42,7 +42,16 @@ def demo_dataset(tmp_path_factory: pytest.TempPathFactory):
     for image_id, cam in enumerate(("cam1", "cam3")):
         frame = cell.render(cam, 0.0, image_id)
         truth = [(ids[o.id], invert_pose(frame.world_T_camera) @ o.world_T_object(0.0), 1.0) for o in scenario.objects]
-        w.add_frame(7, image_id, frame.depth_mm * 0.001, frame.info.K, truth, frame.rgb, depth_scale_mm=1.0, world_T_camera=frame.world_T_camera)
+        w.add_frame(
+            7,
+            image_id,
+            frame.depth_mm * 0.001,
+            frame.info.K,
+            truth,
+            frame.rgb,
+            depth_scale_mm=1.0,
+            world_T_camera=frame.world_T_camera,
+        )
         frames.append((frame, truth))
     return w.close(), frames, ids
 
@@ -50,7 +59,9 @@ def demo_dataset(tmp_path_factory: pytest.TempPathFactory):
 def test_a_written_dataset_reads_back_in_metres(demo_dataset) -> None:
     root, frames, ids = demo_dataset
     ds = BopDataset.open(root)
-    assert sorted(ds.models) == sorted(object_id(i) for i in ids.values()) and all(m.is_mesh for m in ds.models.values())
+    assert sorted(ds.models) == sorted(object_id(i) for i in ids.values()) and all(
+        m.is_mesh for m in ds.models.values()
+    )
     assert [(f.scene_id, f.image_id) for f in ds.frames] == [(7, 0), (7, 1)]
     info = json.loads((root / "models" / "models_info.json").read_text())
     assert info["2"]["diameter"] == pytest.approx(1000 * ds.models[object_id(2)].diameter_m)  # mm on disk, m read
@@ -66,6 +77,7 @@ def test_a_written_dataset_reads_back_in_metres(demo_dataset) -> None:
             assert_pose_close(inst.camera_T_object, T, 1e-9, 1e-7, "annotated pose")
 
 
+@pytest.mark.slow
 def test_objects_are_recognised_from_their_model_files_in_millimetres(demo_dataset) -> None:
     """The database built from the dataset's PLY files (mm, scaled by 0.001, as `model build
     --mesh ID=FILE --scale 0.001`) finds every object in both frames within ADD-S 0.1 d, and
@@ -80,8 +92,12 @@ def test_objects_are_recognised_from_their_model_files_in_millimetres(demo_datas
     for f in ds.frames:
         cloud, rgb = f.load()
         found = rec.recognize(cloud, world_T_camera=f.world_T_camera, rgb=rgb)
-        s = score(f.truth, [(d.object_id, d.camera_T_object) for d in found], {o: m.points for o, m in db.models.items()},
-                  {o: m.diameter_m for o, m in ds.models.items()})  # fmt: skip
+        s = score(
+            f.truth,
+            [(d.object_id, d.camera_T_object) for d in found],
+            {o: m.points for o, m in db.models.items()},
+            {o: m.diameter_m for o, m in ds.models.items()},
+        )
         assert all(s.found) and s.false == [], (f.image_id, s)
 
 
@@ -100,7 +116,12 @@ def test_scoring_matches_each_instance_once_and_calls_the_rest_false() -> None:
     d = 0.2
     truth = (BopInstance("can", T, 1.0),)
     far = make_pose(np.eye(3), (0.1 + 2 * ADDS_SHARE * d, 0.0, 1.0))
-    s = score(truth, [("can", far), ("can", turned), ("can", T), ("box", T)], {"can": cylinder, "box": cylinder}, {"can": d, "box": d})
+    s = score(
+        truth,
+        [("can", far), ("can", turned), ("can", T), ("box", T)],
+        {"can": cylinder, "box": cylinder},
+        {"can": d, "box": d},
+    )
     assert s.found == [True] and s.false == ["can", "can", "box"]
 
 
@@ -126,7 +147,13 @@ def test_a_real_kinect_frame_repacked_as_a_depth_image_gives_its_cloud_back(tmp_
 def _minimal(root: Path) -> Path:
     w = BopWriter(root)
     w.add_model(1, np.random.default_rng(0).uniform(-0.05, 0.05, (500, 3)))
-    w.add_frame(1, 0, np.full((48, 64), 1.0), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]), [(1, make_pose(np.eye(3), (0, 0, 1)), None)])
+    w.add_frame(
+        1,
+        0,
+        np.full((48, 64), 1.0),
+        np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]),
+        [(1, make_pose(np.eye(3), (0, 0, 1)), None)],
+    )
     return w.close()
 
 
@@ -137,14 +164,29 @@ def _minimal(root: Path) -> Path:
         (lambda r: (r / "models" / "obj_000001.ply").unlink(), "obj_000001.ply is missing"),
         (lambda r: (r / "test").rename(r / "val"), "no split 'test' (folders: val)"),
         (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text("{"), "scene_camera.json: not JSON"),
-        (lambda r: (r / "test" / "000001" / "scene_gt.json").write_text('{"0": [{"obj_id": 2, "cam_R_m2c": [1,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,0]}]}'),
-         "obj_id 2 has no model"),
-        (lambda r: (r / "test" / "000001" / "scene_gt.json").write_text('{"0": [{"obj_id": 1, "cam_R_m2c": [2,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,0]}]}'),
-         "cam_R_m2c is no rotation"),
-        (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"0": {"depth_scale": 1}}'), "cam_K must be 9 numbers"),
+        (
+            lambda r: (r / "test" / "000001" / "scene_gt.json").write_text(
+                '{"0": [{"obj_id": 2, "cam_R_m2c": [1,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,0]}]}'
+            ),
+            "obj_id 2 has no model",
+        ),
+        (
+            lambda r: (r / "test" / "000001" / "scene_gt.json").write_text(
+                '{"0": [{"obj_id": 1, "cam_R_m2c": [2,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,0]}]}'
+            ),
+            "cam_R_m2c is no rotation",
+        ),
+        (
+            lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"0": {"depth_scale": 1}}'),
+            "cam_K must be 9 numbers",
+        ),
         (lambda r: (r / "test" / "000001" / "depth" / "000000.png").unlink(), "no image 000000"),
-        (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"0": {"cam_K": [1,0,0,0,1,0,0,0,1], "depth_scale": 0}}'),
-         "depth_scale 0 must be positive"),
+        (
+            lambda r: (r / "test" / "000001" / "scene_camera.json").write_text(
+                '{"0": {"cam_K": [1,0,0,0,1,0,0,0,1], "depth_scale": 0}}'
+            ),
+            "depth_scale 0 must be positive",
+        ),
         (lambda r: (r / "test" / "000001" / "scene_camera.json").write_text('{"first": {}}'), "keys must be image ids"),
     ],
 )
@@ -194,17 +236,24 @@ def test_only_the_images_a_dataset_lists_as_targets_are_read(tmp_path: Path, lis
         BopDataset.open(root)
 
 
+@pytest.mark.slow
 def test_the_benchmark_names_what_is_wrong_with_a_dataset_and_exits_2(tmp_path: Path) -> None:
     """``python -m benchmarks.bop --dataset DIR`` on a folder that is no dataset: the reason on
     stderr and exit code 2, not a traceback."""
     root = _minimal(tmp_path)
     (root / "models").rename(root / "meshes")
-    run = subprocess.run([sys.executable, "-m", "benchmarks.bop", "--dataset", str(root)], capture_output=True, text=True,
-                         cwd=Path(__file__).resolve().parents[2], timeout=120)  # fmt: skip
+    run = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bop", "--dataset", str(root)],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[2],
+        timeout=120,
+    )
     assert run.returncode == 2, run.stderr
     assert "none of the model folders" in run.stderr and "Traceback" not in run.stderr
 
 
+@pytest.mark.slow
 def test_recognize_standing_finds_what_stands_on_the_table_in_a_dataset_frame(demo_dataset, tmp_path: Path) -> None:
     """`cellsight model build --mesh ID=PLY --scale 0.001` from the dataset's models, then `cellsight
     recognize` on cam1's depth and colour PNGs with its intrinsics, no pose: every object is found
@@ -221,8 +270,24 @@ def test_recognize_standing_finds_what_stands_on_the_table_in_a_dataset_frame(de
     assert CliRunner().invoke(app, ["model", "build", "--out", str(db), *meshes, "--scale", "0.001"]).exit_code == 0
     frame = ds.frames[0]
     K = frame.K
-    args = ["recognize", "--models", str(db), "--scene", str(frame.depth_path), "--rgb", str(frame.rgb_path), "--fx", str(K[0, 0]),
-            "--fy", str(K[1, 1]), "--cx", str(K[0, 2]), "--cy", str(K[1, 2]), "--json"]  # fmt: skip
+    args = [
+        "recognize",
+        "--models",
+        str(db),
+        "--scene",
+        str(frame.depth_path),
+        "--rgb",
+        str(frame.rgb_path),
+        "--fx",
+        str(K[0, 0]),
+        "--fy",
+        str(K[1, 1]),
+        "--cx",
+        str(K[0, 2]),
+        "--cy",
+        str(K[1, 2]),
+        "--json",
+    ]
     truth = {i.object_id: i.camera_T_object for i in frame.truth}
     models = ModelDatabase.load(db).models
     results = {}
@@ -237,6 +302,7 @@ def test_recognize_standing_finds_what_stands_on_the_table_in_a_dataset_frame(de
     assert results[True] == results[False] == sorted(truth)
 
 
+@pytest.mark.slow
 def test_a_world_pose_whose_z_is_not_up_is_set_aside(demo_dataset) -> None:
     """cam1's frame with its world pose, and with the same pose in a world turned a quarter about x
     (a marker board's frame on a wall: its z lies along the table). Recognition given the turned
@@ -258,6 +324,10 @@ def test_a_world_pose_whose_z_is_not_up_is_set_aside(demo_dataset) -> None:
     assert level_world_pose(rec, cloud, frame.world_T_camera) is frame.world_T_camera
     assert level_world_pose(rec, cloud, turned) is None
     found = rec.recognize(cloud, world_T_camera=level_world_pose(rec, cloud, turned), rgb=rgb)
-    s = score(frame.truth, [(d.object_id, d.camera_T_object) for d in found], {o: m.points for o, m in db.models.items()},
-              {o: m.diameter_m for o, m in ds.models.items()})  # fmt: skip
+    s = score(
+        frame.truth,
+        [(d.object_id, d.camera_T_object) for d in found],
+        {o: m.points for o, m in db.models.items()},
+        {o: m.diameter_m for o, m in ds.models.items()},
+    )
     assert all(s.found) and s.false == [], s

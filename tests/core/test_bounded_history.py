@@ -41,11 +41,15 @@ def cam_pose(x: float, jitter: np.ndarray | None = None) -> np.ndarray:
 
 def config(fold_after_s: float = 0.0, **kw: float) -> EstimatorConfig:
     T = MARKERS[0]
-    anchor = AnchorConfig(marker_id=0, world_T_marker=PoseSpec(position=tuple(T[:3, 3]), quaternion=tuple(quat_from_matrix(T[:3, :3]))))
+    anchor = AnchorConfig(
+        marker_id=0, world_T_marker=PoseSpec(position=tuple(T[:3, 3]), quaternion=tuple(quat_from_matrix(T[:3, :3])))
+    )
     return EstimatorConfig(anchors=[anchor], fold_after_s=fold_after_s, view_rotation_sigma_deg=0.0, **kw)
 
 
-def frame(cid: str, stamp: int, world_T_camera: np.ndarray, seen: list[int], rng: np.random.Generator) -> list[Observation]:
+def frame(
+    cid: str, stamp: int, world_T_camera: np.ndarray, seen: list[int], rng: np.random.Generator
+) -> list[Observation]:
     out = []
     for mk in seen:
         T = invert_pose(world_T_camera) @ MARKERS[mk]
@@ -104,7 +108,9 @@ def test_a_camera_moved_1000_times_leaves_the_graph_no_larger_than_after_10() ->
     # would test the noise draw. Its error must be what its own covariance allows (3 dof, 99.9 %).
     a = e.cameras["a"].pose
     d = a.T[:3, 3] - cell.poses["a"][:3, 3]
-    assert d @ np.linalg.solve(a.covariance[:3, :3], d) <= 16.27, f"a after 1000 moves: {1e3 * d} mm, sigmas {1e3 * np.sqrt(np.diag(a.covariance[:3, :3]))}"
+    assert d @ np.linalg.solve(a.covariance[:3, :3], d) <= 16.27, (
+        f"a after 1000 moves: {1e3 * d} mm, sigmas {1e3 * np.sqrt(np.diag(a.covariance[:3, :3]))}"
+    )
     assert_pose_close(a.T, cell.poses["a"], 0.01, 0.3, "a after 1000 moves")
     assert_pose_close(e.cameras["b"].pose.T, cell.poses["b"], 0.002, 0.2, "b after a's 1000 moves")
 
@@ -132,7 +138,9 @@ def test_a_folded_segment_still_constrains_the_markers_it_saw() -> None:
     kept, folded = results[True][0], results[False][0]
     sigma = np.sqrt(np.diag(kept.covariance))
     d = gtsam.Pose3.Logmap(gtsam.Pose3(kept.T).between(gtsam.Pose3(folded.T)))
-    assert np.all(np.abs(np.r_[d[3:], d[:3]]) <= 0.02 * sigma), f"folded moved marker 2 by {np.r_[d[3:], d[:3]] / sigma} sigma"
+    assert np.all(np.abs(np.r_[d[3:], d[:3]]) <= 0.02 * sigma), (
+        f"folded moved marker 2 by {np.r_[d[3:], d[:3]] / sigma} sigma"
+    )
     np.testing.assert_allclose(np.diag(folded.covariance), np.diag(kept.covariance), rtol=0.02)
     # Drop a's first segment from the kept graph instead: marker 2 loses half its views.
     est = results[True][1]
@@ -145,11 +153,16 @@ def test_a_folded_segment_still_constrains_the_markers_it_saw() -> None:
     values = gtsam.Values()
     for key in graph.keyVector():
         values.insert(key, est.values.atPose3(key))
-    dropped = gtsam.Marginals(graph, gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()).marginalCovariance(marker_symbol(2))
+    dropped = gtsam.Marginals(graph, gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()).marginalCovariance(
+        marker_symbol(2)
+    )
     kept_gtsam = est.isam.marginalCovariance(marker_symbol(2))
-    assert np.trace(dropped[3:, 3:]) > 1.3 * np.trace(kept_gtsam[3:, 3:]), "dropping the segment should cost marker 2 information"
+    assert np.trace(dropped[3:, 3:]) > 1.3 * np.trace(kept_gtsam[3:, 3:]), (
+        "dropping the segment should cost marker 2 information"
+    )
 
 
+@pytest.mark.slow
 def test_restart_from_the_persisted_map_after_many_moves() -> None:
     """The persisted state is the map (markers with covariances), bounded by the markers however
     often cameras moved; a new estimator seeded with it places both cameras on their first second."""
@@ -190,7 +203,6 @@ def test_fused_measurement_is_the_information_weighted_mean() -> None:
     assert fuse_measurements([], []) == []
 
 
-
 @pytest.mark.slow  # ~20 s: two 30 s runs of a 64-marker ring
 def test_reordering_the_tree_changes_its_cost_not_the_answer() -> None:
     """The benchmark's ring cell (8 cameras, 64 markers), a camera bumped every 2 s for 30 s, with
@@ -204,8 +216,15 @@ def test_reordering_the_tree_changes_its_cost_not_the_answer() -> None:
     ends = {}
     for fill in (0.0, 1.01):
         markers, cams, anchors = ring_cell(8, 64)
-        anchor_cfg = [AnchorConfig(marker_id=a, world_T_marker=PoseSpec(position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3]))))
-                      for a in anchors]  # fmt: skip
+        anchor_cfg = [
+            AnchorConfig(
+                marker_id=a,
+                world_T_marker=PoseSpec(
+                    position=tuple(markers[a][:3, 3]), quaternion=tuple(quat_from_matrix(markers[a][:3, :3]))
+                ),
+            )
+            for a in anchors
+        ]
         base = tick_pools(markers, cams, np.random.default_rng(0))
         pools = dict(base)
         mover = Mover(cams, base, pools, 20, np.random.default_rng(1))
@@ -224,6 +243,7 @@ def test_reordering_the_tree_changes_its_cost_not_the_answer() -> None:
         assert_pose_close(on.markers[mk].T, off.markers[mk].T, 1e-4, 0.01, f"marker {mk}")
 
 
+@pytest.mark.slow
 def test_a_camera_that_settles_only_for_moments_leaves_the_graph_bounded() -> None:
     """Camera a is moved 3 cm and 1 deg every 0.3-1.0 s (an arm pausing between moves): its segments
     end faster than they fold, several a camera by one update. The graph after 60 s of that must be no

@@ -9,8 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from estimator.observation import observation_rows
-from schemas import codec, keys
-from schemas import geometry
+from schemas import codec, geometry, keys
 from schemas import messages as m
 from schemas.errors import DecodeError, KeyError_
 from tests.helpers import assert_pose_close
@@ -65,8 +64,13 @@ def test_depth_image_round_trip(depth: np.ndarray) -> None:
 
 
 @settings(max_examples=30)
-@given(st.integers(0, 50).flatmap(lambda n: st.tuples(
-    hnp.arrays(np.float32, (n, 3), elements=st.floats(-10, 10, width=32)), hnp.arrays(np.uint8, (n, 4)))))
+@given(
+    st.integers(0, 50).flatmap(
+        lambda n: st.tuples(
+            hnp.arrays(np.float32, (n, 3), elements=st.floats(-10, 10, width=32)), hnp.arrays(np.uint8, (n, 4))
+        )
+    )
+)
 def test_point_cloud_round_trip_in_foxglove_layout(cloud) -> None:
     xyz, rgba = cloud
     msg = codec.decode(codec.points_to_msg(5, "world", xyz, rgba).SerializeToString(), m.PointCloud)
@@ -97,9 +101,14 @@ def test_camera_info_round_trip_and_kinect_defaults() -> None:
 @given(st.lists(st.tuples(quats, st.lists(finite, min_size=3, max_size=3)), min_size=1, max_size=5))
 def test_transforms_and_pose_lists_round_trip(items) -> None:
     poses = [random_pose(q, t) for q, t in items]
-    tf = codec.decode(codec.transforms_to_msg(5, [("world", f"c{i}", T) for i, T in enumerate(poses)]).SerializeToString(), m.FrameTransforms)
+    tf = codec.decode(
+        codec.transforms_to_msg(5, [("world", f"c{i}", T) for i, T in enumerate(poses)]).SerializeToString(),
+        m.FrameTransforms,
+    )
     got = codec.transforms_from_msg(tf)
-    plist = codec.poses_to_msg(5, [codec.StampedPose("world", f"c{i}", 5, T, random_covariance(i)) for i, T in enumerate(poses)])
+    plist = codec.poses_to_msg(
+        5, [codec.StampedPose("world", f"c{i}", 5, T, random_covariance(i)) for i, T in enumerate(poses)]
+    )
     back = codec.poses_from_msg(codec.decode(plist.SerializeToString(), m.PosesWithCovariance))
     for i, T in enumerate(poses):
         assert_pose_close(got[("world", f"c{i}")], T, 1e-9, 1e-6)
@@ -120,10 +129,20 @@ def test_a_bad_transform_among_good_ones_is_named() -> None:
 
 
 def test_a_bad_covariance_among_good_poses_is_named() -> None:
-    msg = codec.poses_to_msg(5, [codec.StampedPose("world", f"c{i}", 5, geometry.make_pose(t=[i, 0, 1]), random_covariance(i)) for i in range(4)])
+    msg = codec.poses_to_msg(
+        5,
+        [
+            codec.StampedPose("world", f"c{i}", 5, geometry.make_pose(t=[i, 0, 1]), random_covariance(i))
+            for i in range(4)
+        ],
+    )
     msg.poses.add(parent_frame_id="world", child_frame_id="no_cov", stamp_ns=5).pose.qw = 1.0
     assert codec.poses_from_msg(msg)["no_cov"].covariance is None
-    for k, value, why in ((1, -1.0, "not positive definite"), (2, 7.0, "not symmetric"), (3, float("inf"), "contains NaN or inf")):
+    for k, value, why in (
+        (1, -1.0, "not positive definite"),
+        (2, 7.0, "not symmetric"),
+        (3, float("inf"), "contains NaN or inf"),
+    ):
         bad = m.PosesWithCovariance()
         bad.CopyFrom(msg)
         bad.poses[k].covariance[1 if why == "not symmetric" else 0] = value
@@ -224,7 +243,7 @@ def test_covariances_read_from_the_packed_bytes_equal_the_values_one_by_one() ->
     count, takes the value-by-value path. Both must give the same numbers."""
     msgs = []
     rng = np.random.default_rng(3)
-    for k in range(5):
+    for _k in range(5):
         msg = good_marker_observations()
         for _ in range(3):
             o = msg.markers.add()

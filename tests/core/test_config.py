@@ -41,7 +41,9 @@ def test_round_trip_through_the_saved_copy(tmp_path: Path) -> None:
 
 
 def test_environment_overrides_nested_fields() -> None:
-    cfg = parse_config(tomllib.loads(EXAMPLE), environ={"CELLSIGHT__TRANSPORT__MODE": "peer", "CELLSIGHT__ESTIMATOR__HUBER_K": "2.5"})
+    cfg = parse_config(
+        tomllib.loads(EXAMPLE), environ={"CELLSIGHT__TRANSPORT__MODE": "peer", "CELLSIGHT__ESTIMATOR__HUBER_K": "2.5"}
+    )
     assert cfg.transport.mode == "peer" and cfg.estimator.huber_k == 2.5
 
 

@@ -7,6 +7,7 @@ front-end's covariance model. Tolerances are a few sigma of the expected accurac
 from __future__ import annotations
 
 import math
+
 import gtsam
 import numpy as np
 import pytest
@@ -19,8 +20,8 @@ from estimator.graph import Estimator
 from estimator.observation import Observation, ObservationRows
 from estimator.pairs import Pair, fold_rows
 from schemas.codec import CameraInfo
-from schemas.spec import PoseSpec
 from schemas.geometry import make_pose, rotation_angle, rpy_matrix
+from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
 
 RATE = 30.0
@@ -38,7 +39,15 @@ def camera(cid: str, x: float, look_x: float, motion: list[CameraMotion] | None 
     return CameraSpec(id=cid, pose=PoseSpec(position=(x, 0.0, 1.2), look_at=(look_x, 2.0, 1.0)), motion=motion or [])
 
 
-def run(scenario: Scenario, seconds: float, est: Estimator | None = None, start_s: float = 0.0, seed: int = 0, noise: NoiseSettings = NoiseSettings(), update_every: int = 3) -> Estimator:
+def run(
+    scenario: Scenario,
+    seconds: float,
+    est: Estimator | None = None,
+    start_s: float = 0.0,
+    seed: int = 0,
+    noise: NoiseSettings = NoiseSettings(),
+    update_every: int = 3,
+) -> Estimator:
     """Feed every camera at 30 Hz for ``seconds`` and update every few frames."""
     est = est or Estimator(estimator_config(scenario))
     rng = np.random.default_rng(seed)
@@ -71,7 +80,10 @@ def test_isam2_matches_batch_on_the_same_graph() -> None:
     in their slots) must give the batch optimum of the same graph. The production threshold
     (0.001 cameras, 0.005 markers) trades a little accuracy for speed: benchmarks.estimator_accuracy
     measures that."""
-    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.4), camera("b", 1.2, 0.8)])
+    s = Scenario(
+        markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)],
+        cameras=[camera("a", 0.0, 0.4), camera("b", 1.2, 0.8)],
+    )
     est = run(s, 2.0, Estimator(estimator_config(s, relinearize_threshold=1e-9, relinearize_threshold_markers=1e-9)))
     # One iSAM2 update is one reweighted Gauss-Newton step: Huber weights settle linearly, so
     # 100 steps (10 s of the daemon's 10 Hz updates) stand in for batch LM's inner iterations.
@@ -86,7 +98,9 @@ def test_isam2_matches_batch_on_the_same_graph() -> None:
     params.setMaxIterations(1000)
     batch = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
     for key in est.values.keys():
-        assert_pose_close(est.values.atPose3(key).matrix(), batch.atPose3(key).matrix(), 1e-5, 1e-3, gtsam.DefaultKeyFormatter(key))
+        assert_pose_close(
+            est.values.atPose3(key).matrix(), batch.atPose3(key).matrix(), 1e-5, 1e-3, gtsam.DefaultKeyFormatter(key)
+        )
 
 
 def test_case1_common_anchor() -> None:
@@ -98,7 +112,9 @@ def test_case1_common_anchor() -> None:
 
 def test_case2_shared_non_anchor_marker() -> None:
     """a sees the anchor and marker 1; b sees only marker 1."""
-    s = Scenario(markers=[wall(0, -1.4, "anchor"), wall(1, 0.3)], cameras=[camera("a", -0.6, -0.5), camera("b", 1.4, 1.6)])
+    s = Scenario(
+        markers=[wall(0, -1.4, "anchor"), wall(1, 0.3)], cameras=[camera("a", -0.6, -0.5), camera("b", 1.4, 1.6)]
+    )
     s.cameras[1].pose = PoseSpec(position=(1.0, 1.0, 1.2), look_at=(0.3, 2.0, 1.0))
     obs_b = {o.marker_id for o in frame_observations(s, "b", 0.0, 0, np.random.default_rng(0), NoiseSettings())}
     assert obs_b == {1}, f"scene set-up: b should only see marker 1, sees {obs_b}"
@@ -116,7 +132,10 @@ def test_case3a_chained_through_other_cameras() -> None:
         CameraSpec(id="c2", pose=PoseSpec(position=(1.4, 0.5, 1.2), look_at=(1.4, 2.0, 1.0))),
     ]
     s = Scenario(markers=markers, cameras=cams)
-    seen = {c.id: {o.marker_id for o in frame_observations(s, c.id, 0.0, 0, np.random.default_rng(0), NoiseSettings())} for c in cams}
+    seen = {
+        c.id: {o.marker_id for o in frame_observations(s, c.id, 0.0, 0, np.random.default_rng(0), NoiseSettings())}
+        for c in cams
+    }
     assert seen == {"c0": {0, 1}, "c1": {1, 2}, "c2": {2}}, f"scene set-up: {seen}"
     est = run(s, 2.0)
     for cid in ("c0", "c1", "c2"):
@@ -133,7 +152,11 @@ def test_case3b_no_anchor_is_unanchored_then_joins() -> None:
         CameraSpec(id="b", pose=PoseSpec(position=(1.4, 0.5, 1.2), look_at=(1.4, 2.0, 1.0))),
     ]
     s = Scenario(markers=markers, cameras=cams)
-    seen = {(c, t): {o.marker_id for o in frame_observations(s, c, t, 0, np.random.default_rng(0), NoiseSettings())} for c in ("a", "b") for t in (0.0, 2.0)}
+    seen = {
+        (c, t): {o.marker_id for o in frame_observations(s, c, t, 0, np.random.default_rng(0), NoiseSettings())}
+        for c in ("a", "b")
+        for t in (0.0, 2.0)
+    }
     assert seen == {("a", 0.0): {0}, ("a", 2.0): {0, 2}, ("b", 0.0): {2}, ("b", 2.0): {2}}, f"scene set-up: {seen}"
     est = run(s, 1.0)
     e = est.estimate(int(1e9))
@@ -169,7 +192,12 @@ def test_a_move_whose_turn_cancels_its_shift_at_the_markers_is_caught() -> None:
     markers = [wall(0, 0.0, "anchor"), wall(1, 0.15), wall(2, 0.3), wall(3, 0.45), wall(4, 0.6, "anchor")]
     s = Scenario(markers=markers, cameras=[camera("a", 0.0, 0.3, [bump]), camera("b", 0.6, 0.3)])
     before, after = s.camera("a").world_T_camera(1.0), s.camera("a").world_T_camera(3.0)
-    shifts = [np.linalg.norm((np.linalg.inv(after) @ s.world_T_marker(m, 3.0) - np.linalg.inv(before) @ s.world_T_marker(m, 1.0))[:3, 3]) for m in s.markers]
+    shifts = [
+        np.linalg.norm(
+            (np.linalg.inv(after) @ s.world_T_marker(m, 3.0) - np.linalg.inv(before) @ s.world_T_marker(m, 1.0))[:3, 3]
+        )
+        for m in s.markers
+    ]
     assert max(shifts) < Estimator(estimator_config(s)).config.bump_position_m, "not the case under test"
     est = run(s, 2.0)
     est = run(s, 2.0, est, start_s=2.0)
@@ -178,6 +206,7 @@ def test_a_move_whose_turn_cancels_its_shift_at_the_markers_is_caught() -> None:
 
 
 @pytest.mark.parametrize("flip_rate", [0.0, 0.2])
+@pytest.mark.slow
 def test_a_moving_camera_is_posed_from_full_marker_poses(flip_rate: float) -> None:
     """While a camera moves it is posed frame by frame from the mapped markers. Six markers along a
     shallow arc (3 cm deep over 1.2 m, as a ring's are from inside): their centres leave a turn
@@ -185,8 +214,14 @@ def test_a_moving_camera_is_posed_from_full_marker_poses(flip_rate: float) -> No
     rotations do not. One frame at 2 m poses the camera to ~7 mm median here, flips or not
     (a fifth of the observations on the wrong IPPE branch, each marker's branch chosen by the
     rotation most imply): the bounds are twice that and ~3x its worst."""
+
     def arc(mid: int, x: float, role: str) -> MarkerSpec:
-        return MarkerSpec(id=mid, role=role, side_m=SIDE_M, pose=PoseSpec(position=(x, 2.0 - 0.03 * (x / 0.6) ** 2, 1.0), normal=(0.0, -1.0, 0.0)))
+        return MarkerSpec(
+            id=mid,
+            role=role,
+            side_m=SIDE_M,
+            pose=PoseSpec(position=(x, 2.0 - 0.03 * (x / 0.6) ** 2, 1.0), normal=(0.0, -1.0, 0.0)),
+        )
 
     markers = [arc(i, x, "anchor" if i in (0, 5) else "static") for i, x in enumerate(np.linspace(-0.6, 0.6, 6))]
     sweep = CameraMotion(kind="sweep", amplitude_deg=5.0, period_s=2.0, start_s=2.0)
@@ -198,24 +233,32 @@ def test_a_moving_camera_is_posed_from_full_marker_poses(flip_rate: float) -> No
         t = k / RATE
         stamp = int(round(t * 1e9))
         for cam in s.cameras:
-            est.add_frame(cam.id, stamp, frame_observations(s, cam.id, t, stamp, rng, NoiseSettings(flip_rate=flip_rate)))
+            est.add_frame(
+                cam.id, stamp, frame_observations(s, cam.id, t, stamp, rng, NoiseSettings(flip_rate=flip_rate))
+            )
         if k % 3 == 0:
             est.update(stamp)
             b = est.estimate(stamp, with_covariance=False).cameras["b"]
             if b.state is CameraState.MOVING and b.pose is not None:
                 errors.append(np.linalg.norm(b.pose.T[:3, 3] - s.camera("b").world_T_camera(t)[:3, 3]))
     assert len(errors) >= 10, f"b was reported moving in {len(errors)} updates of its 2 s sweep"
-    assert np.median(errors) < 0.015 and max(errors) < 0.06, f"moving pose off by {np.median(errors) * 1e3:.0f} mm median, {max(errors) * 1e3:.0f} max"
+    assert np.median(errors) < 0.015 and max(errors) < 0.06, (
+        f"moving pose off by {np.median(errors) * 1e3:.0f} mm median, {max(errors) * 1e3:.0f} max"
+    )
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.slow
 def test_flips_are_absorbed(seed: int) -> None:
     """A fifth of the observations on the wrong IPPE branch (the same noise draws otherwise, and
     without depth, so positions are loose along the ray): each camera ends where it ends without
     flips, within a fraction of its own error (4-12 mm, 0.1-0.3 deg here)."""
     poses = []
     for flip_rate in (0.0, 0.2):
-        s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)])
+        s = Scenario(
+            markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)],
+            cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)],
+        )
         est = run(s, 3.0, seed=seed, noise=NoiseSettings(depth=False, flip_rate=flip_rate))
         for cid in ("a", "b"):
             check_camera(est, s, cid, 3.0, pos_mm=30.0, rot_deg=0.5)
@@ -233,11 +276,15 @@ def test_a_flipped_observations_covariance_is_turned_to_the_branch_taken() -> No
     and batched, and in a pair that settled on the flip and swaps branches later. (Rotation
     blocks: the model's tilt axes differ between the branches; not compared.)"""
     info = CameraInfo.kinect_v1()
-    T = make_pose(rpy_matrix(np.radians(-90.0 + 35.0), np.radians(20.0), 0.0), [0.4, -0.2, 2.5])  # 35 and 20 deg off the ray
+    T = make_pose(
+        rpy_matrix(np.radians(-90.0 + 35.0), np.radians(20.0), 0.0), [0.4, -0.2, 2.5]
+    )  # 35 and 20 deg off the ray
     F = flip(T)
     assert rotation_angle(T[:3, :3], F[:3, :3]) > np.radians(30.0)
     cov, cov_flipped = (covariance_model(P, SIDE_M, info, 0.5, None) for P in (T, F))
-    reports = [(F, T, cov_flipped) if k % 5 in (0, 2) else (T, F, cov) for k in range(20)]  # 8 flips, the first one of them
+    reports = [
+        (F, T, cov_flipped) if k % 5 in (0, 2) else (T, F, cov) for k in range(20)
+    ]  # 8 flips, the first one of them
 
     def camera_frame(C: np.ndarray) -> np.ndarray:
         return T[:3, :3] @ C[:3, :3] @ T[:3, :3].T
@@ -250,8 +297,14 @@ def test_a_flipped_observations_covariance_is_turned_to_the_branch_taken() -> No
     for chosen, other, C in reports:
         assert one_by_one.add_pose(chosen, other, C)
     assert_pose_close(one_by_one.mean(exact=True), T, 1e-9, 1e-6, "the pair's mean")
-    rows = ObservationRows(np.zeros(20, int), np.stack([r[0] for r in reports]), np.stack([r[1] for r in reports]),
-                           np.stack([r[2] for r in reports]), np.zeros(20, bool), np.arange(20))  # fmt: skip
+    rows = ObservationRows(
+        np.zeros(20, int),
+        np.stack([r[0] for r in reports]),
+        np.stack([r[1] for r in reports]),
+        np.stack([r[2] for r in reports]),
+        np.zeros(20, bool),
+        np.arange(20),
+    )
     batched = fold_rows(np.tile(T, (20, 1, 1)), np.zeros(20, int), 1, rows)
     # A pair that settled on the flip (20 of its first 30 flipped) and swaps branches later, when
     # most of its observations chose the other one: its sums turn with it.
@@ -261,8 +314,11 @@ def test_a_flipped_observations_covariance_is_turned_to_the_branch_taken() -> No
         if k == 29:
             assert rotation_angle(settled.mean(exact=True)[:3, :3], F[:3, :3]) < 1e-6, "settled on the flip"
     assert_pose_close(settled.mean(exact=True), T, 1e-9, 1e-6, "the settled pair's mean after the swap")
-    for what, C in (("one by one", one_by_one.mean_covariance()), ("batched", batched.sums[0, 21:].reshape(6, 6) / 20),
-                    ("swapped when settled", settled.mean_covariance())):  # fmt: skip
+    for what, C in (
+        ("one by one", one_by_one.mean_covariance()),
+        ("batched", batched.sums[0, 21:].reshape(6, 6) / 20),
+        ("swapped when settled", settled.mean_covariance()),
+    ):
         got = camera_frame(C)
         assert np.abs(got - expected).max() <= 1e-9 * np.abs(expected).max(), f"{what}: {got} against {expected}"
 
@@ -303,7 +359,10 @@ def test_time_going_backwards_is_ignored() -> None:
 
 @pytest.mark.parametrize("seconds", [2.0, 6.0])
 def test_graph_stops_growing_for_static_cameras(seconds: float) -> None:
-    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)])
+    s = Scenario(
+        markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)],
+        cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)],
+    )
     est = run(s, seconds)
     live = est.factor_graph().size()
     # One prior per anchor plus one factor per camera-marker pair, however long it runs.
@@ -317,7 +376,10 @@ def test_settled_pairs_stop_costing_updates_without_moving_the_answer() -> None:
     half the rebuilds (the mean's drift shrinks as 1/t, so the gaps grow as t^2), and each camera
     within the bound of least squares: a solution moves, in its own covariance's units, by at most
     the root-sum-square of its factors' whitened shifts, here refresh_sigma x sqrt(pairs)."""
-    s = Scenario(markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)], cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)])
+    s = Scenario(
+        markers=[wall(0, 0.0, "anchor"), wall(1, 0.6), wall(2, 1.2)],
+        cameras=[camera("a", 0.0, 0.6), camera("b", 1.2, 0.6)],
+    )
     rebuilt, estimators = {}, {}
     for name, cfg in (("lazy", estimator_config(s)), ("eager", estimator_config(s, refresh_sigma=0.0))):
         est = run(s, 20.0, Estimator(cfg))
@@ -361,8 +423,10 @@ def test_biased_marker_rotations_do_not_turn_the_camera() -> None:
     over their 0.5-1.2 m spread is 0.05-0.1 deg; seeds 0-3 gave 0.03-0.07). Without it (0) the
     biased orientations, each trusted to ~0.1 deg, turn the camera by several times that
     (0.22-0.34 deg)."""
-    marks = [MarkerSpec(id=i, role="anchor", side_m=SIDE_M, pose=PoseSpec(position=(x, 2.0, z), normal=(0.0, -1.0, 0.0)))
-             for i, (x, z) in enumerate([(-0.6, 0.8), (0.0, 1.3), (0.6, 0.9)])]  # not on one line: positions fix all 3 axes
+    marks = [
+        MarkerSpec(id=i, role="anchor", side_m=SIDE_M, pose=PoseSpec(position=(x, 2.0, z), normal=(0.0, -1.0, 0.0)))
+        for i, (x, z) in enumerate([(-0.6, 0.8), (0.0, 1.3), (0.6, 0.9)])
+    ]  # not on one line: positions fix all 3 axes
     s = Scenario(markers=marks, cameras=[camera("a", 0.0, 0.0)])
     axes = {0: (1.0, 0.0, 0.0), 1: (0.0, 1.0, 0.0), 2: (0.0, 0.0, 1.0)}  # marker frame: tilt, tilt, in-plane
     bias = {mk: gtsam.Rot3.Rodrigues(np.radians(1.5) * np.array(ax)).matrix() for mk, ax in axes.items()}

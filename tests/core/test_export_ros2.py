@@ -35,15 +35,43 @@ def write_log(path: Path, frames: int) -> None:
     rng = np.random.default_rng(0)
     for k in range(frames):
         stamp = T0 + k * 33_333_333
-        w.write(keys.tf(CELL), codec.transforms_to_msg(stamp, [("world", "cam1", pose(k)), ("world", "marker_3", pose(k + 1))]), stamp)
+        w.write(
+            keys.tf(CELL),
+            codec.transforms_to_msg(stamp, [("world", "cam1", pose(k)), ("world", "marker_3", pose(k + 1))]),
+            stamp,
+        )
         cov = np.diag(np.arange(1, 7) * 1e-6)
-        w.write(keys.estimate_cameras(CELL), codec.poses_to_msg(stamp, [StampedPose("world", "cam1", stamp, pose(k), cov)]), stamp)
-        w.write(keys.estimate_markers(CELL), codec.poses_to_msg(stamp, [StampedPose("world", "marker_3", stamp, pose(k + 1))]), stamp)
-        w.write(keys.color(CELL, "cam1"), codec.image_to_msg(rng.integers(0, 255, (48, 64, 3), np.uint8), stamp, "cam1", "rgb8"), stamp)
-        w.write(keys.depth(CELL, "cam1"), codec.image_to_msg(rng.integers(0, 4000, (48, 64), np.uint16), stamp, "cam1", "16UC1"), stamp)
+        w.write(
+            keys.estimate_cameras(CELL),
+            codec.poses_to_msg(stamp, [StampedPose("world", "cam1", stamp, pose(k), cov)]),
+            stamp,
+        )
+        w.write(
+            keys.estimate_markers(CELL),
+            codec.poses_to_msg(stamp, [StampedPose("world", "marker_3", stamp, pose(k + 1))]),
+            stamp,
+        )
+        w.write(
+            keys.color(CELL, "cam1"),
+            codec.image_to_msg(rng.integers(0, 255, (48, 64, 3), np.uint8), stamp, "cam1", "rgb8"),
+            stamp,
+        )
+        w.write(
+            keys.depth(CELL, "cam1"),
+            codec.image_to_msg(rng.integers(0, 4000, (48, 64), np.uint16), stamp, "cam1", "16UC1"),
+            stamp,
+        )
         w.write(keys.camera_info(CELL, "cam1"), info.to_msg(stamp, "cam1"), stamp)
-        w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, [StampedPose("world", "cam1", stamp, pose(k))]), stamp)
-        w.write(keys.objects(CELL), detections_to_msg(stamp, [FusedObject("box", stamp - 10, pose(k + 2), ["cam1"], 0.75, 0.002)]), stamp)
+        w.write(
+            keys.truth(CELL, "cameras"),
+            codec.poses_to_msg(stamp, [StampedPose("world", "cam1", stamp, pose(k))]),
+            stamp,
+        )
+        w.write(
+            keys.objects(CELL),
+            detections_to_msg(stamp, [FusedObject("box", stamp - 10, pose(k + 2), ["cam1"], 0.75, 0.002)]),
+            stamp,
+        )
         xyz = rng.normal(size=(7, 3)).astype(np.float32)
         rgba = rng.integers(0, 255, (7, 4), np.uint8)
         w.write(keys.points(CELL), codec.points_to_msg(stamp, "world", xyz, rgba), stamp)
@@ -53,14 +81,24 @@ def write_log(path: Path, frames: int) -> None:
 def test_the_bag_holds_every_message_and_tf_round_trips(tmp_path: Path) -> None:
     write_log(tmp_path / "log.mcap", 5)
     result = export_bag(tmp_path / "log.mcap", tmp_path / "bag")
-    expected = {TF: 15, "/cellsight/cam1/pose": 5, MARKER_POSES: 5, "/cam1/color/image_raw": 5, "/cam1/depth/image_raw": 5,
-                "/cam1/color/camera_info": 5, OBJECTS: 5, POINTS: 5}  # fmt: skip
+    expected = {
+        TF: 15,
+        "/cellsight/cam1/pose": 5,
+        MARKER_POSES: 5,
+        "/cam1/color/image_raw": 5,
+        "/cam1/depth/image_raw": 5,
+        "/cam1/color/camera_info": 5,
+        OBJECTS: 5,
+        POINTS: 5,
+    }
     assert result.messages == expected  # and nothing from truth/
     types = ros2_types("jazzy")
-    points_by_stamp = {lm.msg.timestamp.ToNanoseconds(): lm.msg for lm in read_log(tmp_path / "log.mcap", {keys.points(CELL)})}
+    points_by_stamp = {
+        lm.msg.timestamp.ToNanoseconds(): lm.msg for lm in read_log(tmp_path / "log.mcap", {keys.points(CELL)})
+    }
     seen: dict[str, int] = {}
     with AnyReader([tmp_path / "bag"]) as reader:  # rosbags' own reader and decoder
-        for conn, t, raw in reader.messages():
+        for conn, _t, raw in reader.messages():
             seen[conn.topic] = seen.get(conn.topic, 0) + 1
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == TF:
@@ -68,14 +106,22 @@ def test_the_bag_holds_every_message_and_tf_round_trips(tmp_path: Path) -> None:
                 k = round((stamp_ns(tr.header.stamp) - T0) / 33_333_333)
                 offset = {"cam1_color_optical_frame": 0, "marker_3": 1, "object_box": 2}[tr.child_frame_id]
                 assert tr.header.frame_id == "world"
-                np.testing.assert_allclose(ros_matrix(tr.transform.translation, tr.transform.rotation), pose(k + offset), atol=1e-9)
+                np.testing.assert_allclose(
+                    ros_matrix(tr.transform.translation, tr.transform.rotation), pose(k + offset), atol=1e-9
+                )
             elif conn.topic == OBJECTS:
                 (d,) = msg.detections
                 k = round((stamp_ns(d.header.stamp) - T0) / 33_333_333)
                 assert d.id == d.results[0].hypothesis.class_id == "box" and d.results[0].hypothesis.score == 0.75
-                np.testing.assert_allclose(ros_matrix(d.results[0].pose.pose.position, d.results[0].pose.pose.orientation), pose(k + 2), atol=1e-9)
+                np.testing.assert_allclose(
+                    ros_matrix(d.results[0].pose.pose.position, d.results[0].pose.pose.orientation),
+                    pose(k + 2),
+                    atol=1e-9,
+                )
             elif conn.topic == POINTS:
-                assert [f.name for f in msg.fields] == ["x", "y", "z", "rgb"] and msg.width == 7 and msg.point_step == 16
+                assert (
+                    [f.name for f in msg.fields] == ["x", "y", "z", "rgb"] and msg.width == 7 and msg.point_step == 16
+                )
                 cloud = np.frombuffer(bytes(msg.data), np.float32).reshape(7, 4)
                 xyz, rgba = codec.points_from_msg(points_by_stamp[stamp_ns(msg.header.stamp)])
                 np.testing.assert_array_equal(cloud[:, :3], xyz)
@@ -104,8 +150,16 @@ def test_a_resolved_solution_becomes_tf_over_the_logs_time(tmp_path: Path) -> No
     w = LogWriter(tmp_path / "resolved.mcap", metadata={"source": RESOLVE_SOURCE})
     stamps = [T0 + k * 1_000_000_000 for k in range(4)]
     for k, stamp in enumerate(stamps):
-        w.write(keys.estimate_cameras(CELL), codec.poses_to_msg(stamp, [StampedPose("world", "cam1", stamp, pose(k))]), stamp)
-        w.write(keys.estimate_markers(CELL), codec.poses_to_msg(stamp, [StampedPose("world", "marker_9", stamp, pose(k + 5))]), stamp)
+        w.write(
+            keys.estimate_cameras(CELL),
+            codec.poses_to_msg(stamp, [StampedPose("world", "cam1", stamp, pose(k))]),
+            stamp,
+        )
+        w.write(
+            keys.estimate_markers(CELL),
+            codec.poses_to_msg(stamp, [StampedPose("world", "marker_9", stamp, pose(k + 5))]),
+            stamp,
+        )
     w.write(keys.tf(CELL), codec.transforms_to_msg(stamps[-1], [("world", "cam1", pose(3))]), stamps[-1])
     w.close()
     result = export_bag(tmp_path / "resolved.mcap", tmp_path / "bag")

@@ -14,7 +14,6 @@ from hypothesis import strategies as st
 from schemas import geometry
 from schemas.geometry import make_pose, rpy_matrix
 
-
 quats = hnp.arrays(np.float64, 4, elements=st.floats(-1, 1)).filter(lambda q: np.linalg.norm(q) > 0.1)
 
 
@@ -121,7 +120,9 @@ def test_rotation_between_batches_and_turns_opposites_about_the_given_axis() -> 
     R = geometry.rotation_between(a, np.array([0.0, 0.0, 1.0]), half_turn_axis=axes)
     assert R.shape == (20, 3, 3)
     for k in range(20):
-        np.testing.assert_allclose(R[k], geometry.rotation_between(a[k], [0.0, 0.0, 1.0], half_turn_axis=axes[k]), atol=1e-12)
+        np.testing.assert_allclose(
+            R[k], geometry.rotation_between(a[k], [0.0, 0.0, 1.0], half_turn_axis=axes[k]), atol=1e-12
+        )
     np.testing.assert_allclose(R[7], np.diag([-1.0, 1.0, -1.0]), atol=1e-12)  # half turn about y
 
 
@@ -138,7 +139,12 @@ def test_invert_poses_inverts_every_pose_of_a_stack() -> None:
     """A (2, 3) stack of random rigid poses: each times its inverse is the identity, and each inverse
     is what ``invert_pose`` gives alone."""
     rng = np.random.default_rng(3)
-    T = np.stack([[make_pose(rpy_matrix(*rng.uniform(-np.pi, np.pi, 3)), rng.normal(size=3)) for _ in range(3)] for _ in range(2)])
+    T = np.stack(
+        [
+            [make_pose(rpy_matrix(*rng.uniform(-np.pi, np.pi, 3)), rng.normal(size=3)) for _ in range(3)]
+            for _ in range(2)
+        ]
+    )
     Ti = geometry.invert_poses(T)
     assert Ti.shape == T.shape
     np.testing.assert_allclose(T @ Ti, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)

@@ -93,8 +93,17 @@ def test_a_message_must_name_the_camera_of_its_key() -> None:
         codec.check_on_key(msg, "ghost_cam", NOW)
 
 
-@pytest.mark.parametrize("stamp, ok", [(-5, False), (0, False), (NOW - 3600 * 10**9, True), (NOW + 3600 * 10**9, True),
-                                       (NOW + 2 * 86400 * 10**9, False), (2**63 - 1, False)])  # fmt: skip
+@pytest.mark.parametrize(
+    "stamp, ok",
+    [
+        (-5, False),
+        (0, False),
+        (NOW - 3600 * 10**9, True),
+        (NOW + 3600 * 10**9, True),
+        (NOW + 2 * 86400 * 10**9, False),
+        (2**63 - 1, False),
+    ],
+)
 def test_stamps_lie_in_the_window_of_the_receivers_clock(stamp: int, ok: bool) -> None:
     """Up to a day ahead (a sensor clock stepped by an hour is taken back onto its timeline by the
     estimator); any positive stamp behind (a replay publishes a log's original stamps); a camera's

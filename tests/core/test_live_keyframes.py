@@ -29,7 +29,9 @@ def pan(cell: Cell, x0: float, x1: float) -> dict[int, np.ndarray]:
     frames = int(PAN_S * RATE)
     for i in range(1, frames + 1):
         s = i / frames
-        cell.poses["a"] = cam_pose(x0 + (x1 - x0) * s, make_pose(rpy_matrix(0.0, np.radians(5.0) * np.sin(np.pi * s), 0.0), [0.0, 0.0, 0.0]))
+        cell.poses["a"] = cam_pose(
+            x0 + (x1 - x0) * s, make_pose(rpy_matrix(0.0, np.radians(5.0) * np.sin(np.pi * s), 0.0), [0.0, 0.0, 0.0])
+        )
         truth[cell.now()] = cell.poses["a"]
         cell.run(1 / RATE)
     cell.run(2.0)
@@ -56,8 +58,11 @@ def test_a_pans_frames_enter_where_the_camera_was_and_tighten_the_markers() -> N
         cov = est.isam.marginalCovariance(kf.key)[3:, 3:]
         assert d @ np.linalg.solve(cov, d) <= 16.27, f"frame at {kf.stamp_ns} ns is {1e3 * d} mm off"  # 3 dof, 99.9 %
     # The pan's views add information on the markers a saw (marker 3: seen by both, never an anchor).
-    ratio = {mk: np.trace(est.isam.marginalCovariance(marker_symbol(mk))[3:, 3:]) / np.trace(plain.isam.marginalCovariance(marker_symbol(mk))[3:, 3:])
-             for mk in (1, 2, 3)}  # fmt: skip
+    ratio = {
+        mk: np.trace(est.isam.marginalCovariance(marker_symbol(mk))[3:, 3:])
+        / np.trace(plain.isam.marginalCovariance(marker_symbol(mk))[3:, 3:])
+        for mk in (1, 2, 3)
+    }
     assert all(r < 0.95 for r in ratio.values()), ratio
 
 
@@ -67,7 +72,9 @@ FLOOR_DEG = 0.5  # the pairs' allowance for a view's bias in the weighing test
 def _weighed_pan(biased: bool, max_inflation: float = 10.0, online: bool = True) -> Estimator:
     """a pans in the wall cell whose pairs allow for a ``FLOOR_DEG`` bias per view; its views
     carry such a bias (``ViewBiases``) or none."""
-    cfg = config(keyframes=KeyframeConfig(online=online, max_inflation=max_inflation)).model_copy(update={"view_rotation_sigma_deg": FLOOR_DEG})
+    cfg = config(keyframes=KeyframeConfig(online=online, max_inflation=max_inflation)).model_copy(
+        update={"view_rotation_sigma_deg": FLOOR_DEG}
+    )
     est = Estimator(cfg)
     cell = Cell(est, seed=0, biases=ViewBiases(cfg.max_fused, np.radians(FLOOR_DEG)) if biased else None)
     cell.run(2.0)
@@ -91,7 +98,9 @@ def test_a_moves_frames_are_weighed_by_how_the_static_pairs_fit() -> None:
     assert fit.factor < 0.3, fit
     inflation = clean.counters.keyframe_inflation
     assert inflation > 2.0 and clean.counters.keyframes >= KeyframeConfig().min_frames, (inflation, clean.counters)
-    own = cov_ros_to_gtsam(COV + np.diag([0.0] * 3 + [np.radians(FLOOR_DEG) ** 2] * 3))  # a frame's factor: its observation's + the floor
+    own = cov_ros_to_gtsam(
+        COV + np.diag([0.0] * 3 + [np.radians(FLOOR_DEG) ** 2] * 3)
+    )  # a frame's factor: its observation's + the floor
     factors = clean.isam.getFactorsUnsafe()
     for kf in clean.live_keyframes.live:
         for f in kf.factors:
@@ -103,7 +112,9 @@ def test_a_moves_frames_are_weighed_by_how_the_static_pairs_fit() -> None:
     got, want = refused.isam.calculateEstimate(), plain.isam.calculateEstimate()
     assert got.size() == want.size()
     for key in want.keys():
-        assert_pose_close(got.atPose3(key).matrix(), want.atPose3(key).matrix(), 1e-9, 1e-7, gtsam.DefaultKeyFormatter(key))
+        assert_pose_close(
+            got.atPose3(key).matrix(), want.atPose3(key).matrix(), 1e-9, 1e-7, gtsam.DefaultKeyFormatter(key)
+        )
 
 
 def test_pans_leave_at_most_max_live_frames_in_the_graph() -> None:
@@ -128,10 +139,14 @@ def test_a_camera_that_never_stops_enters_its_frames_after_the_lag() -> None:
         truth = {}
         for i in range(8 * RATE):
             travel = 0.3 * (i + 1) / RATE % 1.2  # 0.6 m out and back
-            cell.poses["a"] = cam_pose(0.3 + min(travel, 1.2 - travel), make_pose(rpy_matrix(0.0, np.radians(3.0), 0.0), [0.0, 0.0, 0.0]))
+            cell.poses["a"] = cam_pose(
+                0.3 + min(travel, 1.2 - travel), make_pose(rpy_matrix(0.0, np.radians(3.0), 0.0), [0.0, 0.0, 0.0])
+            )
             truth[cell.now()] = cell.poses["a"]
             cell.run(1 / RATE)
-        assert cell.est.tracks["a"].moving and cell.est.tracks["a"].segment == 0, "a must move all along for this test to mean anything"
+        assert cell.est.tracks["a"].moving and cell.est.tracks["a"].segment == 0, (
+            "a must move all along for this test to mean anything"
+        )
         entered[lag] = cell.est.counters.keyframes
         if lag == 0.0:
             continue
@@ -142,7 +157,9 @@ def test_a_camera_that_never_stops_enters_its_frames_after_the_lag() -> None:
             T, true = values.atPose3(kf.key).matrix(), truth[kf.stamp_ns]
             d = T[:3, :3].T @ (T[:3, 3] - true[:3, 3])
             cov = est.isam.marginalCovariance(kf.key)[3:, 3:]
-            assert d @ np.linalg.solve(cov, d) <= 16.27, f"frame at {kf.stamp_ns} ns is {1e3 * d} mm off"  # 3 dof, 99.9 %
+            assert d @ np.linalg.solve(cov, d) <= 16.27, (
+                f"frame at {kf.stamp_ns} ns is {1e3 * d} mm off"
+            )  # 3 dof, 99.9 %
     assert entered[0.0] == 0
     # 8 s at one frame per 0.1 s (3 cm apart: new views), the last second still held: ~70
     assert entered[1.0] >= 60, entered

@@ -11,10 +11,11 @@ instants; a camera that moves takes its segment's instants out with it. Those ta
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
+import pytest
 
 from estimator.config import LinkConfig
 from estimator.graph import Estimator
@@ -34,7 +35,11 @@ def object_marker(t_s: float) -> np.ndarray:
 
 
 def run(
-    est: Estimator, seconds: float, poses: dict[str, np.ndarray], rng: np.random.Generator, start: int = 0,
+    est: Estimator,
+    seconds: float,
+    poses: dict[str, np.ndarray],
+    rng: np.random.Generator,
+    start: int = 0,
     object_at: Callable[[float], np.ndarray] = object_marker,
 ) -> int:
     """Frames of both cameras at 30 Hz from frame index ``start``, the object marker at
@@ -80,7 +85,10 @@ def test_links_enter_the_graph_bounded_and_tighten_the_cameras() -> None:
             assert d @ np.linalg.solve(pose.covariance[:3, :3], d) <= 16.27, f"{cid}: {1e3 * d} mm off"  # 3 dof, 99.9 %
     # The links add information. Not much: a camera's sightings of one marker count at most
     # max_fused (4) frames together, as a static pair's do (0.79 here, deterministic to 1e-3).
-    assert rotation_variance(linked, "b") < 0.9 * rotation_variance(plain, "b"), (rotation_variance(linked, "b"), rotation_variance(plain, "b"))
+    assert rotation_variance(linked, "b") < 0.9 * rotation_variance(plain, "b"), (
+        rotation_variance(linked, "b"),
+        rotation_variance(plain, "b"),
+    )
 
 
 def test_a_camera_that_moves_takes_its_links_with_it() -> None:
@@ -88,7 +96,9 @@ def test_a_camera_that_moves_takes_its_links_with_it() -> None:
     rng = np.random.default_rng(7)
     est = Estimator(config(object_markers=[OBJECT], links=LinkConfig(online=True, max_live=50, min_gain=0.0)))
     k = run(est, 4.0, poses, rng)
-    assert est.live_links.live and all(f.segment == ("a", 0) for i in est.live_links.live for f in i.factors if f.segment[0] == "a")
+    assert est.live_links.live and all(
+        f.segment == ("a", 0) for i in est.live_links.live for f in i.factors if f.segment[0] == "a"
+    )
     poses["a"] = cam_pose(0.3, make_pose(rpy_matrix(0.0, np.radians(1.0), 0.0), [0.03, 0.0, 0.0]))
     run(est, 4.0, poses, rng, start=k)
     assert est.tracks["a"].segment == 1
@@ -127,7 +137,9 @@ def test_instant_gain_known_answers() -> None:
     the difference of where they put the marker has variance 2 p^2 per axis and the instant
     measures it with 2 m^2, so it removes 2 p^2 / (2 p^2 + 2 m^2) of it; cameras that move as one
     (fully correlated) leave nothing to learn; a third, unknown, camera makes it ~1."""
-    T = np.stack([make_pose(rpy_matrix(0.1, 0.2, 0.3), [0.0, 0.0, 0.0]), make_pose(rpy_matrix(-0.2, 0.0, 1.0), [1.0, 0.0, 0.0])])
+    T = np.stack(
+        [make_pose(rpy_matrix(0.1, 0.2, 0.3), [0.0, 0.0, 0.0]), make_pose(rpy_matrix(-0.2, 0.0, 1.0), [1.0, 0.0, 0.0])]
+    )
     s = [sighting(make_pose(np.eye(3), [0.0, 0.0, 0.0]), 0.002)] * 2  # at each camera's origin: rotation plays no part
     p = 0.003
     joint = np.zeros((12, 12))
@@ -145,6 +157,7 @@ def test_instant_gain_known_answers() -> None:
     assert instant_gain(np.concatenate([T, T[:1]]), [s[0]] * 3, [1.0] * 3, three) > 0.999
 
 
+@pytest.mark.slow
 def test_links_enter_only_where_they_add() -> None:
     """b seeing two wall markers (its rotation about the line through them weak): the first
     instant removes most of what the graph does not know and enters, and the later ones, which

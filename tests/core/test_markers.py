@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import math
 import ast
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -18,7 +18,6 @@ from drivers.sim.render import SimCell, kinect_depth
 from drivers.sim.scenario import load_scenario
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, make_pose, rotation_angle
-
 
 TUTORIAL = "markers/aruco_opencv_tutorial"
 MARKER_TOL_PX = 1.0  # OpenCV's own test tolerance for marker corners
@@ -36,7 +35,9 @@ def _config(real_data: Path, entry: dict, **kw) -> MarkerConfig:
     return MarkerConfig(dictionary=d, corner_refinement="none", **kw)
 
 
-@pytest.mark.parametrize("image", ["singlemarkersoriginal.jpg", "gboriginal.png", "choriginal.jpg", "chocclusion_original.jpg"])
+@pytest.mark.parametrize(
+    "image", ["singlemarkersoriginal.jpg", "gboriginal.png", "choriginal.jpg", "chocclusion_original.jpg"]
+)
 def test_real_photos_every_marker_with_gold_corners(real_data: Path, image: str) -> None:
     entry = _gold(real_data)[image]
     gold = entry["markers"] if isinstance(entry["markers"], dict) else ast.literal_eval(entry["markers"])
@@ -64,7 +65,9 @@ def test_real_photo_pose_reprojects_onto_the_corners(real_data: Path) -> None:
     fs = cv2.FileStorage(str(real_data / TUTORIAL / "tutorial_camera_charuco.yml"), cv2.FILE_STORAGE_READ)
     info = CameraInfo(640, 480, fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel())
     img = cv2.imread(str(real_data / TUTORIAL / "singlemarkersoriginal.jpg"))
-    dets = MarkerDetector(MarkerConfig(dictionary="DICT_6X6_250", side_m=0.05)).detect(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), info)
+    dets = MarkerDetector(MarkerConfig(dictionary="DICT_6X6_250", side_m=0.05)).detect(
+        cv2.cvtColor(img, cv2.COLOR_BGR2RGB), info
+    )
     assert len(dets) == 6
     for d in dets:
         assert d.error_a_px <= d.error_b_px
@@ -128,7 +131,9 @@ def test_sim_corners_sit_on_the_true_corners() -> None:
     refinement missed by 0.43 px, 0.26 px inward, on the same frames."""
     scenario = load_scenario()
     cell = SimCell(scenario)
-    det = MarkerDetector(MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m, corner_refinement="edges"))
+    det = MarkerDetector(
+        MarkerConfig(dictionary=scenario.dictionary, side_m=scenario.marker_side_m, corner_refinement="edges")
+    )
     errors: dict[tuple[str, int], list[np.ndarray]] = {}
     for k in range(3):
         for cam in scenario.cameras:
@@ -140,17 +145,22 @@ def test_sim_corners_sit_on_the_true_corners() -> None:
                     continue
                 T = invert_pose(frame.world_T_camera) @ scenario.world_T_marker(spec, 1.0 + k / 10)
                 p = marker_object_points(scenario.side_of(spec)) @ T[:3, :3].T + T[:3, 3]
-                errors.setdefault((cam.id, mk), []).append(c - (p[:, :2] / p[:, 2:] * frame.info.K[[0, 1], [0, 1]] + frame.info.K[:2, 2]))
+                errors.setdefault((cam.id, mk), []).append(
+                    c - (p[:, :2] / p[:, 2:] * frame.info.K[[0, 1], [0, 1]] + frame.info.K[:2, 2])
+                )
     assert len(errors) >= 30, "the demo cell shows fewer static markers than it should"
     bias = np.array([np.linalg.norm(np.mean(e, axis=0), axis=1).mean() for e in errors.values()])
     diagonal = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) / np.sqrt(2)  # TL TR BR BL, outward
-    outward = np.median([np.mean(np.sum((np.mean(e, 0) - np.mean(e, axis=(0, 1))) * diagonal, axis=1)) for e in errors.values()])
+    outward = np.median(
+        [np.mean(np.sum((np.mean(e, 0) - np.mean(e, axis=(0, 1))) * diagonal, axis=1)) for e in errors.values()]
+    )
     assert np.median(bias) < 0.1, f"median view's corners off by {np.median(bias):.3f} px"
     assert abs(outward) < 0.05, f"corners sit {outward:+.3f} px outward of the true ones"
 
 
 @pytest.mark.parametrize("z0", [2.3, 3.4, 3.7, 3.8])
 @pytest.mark.parametrize("tilt_deg", [0.0, 65.0])
+@pytest.mark.slow
 def test_plane_fit_range_is_unbiased_on_kinect_depth(z0: float, tilt_deg: float) -> None:
     """The plane's range along the centre ray, over 40 noise draws of the simulator's Kinect model
     (disparity noise, 1/8 px quantisation) for a 0.25 m quad: its mean error must be within 0.5 mm
@@ -162,7 +172,9 @@ def test_plane_fit_range_is_unbiased_on_kinect_depth(z0: float, tilt_deg: float)
     t = np.radians(tilt_deg)
     n = np.array([np.sin(t), 0.0, -np.cos(t)])  # toward the camera, through (0, 0, z0)
     u, v = np.meshgrid(np.arange(info.width), np.arange(info.height))
-    rays = np.stack([(u - info.K[0, 2]) / info.K[0, 0], (v - info.K[1, 2]) / info.K[1, 1], np.ones(u.shape)], -1).reshape(-1, 3)
+    rays = np.stack(
+        [(u - info.K[0, 2]) / info.K[0, 0], (v - info.K[1, 2]) / info.K[1, 1], np.ones(u.shape)], -1
+    ).reshape(-1, 3)
     z = (n @ [0.0, 0.0, z0]) / (rays @ n)
     half, hx = 0.125 * info.K[0, 0] / z0, 0.125 * info.K[0, 0] / z0 * np.cos(t)
     c = info.K[:2, 2]
@@ -195,6 +207,7 @@ def test_sim_depth_refinement_beats_pnp_and_removes_flips(sim_observations) -> N
     assert np.mean([d.depth_refined for d, _ in sim_observations[True]]) > 0.9
 
 
+@pytest.mark.slow
 def test_sim_every_marker_in_view_is_found_with_the_right_id(sim_observations) -> None:
     ids_seen = {d.marker_id for d, _ in sim_observations[True]}
     scenario = load_scenario()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import gtsam
 import numpy as np
 import pytest
@@ -21,8 +20,11 @@ from schemas.geometry import invert_pose, make_pose, rotation_angle
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
 
+
 def scene() -> Scenario:
-    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    wall = lambda i, x, role="static": MarkerSpec(  # noqa: E731
+        id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0))
+    )
     return Scenario(
         markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")],
         cameras=[
@@ -30,8 +32,6 @@ def scene() -> Scenario:
             CameraSpec(id="b", pose=PoseSpec(position=(0.6, 0.0, 1.2), look_at=(0.3, 2.0, 1.0))),
         ],
     )
-
-
 
 
 @pytest.mark.slow
@@ -42,7 +42,9 @@ def test_batched_frames_fold_in_like_one_at_a_time() -> None:
     order, as a detector lists them differently from frame to frame."""
     s = demo()
     s.camera("cam1").motion = [CameraMotion(kind="tilt", amplitude_deg=-10.0, start_s=2.0, end_s=4.0)]
-    s.camera("cam2").motion = [CameraMotion(kind="bump", start_s=6.0, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))]
+    s.camera("cam2").motion = [
+        CameraMotion(kind="bump", start_s=6.0, rotation_deg=(2.0, 0.0, 0.0), offset=(0.03, 0.0, 0.0))
+    ]
     cfg = estimator_config(s)
     rng = np.random.default_rng(3)
     one, batched = Estimator(cfg), Estimator(cfg)
@@ -51,7 +53,9 @@ def test_batched_frames_fold_in_like_one_at_a_time() -> None:
     for k in range(int(10.0 * 30)):
         t, stamp = k / 30, 1_000_000_000 + k * 1_000_000_000 // 30
         for cam in s.cameras:
-            msg = observations_msg(cam.id, stamp, frame_observations(s, cam.id, t, stamp, rng, NoiseSettings(flip_rate=0.05)))
+            msg = observations_msg(
+                cam.id, stamp, frame_observations(s, cam.id, t, stamp, rng, NoiseSettings(flip_rate=0.05))
+            )
             one.add_frame(cam.id, stamp, observations_of(cam.id, stamp, observation_rows(codec.marker_arrays(msg))))
             shuffled = m.MarkerObservations()
             shuffled.CopyFrom(msg)
@@ -75,7 +79,9 @@ def test_batched_frames_fold_in_like_one_at_a_time() -> None:
             assert_pose_close(pair.mean(exact=True), other.mean(exact=True), 1e-4, 0.01, what=str(key))
 
 
-def _moving_frame(s: Scenario, world_T_camera: np.ndarray, flipped: set[int], outlier: int | None = None) -> MovingFrame:
+def _moving_frame(
+    s: Scenario, world_T_camera: np.ndarray, flipped: set[int], outlier: int | None = None
+) -> MovingFrame:
     """A frame of exact observations of every marker of ``s`` from ``world_T_camera``; rows in
     ``flipped`` carry the wrong IPPE branch as their choice, ``outlier`` is 60 mm off."""
     poses, alts = [], []
@@ -87,7 +93,14 @@ def _moving_frame(s: Scenario, world_T_camera: np.ndarray, flipped: set[int], ou
         poses.append(flip(T) if i in flipped else T)
         alts.append(T if i in flipped else flip(T))
     n = len(s.markers)
-    return MovingFrame("b", 1, np.array([m.id for m in s.markers]), np.stack(poses), np.stack(alts), np.tile(np.eye(6) * 1e-6, (n, 1, 1)))
+    return MovingFrame(
+        "b",
+        1,
+        np.array([m.id for m in s.markers]),
+        np.stack(poses),
+        np.stack(alts),
+        np.tile(np.eye(6) * 1e-6, (n, 1, 1)),
+    )
 
 
 def test_a_moving_frame_is_placed_by_the_markers_that_agree() -> None:
@@ -108,7 +121,10 @@ def test_a_moving_frame_is_placed_by_the_markers_that_agree() -> None:
         assert_pose_close(T, invert_pose(wTc) @ wTm[s.markers[j].id], 1e-9, 1e-6, f"marker {j}")
     assert branches == [1, 0, 1, 0]  # the flips taken back
     one = _moving_frame(s, wTc, flipped=set())
-    assert place_frame(MovingFrame("b", 1, one.ids[:1], one.poses[:1], one.alternatives[:1], one.covariances[:1]), wTm) is None
+    assert (
+        place_frame(MovingFrame("b", 1, one.ids[:1], one.poses[:1], one.alternatives[:1], one.covariances[:1]), wTm)
+        is None
+    )
 
 
 def test_a_moving_frame_at_range_keeps_every_marker_its_noise_allows() -> None:
@@ -118,16 +134,24 @@ def test_a_moving_frame_at_range_keeps_every_marker_its_noise_allows() -> None:
     rotation and the pose resected over all: every row's own covariance holds (a gate at 1 in 1,000
     keeps ~all), no flip is kept, and the camera lands at ~19 mm median here."""
     wall = lambda i, x: MarkerSpec(id=i, side_m=0.25, pose=PoseSpec(position=(x, 3.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
-    s = Scenario(markers=[wall(i, x) for i, x in enumerate(np.linspace(-0.9, 0.9, 8))],
-                 cameras=[CameraSpec(id="b", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.0, 3.0, 1.0)))])  # fmt: skip
+    s = Scenario(
+        markers=[wall(i, x) for i, x in enumerate(np.linspace(-0.9, 0.9, 8))],
+        cameras=[CameraSpec(id="b", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.0, 3.0, 1.0)))],
+    )
     wTm = {mk.id: s.world_T_marker(mk, 0.0) for mk in s.markers}
     wTc = s.camera("b").world_T_camera(0.0)
     rng = np.random.default_rng(0)
     kept, errors = [], []
     for i in range(50):
         obs = frame_observations(s, "b", 0.0, i, rng, NoiseSettings(flip_rate=0.2))
-        frame = MovingFrame("b", i, np.array([o.marker_id for o in obs]), np.stack([o.camera_T_marker for o in obs]),
-                            np.stack([o.alternative for o in obs]), np.stack([o.covariance for o in obs]))  # fmt: skip
+        frame = MovingFrame(
+            "b",
+            i,
+            np.array([o.marker_id for o in obs]),
+            np.stack([o.camera_T_marker for o in obs]),
+            np.stack([o.alternative for o in obs]),
+            np.stack([o.covariance for o in obs]),
+        )
         placed = place_frame(frame, wTm)
         assert placed is not None, f"frame {i} not placed"
         pose, rows, branches = placed.world_T_camera, placed.rows, placed.branches
@@ -147,6 +171,7 @@ def test_the_benchmarks_non_inferiority_bound_is_students_t(n: int, t_table: flo
     x = np.random.default_rng(n).normal(size=n)
     t = (upper_bound_95(x) - x.mean()) / (x.std(ddof=1) / np.sqrt(n))
     assert abs(t / t_table - 1) < 0.01, f"n={n}: t={t:.4f}, table {t_table}"
+
 
 def _sighting(cam: str, world_T_camera: np.ndarray, world_T_marker: np.ndarray, stamp_ns: int) -> Sighting:
     T = invert_pose(world_T_camera) @ world_T_marker
@@ -171,8 +196,12 @@ def test_object_marker_instants_alone_place_a_camera() -> None:
     ka, kb = camera_symbol(0), camera_symbol(1)
     graph.add(gtsam.PriorFactorPose3(ka, gtsam.Pose3(a_T), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     values.insert(ka, gtsam.Pose3(a_T))
-    values.insert(kb, gtsam.Pose3(b_T).compose(gtsam.Pose3(gtsam.Rot3.RzRyRx(0.01, -0.01, 0.02), gtsam.Point3(0.02, -0.01, 0.01))))
-    added = add_links(graph, values, links, {("a", 0): ka, ("b", 0): kb}, 4, gtsam.noiseModel.mEstimator.Huber.Create(1.345))
+    values.insert(
+        kb, gtsam.Pose3(b_T).compose(gtsam.Pose3(gtsam.Rot3.RzRyRx(0.01, -0.01, 0.02), gtsam.Point3(0.02, -0.01, 0.01)))
+    )
+    added = add_links(
+        graph, values, links, {("a", 0): ka, ("b", 0): kb}, 4, gtsam.noiseModel.mEstimator.Huber.Create(1.345)
+    )
     assert added == 3
     solved = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
     assert_pose_close(solved.atPose3(kb).matrix(), b_T, 1e-5, 1e-3, "camera b from the links alone")
@@ -189,4 +218,3 @@ def test_object_link_instants_stay_bounded_and_on_their_grid() -> None:
     assert len(groups) <= 10 and links.gap_ns == 1_600_000_000
     stamps = [s[0].stamp_ns for _, s in groups]
     assert all(t % links.gap_ns == 0 for t in stamps) and stamps[0] == 0 and stamps[-1] >= 10e9 - 2 * links.gap_ns
-

@@ -15,6 +15,7 @@ def mean_closest_m(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("object_id", ["crate", "can"])
+@pytest.mark.slow
 def test_voting_recovers_the_pose_of_the_visible_half(demo_models: dict, object_id: str) -> None:
     """The half of the model facing a camera at the origin, posed at a random rotation 1 m away, is
     the whole scene: the best cluster's pose puts the model within 5 % of its diameter (ADD-S; the

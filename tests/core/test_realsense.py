@@ -46,6 +46,7 @@ def made_from(frame: Frame, frames: list[Frame]) -> Frame:
     return min(frames, key=lambda s: int(np.abs(s.rgb.astype(np.int16) - frame.rgb).sum()))
 
 
+@pytest.mark.slow
 def test_a_recording_plays_back_the_frames_pixel_for_pixel(recording: tuple[Path, list[Frame]]) -> None:
     path, frames = recording
     source = RealSenseSource("cam1", recording=path, real_time=False)

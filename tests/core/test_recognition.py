@@ -13,20 +13,29 @@ import pytest
 
 from recognition.align import align_to_z, model_to_scene_rmse, roll_candidates, roll_histogram, rot_z
 from recognition.cloud import (
-    PointIndex, camera_rays, depth_to_cloud, estimate_normals, finite_points, image_window, radius_neighbours, read_cloud,
-    read_coloured_cloud, smallest_eigenpair, voxel_downsample,
+    PointIndex,
+    camera_rays,
+    depth_to_cloud,
+    estimate_normals,
+    finite_points,
+    image_window,
+    radius_neighbours,
+    read_cloud,
+    read_coloured_cloud,
+    smallest_eigenpair,
+    voxel_downsample,
 )
 from recognition.config import DescriptorConfig, RecognitionConfig
 from recognition.errors import CloudError, ModelError
-from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.hypotheses import SceneCloud
+from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
 from recognition.segment import PointGraph, components, euclidean_clusters
 from recognition.vfh import F_BINS, vfh
 from schemas.codec import CameraInfo
 from schemas.geometry import invert_pose, look_at_matrix, make_pose, rotation_angle
-from tests.helpers import assert_pose_close
 from tests.conftest import REAL_DATA
+from tests.helpers import assert_pose_close
 
 PCL = REAL_DATA / "pcl"
 GRABBER_K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])  # pclzf/*.xml
@@ -114,7 +123,9 @@ def test_point_index_is_exact_nearest_and_radius_search(milk: np.ndarray) -> Non
     distance) and as Open3D's radius search does (within r), for queries near and far from the points."""
     rng = np.random.default_rng(5)
     points = milk[rng.choice(len(milk), 800, replace=False)]
-    query = np.concatenate([points + rng.normal(0, 0.01, points.shape), rng.uniform(-1, 2, (200, 3))]).astype(np.float32)
+    query = np.concatenate([points + rng.normal(0, 0.01, points.shape), rng.uniform(-1, 2, (200, 3))]).astype(
+        np.float32
+    )
     index, sq_dist = PointIndex(points).nearest(query)
     all_sq = ((query[:, None, :] - points[None, :, :]) ** 2).sum(axis=2)
     np.testing.assert_allclose(sq_dist, all_sq.min(axis=1), rtol=1e-5, atol=1e-10)
@@ -142,7 +153,10 @@ def test_closed_form_normals_match_lapack_on_random_neighbourhoods() -> None:
 
 
 REFERENCE = json.loads((PCL / "reference" / "vfh_pcl_1_13.json").read_text())
-SETTINGS = {"default": {}, "normalize_distance_and_size_component": {"normalize_distance": True, "size_component": True}}
+SETTINGS = {
+    "default": {},
+    "normalize_distance_and_size_component": {"normalize_distance": True, "size_component": True},
+}
 
 
 @pytest.mark.parametrize("setting", sorted(SETTINGS))
@@ -246,17 +260,30 @@ def test_rays_cast_only_in_the_objects_window_render_the_same_depth() -> None:
     corners = np.asarray(mesh.get_axis_aligned_bounding_box().get_box_points())
     info = CameraInfo.kinect_v1()
     for eye in ([0.8, -0.6, 0.5], [0.15, 0.1, 0.9], [2.5, 1.0, -1.0]):
-        object_T_view = make_pose(look_at_matrix(np.array(eye), np.array([0.15, 0.1, 0.05]), np.array([0.0, 0.0, 1.0])), eye)
+        object_T_view = make_pose(
+            look_at_matrix(np.array(eye), np.array([0.15, 0.1, 0.05]), np.array([0.0, 0.0, 1.0])), eye
+        )
         view_T_object = invert_pose(object_T_view)
-        full = scene.cast_rays(o3d.core.Tensor(camera_rays(info.K, info.width, info.height, object_T_view)))["t_hit"].numpy()
+        full = scene.cast_rays(o3d.core.Tensor(camera_rays(info.K, info.width, info.height, object_T_view)))[
+            "t_hit"
+        ].numpy()
         full = full.reshape(info.height, info.width)
-        u0, v0, u1, v1 = image_window(info.K, info.width, info.height, corners @ view_T_object[:3, :3].T + view_T_object[:3, 3])
+        u0, v0, u1, v1 = image_window(
+            info.K, info.width, info.height, corners @ view_T_object[:3, :3].T + view_T_object[:3, 3]
+        )
         assert (u1 - u0) * (v1 - v0) < info.width * info.height  # a window, not the image
-        part = scene.cast_rays(o3d.core.Tensor(camera_rays(info.K, info.width, info.height, object_T_view, (u0, v0, u1, v1))))
+        part = scene.cast_rays(
+            o3d.core.Tensor(camera_rays(info.K, info.width, info.height, object_T_view, (u0, v0, u1, v1)))
+        )
         inside = np.full_like(full, np.inf)
         inside[v0:v1, u0:u1] = part["t_hit"].numpy().reshape(v1 - v0, u1 - u0)
         assert np.isfinite(full).sum() > 100 and np.array_equal(inside, full), eye
-    assert image_window(info.K, info.width, info.height, np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -0.1]])) == (0, 0, info.width, info.height)
+    assert image_window(info.K, info.width, info.height, np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -0.1]])) == (
+        0,
+        0,
+        info.width,
+        info.height,
+    )
 
 
 def test_a_mesh_gives_the_same_model_every_time() -> None:
@@ -266,6 +293,7 @@ def test_a_mesh_gives_the_same_model_every_time() -> None:
     np.testing.assert_array_equal(a.points, b.points)
 
 
+@pytest.mark.slow
 def test_coloured_model_files_give_coloured_models(tmp_path: Path) -> None:
     """A crate's surface points in its colour, as a PLY (``--points``) and as a PCD (``--cloud``):
     both models carry the colour (to 8 bits), which verification judges; PCL's real Kinect scenes
@@ -280,7 +308,9 @@ def test_coloured_model_files_give_coloured_models(tmp_path: Path) -> None:
     db = build_database(DescriptorConfig(), points={"a": tmp_path / "crate.ply"}, clouds={"b": tmp_path / "crate.pcd"})
     for model in db.models.values():
         assert model.colours.shape == model.points.shape
-        np.testing.assert_allclose(model.colours, np.broadcast_to([0.2, 0.45, 0.7], model.colours.shape), atol=0.6 / 255)
+        np.testing.assert_allclose(
+            model.colours, np.broadcast_to([0.2, 0.45, 0.7], model.colours.shape), atol=0.6 / 255
+        )
     points, rgb = read_coloured_cloud(PCL / "milk_cartoon_all_small_clorox.pcd", organised=True)
     assert points.shape == rgb.shape == (480, 640, 3) and rgb.dtype == np.uint8 and rgb.std() > 10
     assert read_coloured_cloud(PCL / "milk.pcd")[1] is None
@@ -307,7 +337,12 @@ def test_a_model_from_surface_points_finds_the_demo_crate(tmp_path: Path) -> Non
     outward = np.einsum("ij,ij->i", model.normals, model.points - model.points.mean(axis=0)) > 0
     assert outward.mean() > 0.95  # verification's front-facing test needs them outward
     frame = SimCell(scenario).render("cam1", 0.0, 0)
-    found = {d.object_id: d for d in Recognizer(db, cfg).recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera)}
+    found = {
+        d.object_id: d
+        for d in Recognizer(db, cfg).recognize(
+            depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera
+        )
+    }
     truth = invert_pose(frame.world_T_camera) @ crate.world_T_object(0.0)
     assert "crate" in found
     assert np.linalg.norm(found["crate"].camera_T_object[:3, 3] - truth[:3, 3]) < 0.02
@@ -327,7 +362,9 @@ class Layout:
     def surface_points(self, oid: str) -> np.ndarray:
         """Indices of the prepared scene's points within 1 cm of the object's posed model."""
         T = self.truth[oid]
-        surface = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.recognizer.db.models[oid].points @ T[:3, :3].T + T[:3, 3]))
+        surface = o3d.geometry.PointCloud(
+            o3d.utility.Vector3dVector(self.recognizer.db.models[oid].points @ T[:3, :3].T + T[:3, 3])
+        )
         scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.scene.points.astype(np.float64)))
         return np.flatnonzero(np.asarray(scene.compute_point_cloud_distance(surface)) < 0.01)
 
@@ -341,9 +378,17 @@ def static_demo(where: dict[str, tuple[float, float, float]]):
 
     scenario = load_scenario()
     outlines = [footprint(o, np.array(where[o.id][:2]), np.radians(where[o.id][2])) for o in scenario.objects]
-    assert all(apart(a, b, 0.0) for i, a in enumerate(outlines) for b in outlines[i + 1:]), "objects that interpenetrate are no scene"
-    objects = [o.still().model_copy(update={"pose": PoseSpec(position=(where[o.id][0], where[o.id][1], 0.75), rpy_deg=(0.0, 0.0, where[o.id][2]))})
-               for o in scenario.objects]  # fmt: skip
+    assert all(apart(a, b, 0.0) for i, a in enumerate(outlines) for b in outlines[i + 1 :]), (
+        "objects that interpenetrate are no scene"
+    )
+    objects = [
+        o.still().model_copy(
+            update={
+                "pose": PoseSpec(position=(where[o.id][0], where[o.id][1], 0.75), rpy_deg=(0.0, 0.0, where[o.id][2]))
+            }
+        )
+        for o in scenario.objects
+    ]
     scenario = scenario.model_copy(update={"objects": objects})
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     return scenario, Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
@@ -358,7 +403,14 @@ def demo_layout(where: dict[str, tuple[float, float, float]], camera: str, seed:
     frame = SimCell(scenario).render(camera, 0.0, seed)
     cloud = depth_to_cloud(frame.depth_mm, frame.info.K)
     truth = {o.id: invert_pose(frame.world_T_camera) @ o.world_T_object(0.0) for o in scenario.objects}
-    return Layout(recognizer, recognizer.config, cloud, frame.world_T_camera, truth, recognizer.prepare(cloud, frame.world_T_camera))
+    return Layout(
+        recognizer,
+        recognizer.config,
+        cloud,
+        frame.world_T_camera,
+        truth,
+        recognizer.prepare(cloud, frame.world_T_camera),
+    )
 
 
 @pytest.mark.slow
@@ -368,7 +420,9 @@ def test_objects_standing_together_are_found_in_their_merged_cluster() -> None:
     cluster, verified, and found within 2 cm of where it stands."""
     lay = demo_layout({"crate": (0.0, 0.0, 0.0), "can": (0.19, 0.03, 0.0), "tote": (-0.05, 0.25, 90.0)}, "cam3", 0)
     cfg = lay.config
-    clusters = euclidean_clusters(lay.scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, lay.scene.graph)
+    clusters = euclidean_clusters(
+        lay.scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, lay.scene.graph
+    )
     owner = {}  # object -> the clusters holding points of its surface
     for oid in lay.truth:
         on = lay.surface_points(oid)
@@ -396,7 +450,9 @@ def test_a_pose_hint_adds_a_candidate_and_never_hides_an_object() -> None:
         dets = lay.recognizer.recognize(lay.cloud, priors, world_T_camera=lay.world_T_camera)
         return {d.object_id: d.camera_T_object for d in dets}
 
-    hints = {"none": [], "wrong": [Prior("crate", lay.truth["tote"])]} | {oid: [Prior(oid, T)] for oid, T in lay.truth.items()}
+    hints = {"none": [], "wrong": [Prior("crate", lay.truth["tote"])]} | {
+        oid: [Prior(oid, T)] for oid, T in lay.truth.items()
+    }
     for name, priors in hints.items():
         poses = found(priors)
         assert set(poses) == set(lay.truth), f"hint {name}: found {sorted(poses)}"
@@ -405,11 +461,24 @@ def test_a_pose_hint_adds_a_candidate_and_never_hides_an_object() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("where", "camera", "seed"), [
-    ({"crate": (-0.1219, -0.0885, 4.51), "can": (0.1344, -0.1252, 92.21), "tote": (0.1608, 0.1228, 282.83)}, "cam4", 3),
-    ({"crate": (-0.149, -0.1064, 149.39), "can": (0.1284, -0.1112, 146.07), "tote": (0.1984, 0.0747, 169.12)}, "cam4", 5),
-])  # fmt: skip
-def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(where: dict, camera: str, seed: int) -> None:
+@pytest.mark.parametrize(
+    ("where", "camera", "seed"),
+    [
+        (
+            {"crate": (-0.1219, -0.0885, 4.51), "can": (0.1344, -0.1252, 92.21), "tote": (0.1608, 0.1228, 282.83)},
+            "cam4",
+            3,
+        ),
+        (
+            {"crate": (-0.149, -0.1064, 149.39), "can": (0.1284, -0.1112, 146.07), "tote": (0.1984, 0.0747, 169.12)},
+            "cam4",
+            5,
+        ),
+    ],
+)
+def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(
+    where: dict, camera: str, seed: int
+) -> None:
     """Two layouts of the recognition benchmark (layout seeds 7 and 11, trials 3 and 5; no two
     objects closer than 1.5 cm): crate, tote and can form one cluster, the can partly hidden. Split at a finer tolerance, crate and tote come apart, but
     the can's visible surface falls into fragments (crumbs of the big cluster, small parts): no
@@ -421,9 +490,18 @@ def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(
     lay = demo_layout(where, camera, seed)
     cfg, scene = lay.config, lay.scene
     on_can = lay.surface_points("can")
-    clusters = euclidean_clusters(scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, scene.graph)
-    parts, shed = split_oversized(scene.points, clusters, 1.2 * lay.recognizer._largest, cfg.cluster_tolerance_m, 1.5 * cfg.descriptor.voxel_m,
-                                  cfg.cluster_min_points, scene.graph)  # fmt: skip
+    clusters = euclidean_clusters(
+        scene.points, cfg.cluster_tolerance_m, cfg.cluster_min_points, cfg.cluster_max_points, scene.graph
+    )
+    parts, shed = split_oversized(
+        scene.points,
+        clusters,
+        1.2 * lay.recognizer._largest,
+        cfg.cluster_tolerance_m,
+        1.5 * cfg.descriptor.voxel_m,
+        cfg.cluster_min_points,
+        scene.graph,
+    )
     assert len(on_can) >= 100, "the can must be partly visible for this test"
     assert max(np.isin(idx, on_can).sum() for idx in parts) < 0.5 * len(on_can), "a part holds most of the can"
     assert sum(np.isin(idx, on_can).sum() for idx in shed) > 0, "the split shed none of the can"
@@ -431,7 +509,10 @@ def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(
     assert "can" in found
     for oid, det in found.items():
         model = lay.recognizer.db.models[oid]
-        posed = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points @ P[:3, :3].T + P[:3, 3])) for P in (det.camera_T_object, lay.truth[oid])]
+        posed = [
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points @ P[:3, :3].T + P[:3, 3]))
+            for P in (det.camera_T_object, lay.truth[oid])
+        ]
         adds = float(np.mean(np.asarray(posed[0].compute_point_cloud_distance(posed[1]))))
         assert adds < 0.1 * model.diameter_m, f"{oid}: ADD-S {1e3 * adds:.1f} mm"
 
@@ -441,7 +522,7 @@ def test_a_small_object_half_hidden_among_larger_ones_is_found_in_its_fragments(
 TOTE_TURNED = [
     ({"crate": (0.0654, 0.1829, 17.58), "can": (0.0777, -0.0731, 230.8), "tote": (0.3944, -0.241, 62.36)}, "cam3", 10),
     ({"crate": (0.0242, -0.124, 174.22), "can": (0.1875, 0.0938, 84.78), "tote": (-0.1599, 0.1196, 225.36)}, "cam1", 9),
-]  # fmt: skip
+]
 
 
 @pytest.mark.slow
@@ -471,11 +552,14 @@ def test_verification_keeps_the_box_where_it_stands_and_turns_it_down_a_quarter_
     view = DepthView.of(lay.cloud)
     centre = 0.5 * (model.points.min(axis=0) + model.points.max(axis=0))
     quarter = make_pose(rot_z(np.pi / 2), centre - rot_z(np.pi / 2) @ centre)  # about the object's z through its centre
-    fitness = {name: verdict(view, model.points, model.normals, T, cfg.icp_distance_m, cfg.plane_noise_per_m2).fitness
-               for name, T in (("standing", lay.truth["tote"]), ("turned", lay.truth["tote"] @ quarter))}  # fmt: skip
+    fitness = {
+        name: verdict(view, model.points, model.normals, T, cfg.icp_distance_m, cfg.plane_noise_per_m2).fitness
+        for name, T in (("standing", lay.truth["tote"]), ("turned", lay.truth["tote"] @ quarter))
+    }
     assert fitness["standing"] >= 0.94 and fitness["turned"] < cfg.min_visible_fitness, fitness
 
 
+@pytest.mark.slow
 def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
     """Nothing in a cell hovers. The tote stacked on the crate is found with it (it rests on the
     found crate); the same tote pose with nothing found under it, 14 cm above the table, is
@@ -488,9 +572,15 @@ def test_an_object_rests_on_the_table_or_on_an_object_found_under_it() -> None:
     from schemas.spec import PoseSpec
 
     scenario = load_scenario()
-    where = {"crate": (0.0, 0.0, 0.75, 0.0), "can": (0.25, 0.2, 0.75, 0.0), "tote": (0.02, 0.01, 0.89, 20.0)}  # x, y, z (m), yaw (deg)
-    objects = [o.still().model_copy(update={"pose": PoseSpec(position=where[o.id][:3], rpy_deg=(0.0, 0.0, where[o.id][3]))})
-               for o in scenario.objects]
+    where = {
+        "crate": (0.0, 0.0, 0.75, 0.0),
+        "can": (0.25, 0.2, 0.75, 0.0),
+        "tote": (0.02, 0.01, 0.89, 20.0),
+    }  # x, y, z (m), yaw (deg)
+    objects = [
+        o.still().model_copy(update={"pose": PoseSpec(position=where[o.id][:3], rpy_deg=(0.0, 0.0, where[o.id][3]))})
+        for o in scenario.objects
+    ]
     scenario = scenario.model_copy(update={"objects": objects})
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     recognizer = Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg)
@@ -523,20 +613,30 @@ def test_a_detection_another_camera_sees_through_is_held_back() -> None:
     other cameras see the objects and the table behind where they would be, so none is reported; frames older than the age limit judge nothing. A wrong pose outvoting a right one
     (cam2's lifted crate against cam3's true one) is held back and the right one reported."""
     from drivers.sim.render import SimCell
-    from recognition.verify import DepthView
     from recognition.fusion import CameraView, WorldDetection, cross_checked
+    from recognition.verify import DepthView
 
-    scenario, recognizer = static_demo({"crate": (-0.15, -0.05, 10.0), "can": (0.18, -0.12, 0.0), "tote": (0.12, 0.2, 80.0)})
+    scenario, recognizer = static_demo(
+        {"crate": (-0.15, -0.05, 10.0), "can": (0.18, -0.12, 0.0), "tote": (0.12, 0.2, 80.0)}
+    )
     cell = SimCell(scenario)
     frames = {cam.id: cell.render(cam.id, 0.0, 1) for cam in scenario.cameras}
-    views = [CameraView(c, 0, DepthView.of(depth_to_cloud(f.depth_mm, f.info.K)), f.world_T_camera) for c, f in frames.items()]
+    views = [
+        CameraView(c, 0, DepthView.of(depth_to_cloud(f.depth_mm, f.info.K)), f.world_T_camera)
+        for c, f in frames.items()
+    ]
     f2 = frames["cam2"]
     found = recognizer.recognize(depth_to_cloud(f2.depth_mm, f2.info.K), world_T_camera=f2.world_T_camera)
     assert len(found) >= 2, f"cam2 found {[d.object_id for d in found]}"
 
     def world(dets, lift: float = 0.0, camera: str = "cam2") -> list[WorldDetection]:
         up = make_pose(t=(0.0, 0.0, lift))
-        return [WorldDetection(camera, 0, up @ frames[camera].world_T_camera @ d.camera_T_object, d, frames[camera].world_T_camera) for d in dets]
+        return [
+            WorldDetection(
+                camera, 0, up @ frames[camera].world_T_camera @ d.camera_T_object, d, frames[camera].world_T_camera
+            )
+            for d in dets
+        ]
 
     objects, held = cross_checked(world(found), views, recognizer.seen_through, 10**9)
     assert held == [] and sorted(o.object_id for o in objects) == sorted(d.object_id for d in found)
@@ -548,7 +648,9 @@ def test_a_detection_another_camera_sees_through_is_held_back() -> None:
     # cam3's crate where it stands, but scored below cam2's lifted one: fused alone, the lifted one wins.
     truth = next(o for o in scenario.objects if o.id == "crate").world_T_object(0.0)
     lifted = next(d for d in world(found, 0.2) if d.detection.object_id == "crate")
-    right = WorldDetection("cam3", 0, truth, replace(lifted.detection, rmse_m=2 * lifted.detection.rmse_m), frames["cam3"].world_T_camera)
+    right = WorldDetection(
+        "cam3", 0, truth, replace(lifted.detection, rmse_m=2 * lifted.detection.rmse_m), frames["cam3"].world_T_camera
+    )
     objects, held = cross_checked([lifted, right], views, recognizer.seen_through, 10**9)
     assert [h.detected_by for h in held] == [["cam2"]]
     assert [o.camera_ids for o in objects] == [["cam3"]]
@@ -607,8 +709,11 @@ def test_a_look_alike_of_another_colour_is_not_the_model(demo_models: dict) -> N
     from drivers.sim.scenario import load_scenario
 
     red = load_scenario()
-    grey = red.model_copy(update={"objects": [o.model_copy(update={"color": (0.5, 0.5, 0.5)}) if o.id == "can" else o
-                                              for o in red.objects]})  # fmt: skip
+    grey = red.model_copy(
+        update={
+            "objects": [o.model_copy(update={"color": (0.5, 0.5, 0.5)}) if o.id == "can" else o for o in red.objects]
+        }
+    )
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     recognizer = Recognizer(ModelDatabase(cfg.descriptor, dict(demo_models)), cfg)
     found = {}
@@ -641,9 +746,13 @@ def test_floor_and_walls_go_as_planes_and_an_object_face_stays() -> None:
     wall = grid((-1.5, 1.5), (-0.1, 0.0), 0.01)
     wall = np.c_[wall, np.full(len(wall), 4.5)]  # the wall's visible strip, facing the camera
     face = grid((-0.175, 0.175), (0.65, 1.0), 0.01)
-    box = np.vstack([np.c_[face, np.full(len(face), 3.0)],  # front, top and side of a 35 cm box
-                     np.c_[face[:, 0], np.full(len(face), 0.65), face[:, 1] + 2.35],
-                     np.c_[np.full(len(face), 0.175), face[:, 1], face[:, 0] + 3.175]])  # fmt: skip
+    box = np.vstack(
+        [
+            np.c_[face, np.full(len(face), 3.0)],  # front, top and side of a 35 cm box
+            np.c_[face[:, 0], np.full(len(face), 0.65), face[:, 1] + 2.35],
+            np.c_[np.full(len(face), 0.175), face[:, 1], face[:, 0] + 3.175],
+        ]
+    )
     points = np.vstack([floor, wall, box]).astype(np.float32)
     n_room = len(floor) + len(wall)
     assert 0.01 < len(face) / len(points) < len(wall) / len(points) < 0.1
@@ -652,7 +761,7 @@ def test_floor_and_walls_go_as_planes_and_an_object_face_stays() -> None:
     assert not keep[:n_room].any()
     assert keep[n_room:].mean() > 0.95  # the box's points on the floor's band (its bottom row) go with it
     keep_old, planes_old = remove_planes(points, 0.012, 4, 0.1)
-    assert len(planes_old) == 1 and keep_old[len(floor):n_room].all()
+    assert len(planes_old) == 1 and keep_old[len(floor) : n_room].all()
 
 
 def test_a_model_captured_as_a_cloud_is_found_by_a_localized_camera() -> None:
@@ -665,20 +774,26 @@ def test_a_model_captured_as_a_cloud_is_found_by_a_localized_camera() -> None:
 
     scenario = load_scenario()
     crate = next(o for o in scenario.objects if o.id == "crate").still()
-    scenario = scenario.model_copy(update={"objects": [crate], "markers": [m for m in scenario.markers if m.object in (None, "crate")]})
+    scenario = scenario.model_copy(
+        update={"objects": [crate], "markers": [m for m in scenario.markers if m.object in (None, "crate")]}
+    )
     cell = SimCell(scenario)
     cam1, later = cell.render("cam1", 0.0, 0), cell.render("cam1", 0.0, 1)
     cam1_T_crate = invert_pose(cam1.world_T_camera) @ crate.world_T_object(0.0)
     pts = finite_points(depth_to_cloud(cam1.depth_mm, cam1.info.K))
     local = (pts - cam1_T_crate[:3, 3]) @ cam1_T_crate[:3, :3]  # crate frame: base centre, z up
     half = np.array(crate.size[:2]) / 2 + 0.01
-    captured = pts[np.all(np.abs(local[:, :2]) < half, axis=1) & (local[:, 2] > 0.01) & (local[:, 2] < crate.size[2] + 0.01)]
+    captured = pts[
+        np.all(np.abs(local[:, :2]) < half, axis=1) & (local[:, 2] > 0.01) & (local[:, 2] < crate.size[2] + 0.01)
+    ]
     assert abs(cam1.world_T_camera[:3, 2] @ [0, 0, 1]) < 0.9  # cam1's +z, the model's, is far from up
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     assert cfg.upright
     db = ModelDatabase(cfg.descriptor, {})
     db.add(model_from_cloud("crate", captured, cfg.descriptor))
-    found = Recognizer(db, cfg).recognize(depth_to_cloud(later.depth_mm, later.info.K), world_T_camera=later.world_T_camera)
+    found = Recognizer(db, cfg).recognize(
+        depth_to_cloud(later.depth_mm, later.info.K), world_T_camera=later.world_T_camera
+    )
     assert [d.object_id for d in found] == ["crate"]
     centre = db.models["crate"].points.mean(axis=0)  # the model's frame is cam1's: its points ~2 m from the origin
     est = found[0].camera_T_object
@@ -698,6 +813,7 @@ def test_the_support_is_the_level_plane_nearest_the_camera() -> None:
 
 
 @pytest.mark.parametrize("stance", ["level_support", "stand_on_level"])
+@pytest.mark.slow
 def test_a_frame_without_a_pose_finds_what_stands_on_the_table(stance: str) -> None:
     """cam2's demo frame recognised in its own frame, no pose, the room in view: with the plane
     nearest the image's up declared level (`level_support`), or objects tried both free and standing
@@ -710,8 +826,12 @@ def test_a_frame_without_a_pose_finds_what_stands_on_the_table(stance: str) -> N
     scenario = load_scenario().still()
     cfg = RecognitionConfig(level_support=stance == "level_support", stand_on_level=stance == "stand_on_level")
     frame = SimCell(scenario).render("cam2", 0.0, 0)
-    found = {d.object_id: d for d in Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg).recognize(
-        depth_to_cloud(frame.depth_mm, frame.info.K), rgb=frame.rgb)}  # fmt: skip
+    found = {
+        d.object_id: d
+        for d in Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg).recognize(
+            depth_to_cloud(frame.depth_mm, frame.info.K), rgb=frame.rgb
+        )
+    }
     assert sorted(found) == sorted(o.id for o in scenario.objects)
     for o in scenario.objects:
         truth = invert_pose(frame.world_T_camera) @ o.world_T_object(0.0)
@@ -719,6 +839,7 @@ def test_a_frame_without_a_pose_finds_what_stands_on_the_table(stance: str) -> N
 
 
 @pytest.mark.parametrize("cam", ["cam1", "cam2"])
+@pytest.mark.slow
 def test_without_a_pose_an_object_in_the_air_is_not_reported(cam: str) -> None:
     """The demo frame with the can lifted 15 cm off the table (as a piece of something else would
     hang there: a can fitted to a leg in a room), recognised in the camera frame, no pose: the level
@@ -739,11 +860,13 @@ def test_without_a_pose_an_object_in_the_air_is_not_reported(cam: str) -> None:
     cfg = RecognitionConfig()
     frame = SimCell(lifted).render(cam, 0.0, 0)
     found = Recognizer(database_from_scenario(lifted, cfg.descriptor), cfg).recognize(
-        depth_to_cloud(frame.depth_mm, frame.info.K), rgb=frame.rgb)
+        depth_to_cloud(frame.depth_mm, frame.info.K), rgb=frame.rgb
+    )
     assert sorted(d.object_id for d in found) == ["crate", "tote"]
 
 
 @pytest.mark.parametrize("cam", ["cam1", "cam3"])
+@pytest.mark.slow
 def test_a_can_found_without_a_pose_is_reported_standing_up(cam: str) -> None:
     """The demo frame on depth alone, no pose: the can's visible top and side fit it upside down as
     well as upright, and the free search ranked the upside-down fit first here by under 1 % (its
@@ -756,8 +879,12 @@ def test_a_can_found_without_a_pose_is_reported_standing_up(cam: str) -> None:
     scenario = load_scenario().still()
     cfg = RecognitionConfig()
     frame = SimCell(scenario).render(cam, 0.0, 0)
-    found = {d.object_id: d for d in Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg).recognize(
-        depth_to_cloud(frame.depth_mm, frame.info.K))}  # fmt: skip
+    found = {
+        d.object_id: d
+        for d in Recognizer(database_from_scenario(scenario, cfg.descriptor), cfg).recognize(
+            depth_to_cloud(frame.depth_mm, frame.info.K)
+        )
+    }
     truth = invert_pose(frame.world_T_camera) @ next(o for o in scenario.objects if o.id == "can").world_T_object(0.0)
     assert "can" in found, sorted(found)
     can = found["can"].camera_T_object
@@ -765,6 +892,7 @@ def test_a_can_found_without_a_pose_is_reported_standing_up(cam: str) -> None:
     assert np.linalg.norm(can[:3, 3] - truth[:3, 3]) < 0.02
 
 
+@pytest.mark.slow
 def test_a_free_fit_found_upside_down_is_reported_upright_when_the_frame_holds_it_so() -> None:
     """The demo frame from cam3: the can's true pose turned upside down about its centre, as a free
     candidate (no stance), beside the crate resting on the table (which gives the frame's up). A can
@@ -790,8 +918,9 @@ def test_a_free_fit_found_upside_down_is_reported_upright_when_the_frame_holds_i
     half_turn = np.diag([1.0, -1.0, -1.0])  # about the can's x axis
     flipped = truth["can"] @ make_pose(half_turn, centre - half_turn @ centre)
     free = Candidate(0, None, Detection("can", flipped, 1.0, 1.0, 0.0, 1000), Stance(None, None))
-    crate = Candidate(1, None, Detection("crate", truth["crate"], 1.0, 1.0, 0.0, 1000),
-                      Stance(up, support_plane(scene.planes, up)))  # fmt: skip
+    crate = Candidate(
+        1, None, Detection("crate", truth["crate"], 1.0, 1.0, 0.0, 1000), Stance(up, support_plane(scene.planes, up))
+    )
     found = {d.object_id: d for d in recognizer.resolver.resolve([free, crate], DepthView.of(cloud), scene, [])}
     assert set(found) == {"can", "crate"}
     can = found["can"].camera_T_object
@@ -799,7 +928,9 @@ def test_a_free_fit_found_upside_down_is_reported_upright_when_the_frame_holds_i
     assert np.linalg.norm(can[:3, 3] - truth["can"][:3, 3]) < 0.02
 
 
-def test_a_can_looks_the_same_turned_about_its_axis_and_a_mug_or_a_box_does_not(demo_models: dict, tmp_path: Path) -> None:
+def test_a_can_looks_the_same_turned_about_its_axis_and_a_mug_or_a_box_does_not(
+    demo_models: dict, tmp_path: Path
+) -> None:
     """Which objects the resolution tries turned about their upright axis (``round_about_z``, at
     the models' 1 cm voxel): the demo can and the cone are round; the mug (its handle), the tote
     and the crate (a box turned by 30 deg) are not."""
@@ -809,7 +940,11 @@ def test_a_can_looks_the_same_turned_about_its_axis_and_a_mug_or_a_box_does_not(
 
     voxel = RecognitionConfig().descriptor.voxel_m
     models = {oid: m.points for oid, m in demo_models.items()}
-    models |= {o.id: model_from_mesh(o.id, object_mesh(o), DescriptorConfig()).points for o in shapes(tmp_path) if o.id in ("mug", "cone")}
+    models |= {
+        o.id: model_from_mesh(o.id, object_mesh(o), DescriptorConfig()).points
+        for o in shapes(tmp_path)
+        if o.id in ("mug", "cone")
+    }
     assert {oid for oid, points in models.items() if round_about_z(points, voxel)} == {"can", "cone"}
 
 
@@ -834,8 +969,14 @@ def test_a_mug_whose_handle_the_frame_hides_is_taken_turned_to_hide_it(tmp_path:
     at = np.array([0.05, -0.05])
     away = at - np.array(camera.pose.position[:2])  # the handle (the mug's +x) points away from the camera
     mug = next(o for o in shapes(tmp_path) if o.id == "mug").still()
-    mug = mug.model_copy(update={"pose": PoseSpec(position=(*at, 0.75), rpy_deg=(0.0, 0.0, float(np.degrees(np.arctan2(away[1], away[0])))))})
-    scenario = base.model_copy(update={"objects": [mug], "cameras": [camera], "markers": [m for m in base.markers if m.object is None]})
+    mug = mug.model_copy(
+        update={
+            "pose": PoseSpec(position=(*at, 0.75), rpy_deg=(0.0, 0.0, float(np.degrees(np.arctan2(away[1], away[0])))))
+        }
+    )
+    scenario = base.model_copy(
+        update={"objects": [mug], "cameras": [camera], "markers": [m for m in base.markers if m.object is None]}
+    )
     cfg = RecognitionConfig()
     model = model_from_mesh("mug", object_mesh(mug).paint_uniform_color(mug.color), cfg.descriptor)
     recognizer = Recognizer(ModelDatabase(cfg.descriptor, {"mug": model}), cfg)
@@ -846,11 +987,20 @@ def test_a_mug_whose_handle_the_frame_hides_is_taken_turned_to_hide_it(tmp_path:
     quarter = rot_z(np.radians(90.0))
     sideways = truth @ make_pose(quarter, model.centre - quarter @ model.centre)
     view = DepthView.of(cloud, frame.rgb)
-    as_it_stands = verdict(view, model.points, model.normals, sideways, cfg.icp_distance_m, cfg.plane_noise_per_m2,
-                           spacing_m=cfg.descriptor.voxel_m)  # fmt: skip
+    as_it_stands = verdict(
+        view,
+        model.points,
+        model.normals,
+        sideways,
+        cfg.icp_distance_m,
+        cfg.plane_noise_per_m2,
+        spacing_m=cfg.descriptor.voxel_m,
+    )
     assert as_it_stands.fitness < cfg.min_visible_fitness and as_it_stands.violations > 0
     scene = recognizer.prepare(cloud, None)
-    candidate = Candidate(0, None, Detection("mug", sideways, 1.0, 1.0, 0.0, 1000), Stance(up, support_plane(scene.planes, up)))
+    candidate = Candidate(
+        0, None, Detection("mug", sideways, 1.0, 1.0, 0.0, 1000), Stance(up, support_plane(scene.planes, up))
+    )
     found = recognizer.resolver.resolve([candidate], view, scene, [])
     assert [d.object_id for d in found] == ["mug"] and found[0].needs_colour
     handle, true_handle = found[0].camera_T_object[:3, 0], truth[:3, 0]
@@ -858,6 +1008,7 @@ def test_a_mug_whose_handle_the_frame_hides_is_taken_turned_to_hide_it(tmp_path:
     assert adds_m(model.points, found[0].camera_T_object, truth) < 0.1 * model.diameter_m
 
 
+@pytest.mark.slow
 def test_a_curved_object_open3ds_steps_run_off_is_found_by_damped_ones_and_its_colour(tmp_path: Path) -> None:
     """The duck (``drivers.sim.shapes``: two spheres and a beak, 15 cm) alone on the table, seen
     from cam3 ~2 m away: Open3D's steps lose it (nothing they screen passes). The start with the
@@ -876,7 +1027,9 @@ def test_a_curved_object_open3ds_steps_run_off_is_found_by_damped_ones_and_its_c
     scenario = base.model_copy(update={"objects": [duck], "markers": [m for m in base.markers if m.object is None]})
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     meshes = {o.id: object_mesh(o).paint_uniform_color(o.color) for o in objects}
-    db = ModelDatabase(cfg.descriptor, {oid: model_from_mesh(oid, mesh, cfg.descriptor) for oid, mesh in meshes.items()})
+    db = ModelDatabase(
+        cfg.descriptor, {oid: model_from_mesh(oid, mesh, cfg.descriptor) for oid, mesh in meshes.items()}
+    )
     model = db.models["duck"]
     recognizer = Recognizer(db, cfg)
     frame = SimCell(scenario).render("cam3", 0.0, 3)
@@ -887,6 +1040,7 @@ def test_a_curved_object_open3ds_steps_run_off_is_found_by_damped_ones_and_its_c
     assert adds_m(model.points, found[0].camera_T_object, truth) < 0.1 * model.diameter_m
 
 
+@pytest.mark.slow
 def test_on_depth_alone_a_shape_another_fits_as_well_is_not_reported_as_that_other(tmp_path: Path) -> None:
     """The duck (``drivers.sim.shapes``) alone on the table, seen from cam1 ~2 m away without
     colour, the four shapes in the database: at that range the cone's fit, ranked first, verifies
@@ -905,17 +1059,26 @@ def test_on_depth_alone_a_shape_another_fits_as_well_is_not_reported_as_that_oth
     scenario = base.model_copy(update={"objects": [duck], "markers": [m for m in base.markers if m.object is None]})
     cfg = RecognitionConfig(workspace_min=(-0.6, -0.4, 0.7), workspace_max=(0.6, 0.4, 1.3))
     meshes = {o.id: object_mesh(o).paint_uniform_color(o.color) for o in objects}
-    db = ModelDatabase(cfg.descriptor, {oid: model_from_mesh(oid, mesh, cfg.descriptor) for oid, mesh in meshes.items()})
+    db = ModelDatabase(
+        cfg.descriptor, {oid: model_from_mesh(oid, mesh, cfg.descriptor) for oid, mesh in meshes.items()}
+    )
     frame = SimCell(scenario).render("cam1", 0.0, 5)
     truth = invert_pose(frame.world_T_camera) @ duck.world_T_object(0.0)
-    found = Recognizer(db, cfg).recognize(depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera)
+    found = Recognizer(db, cfg).recognize(
+        depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera
+    )
     assert [d.object_id for d in found] in ([], ["duck"])
     for d in found:
         assert adds_m(db.models["duck"].points, d.camera_T_object, truth) < 0.1 * db.models["duck"].diameter_m
 
 
-def found_packed(where: dict[str, tuple[float, float, float]], unknown: list[tuple[str, tuple, float, float, float]],
-                 camera: str, seed: int, object_id: str) -> tuple[bool, float]:  # fmt: skip
+def found_packed(
+    where: dict[str, tuple[float, float, float]],
+    unknown: list[tuple[str, tuple, float, float, float]],
+    camera: str,
+    seed: int,
+    object_id: str,
+) -> tuple[bool, float]:
     """The demo objects at ``where`` (x, y m, yaw deg on the table) among objects no database holds
     (shape, size m, x, y, yaw: grey boxes, grey-green cylinders, as ``benchmarks.recognition``'s
     distractors), rendered from ``camera`` with noise ``seed`` and recognised with colour: whether
@@ -927,8 +1090,10 @@ def found_packed(where: dict[str, tuple[float, float, float]], unknown: list[tup
     from schemas.spec import PoseSpec
 
     base = load_scenario().still()
-    objects = [o.model_copy(update={"pose": PoseSpec(position=(*where[o.id][:2], 0.75), rpy_deg=(0.0, 0.0, where[o.id][2]))})
-               for o in base.objects]  # fmt: skip
+    objects = [
+        o.model_copy(update={"pose": PoseSpec(position=(*where[o.id][:2], 0.75), rpy_deg=(0.0, 0.0, where[o.id][2]))})
+        for o in base.objects
+    ]
     for i, (shape, size, x, y, yaw) in enumerate(unknown):
         pose = PoseSpec(position=(x, y, 0.75), rpy_deg=(0.0, 0.0, yaw))
         grey = (0.5, 0.5, 0.5) if shape == "box" else (0.4, 0.5, 0.4)
@@ -940,25 +1105,35 @@ def found_packed(where: dict[str, tuple[float, float, float]], unknown: list[tup
     obj = next(o for o in objects if o.id == object_id)
     truth = invert_pose(frame.world_T_camera) @ obj.world_T_object(0.0)
     model = recognizer.db.models[object_id]
-    found = {d.object_id: d for d in recognizer.recognize(depth_to_cloud(frame.depth_mm, frame.info.K),
-                                                          world_T_camera=frame.world_T_camera, rgb=frame.rgb)}  # fmt: skip
+    found = {
+        d.object_id: d
+        for d in recognizer.recognize(
+            depth_to_cloud(frame.depth_mm, frame.info.K), world_T_camera=frame.world_T_camera, rgb=frame.rgb
+        )
+    }
     if object_id not in found:
         return False, np.inf
     return True, adds_m(model.points, found[object_id].camera_T_object, truth) / model.diameter_m
 
 
+@pytest.mark.slow
 def test_an_object_partly_hidden_by_one_no_database_holds_is_found_with_its_colour() -> None:
     """The demo objects packed on the table with four grey boxes no database holds, seen from cam3:
     a 29 cm box stands between the camera and the can and hides most of its visible surface.
     What a cluster apart from the surface a hypothesis explains hides in front of it is no evidence
     against it once its colour is judged: the can is found within ADD-S 0.1 d."""
     where = {"crate": (-0.078, 0.116, 352.8), "can": (0.064, -0.151, 240.8), "tote": (0.275, 0.188, 24.5)}
-    unknown = [("box", (0.05, 0.068, 0.288), 0.192, -0.053, 65.3), ("box", (0.089, 0.114, 0.246), 0.314, -0.124, 47.3),
-               ("box", (0.095, 0.058, 0.21), -0.268, -0.18, 347.8), ("box", (0.111, 0.111, 0.257), -0.279, 0.149, 170.5)]  # fmt: skip
+    unknown = [
+        ("box", (0.05, 0.068, 0.288), 0.192, -0.053, 65.3),
+        ("box", (0.089, 0.114, 0.246), 0.314, -0.124, 47.3),
+        ("box", (0.095, 0.058, 0.21), -0.268, -0.18, 347.8),
+        ("box", (0.111, 0.111, 0.257), -0.279, 0.149, 170.5),
+    ]
     found, error = found_packed(where, unknown, "cam3", 4, "can")
     assert found and error < 0.1, (found, error)
 
 
+@pytest.mark.slow
 def test_a_small_object_merged_with_a_larger_one_is_tried_where_its_colour_shows() -> None:
     """The demo objects packed with four grey boxes no database holds, seen from cam3: the can
     shares its cluster with a box beside it (half the cluster), its descriptor no object's, and
@@ -966,32 +1141,46 @@ def test_a_small_object_merged_with_a_larger_one_is_tried_where_its_colour_shows
     cluster shows the can's red, a colour no grey surface has, a piece is tried on its own
     (``Matcher._colour_seeds``): the can is found within ADD-S 0.1 d (missed without)."""
     where = {"crate": (-0.139, -0.042, 106.5), "can": (0.163, 0.114, 178.4), "tote": (0.275, -0.167, 6.0)}
-    unknown = [("box", (0.088, 0.075, 0.189), -0.234, 0.165, 156.2), ("box", (0.1, 0.103, 0.177), -0.309, -0.102, 186.6),
-               ("box", (0.098, 0.059, 0.231), 0.301, 0.194, 250.9), ("box", (0.099, 0.094, 0.176), 0.022, 0.083, 59.7)]  # fmt: skip
+    unknown = [
+        ("box", (0.088, 0.075, 0.189), -0.234, 0.165, 156.2),
+        ("box", (0.1, 0.103, 0.177), -0.309, -0.102, 186.6),
+        ("box", (0.098, 0.059, 0.231), 0.301, 0.194, 250.9),
+        ("box", (0.099, 0.094, 0.176), 0.022, 0.083, 59.7),
+    ]
     found, error = found_packed(where, unknown, "cam3", 3, "can")
     assert found and error < 0.1, (found, error)
 
 
+@pytest.mark.slow
 def test_an_object_packed_among_others_no_database_holds_is_found_refitted_to_the_depth() -> None:
     """The demo objects packed on the table with two grey boxes and two cylinders no database
     holds, seen from cam2: the tote, half hidden, shares its cluster with its neighbours and the fit
     to it ends a few cm off, which verification refuses. Refitted to the frame's depth on each model
     point's own ray, its colour judged, the tote is found within ADD-S 0.1 d."""
     where = {"crate": (0.235, 0.025, 347.3), "can": (-0.314, -0.063, 276.9), "tote": (-0.069, -0.056, 258.8)}
-    unknown = [("cylinder", (0.037, 0.037, 0.24), -0.266, 0.144, 315.5), ("box", (0.069, 0.099, 0.175), 0.241, -0.143, 225.0),
-               ("box", (0.104, 0.085, 0.261), 0.095, -0.177, 88.0), ("cylinder", (0.035, 0.035, 0.2), 0.058, 0.158, 252.4)]  # fmt: skip
+    unknown = [
+        ("cylinder", (0.037, 0.037, 0.24), -0.266, 0.144, 315.5),
+        ("box", (0.069, 0.099, 0.175), 0.241, -0.143, 225.0),
+        ("box", (0.104, 0.085, 0.261), 0.095, -0.177, 88.0),
+        ("cylinder", (0.035, 0.035, 0.2), 0.058, 0.158, 252.4),
+    ]
     found, error = found_packed(where, unknown, "cam2", 2, "tote")
     assert found and error < 0.1, (found, error)
 
 
+@pytest.mark.slow
 def test_a_can_whose_colour_vouches_for_it_stands_beside_an_unknown_box_in_its_cluster() -> None:
     """The demo objects packed with four objects no database holds, seen from cam2: the red can,
     in full view, shares its cluster with a grey box beside it and explains half of it. The rule
     for a match alone in its cluster (a shape fitting a piece of a larger surface) would refuse it;
     its colour, one no grey surface has, vouches for it, and it is found within ADD-S 0.1 d."""
     where = {"crate": (0.115, 0.152, 171.4), "can": (0.263, -0.1, 96.1), "tote": (-0.272, 0.091, 300.4)}
-    unknown = [("cylinder", (0.044, 0.044, 0.223), -0.257, -0.181, 292.2), ("box", (0.118, 0.057, 0.239), 0.114, -0.065, 337.5),
-               ("cylinder", (0.06, 0.06, 0.292), 0.014, -0.174, 43.1), ("box", (0.081, 0.075, 0.151), -0.109, -0.143, 229.5)]  # fmt: skip
+    unknown = [
+        ("cylinder", (0.044, 0.044, 0.223), -0.257, -0.181, 292.2),
+        ("box", (0.118, 0.057, 0.239), 0.114, -0.065, 337.5),
+        ("cylinder", (0.06, 0.06, 0.292), 0.014, -0.174, 43.1),
+        ("box", (0.081, 0.075, 0.151), -0.109, -0.143, 229.5),
+    ]
     found, error = found_packed(where, unknown, "cam2", 2, "can")
     assert found and error < 0.1, (found, error)
 
@@ -1012,8 +1201,9 @@ def test_with_free_with_pose_an_object_not_standing_on_its_base_is_found_in_a_po
     cone = cone.still().model_copy(update={"pose": lying})
     base = load_scenario()
     close = [c.moved_in(0.8, 1.25, (0.0, 0.0, 0.8)) for c in base.cameras]
-    scenario = base.model_copy(update={"objects": [cone], "markers": [m for m in base.markers if m.object is None],
-                                       "cameras": close})  # fmt: skip
+    scenario = base.model_copy(
+        update={"objects": [cone], "markers": [m for m in base.markers if m.object is None], "cameras": close}
+    )
     cfg = RecognitionConfig()
     model = model_from_mesh("cone", object_mesh(cone).paint_uniform_color(cone.color), cfg.descriptor)
     frame = SimCell(scenario).render("cam1", 0.0, 1)
@@ -1060,6 +1250,7 @@ def test_a_fit_only_damped_steps_reached_is_taken_only_with_its_colour_judged(de
 
 
 @pytest.mark.parametrize("cam, object_id", [("cam1", "tote"), ("cam3", "crate")])
+@pytest.mark.slow
 def test_an_object_cut_in_half_by_the_frame_border_is_found(cam: str, object_id: str) -> None:
     """The demo frame cut at the object's centre column, the left part kept: half of the object's
     facing surface lies beyond the border, where no camera could see it. Looked for only inside the
@@ -1080,13 +1271,16 @@ def test_an_object_cut_in_half_by_the_frame_border_is_found(cam: str, object_id:
     cut = int(frame.info.K[0, 0] * centre[0] / centre[2] + frame.info.K[0, 2])
     assert 0 < cut < frame.depth_mm.shape[1]
     depth, rgb = np.ascontiguousarray(frame.depth_mm[:, :cut]), np.ascontiguousarray(frame.rgb[:, :cut])
-    found = {d.object_id: d for d in recognizer.recognize(depth_to_cloud(depth, frame.info.K), world_T_camera=frame.world_T_camera,
-                                                          rgb=rgb)}  # fmt: skip
+    found = {
+        d.object_id: d
+        for d in recognizer.recognize(depth_to_cloud(depth, frame.info.K), world_T_camera=frame.world_T_camera, rgb=rgb)
+    }
     assert object_id in found, sorted(found)
     assert adds_m(model.points, found[object_id].camera_T_object, truth) < ADDS_SHARE * model.diameter_m
 
 
 @pytest.mark.parametrize("cam_id", ["cam2", "cam4"])
+@pytest.mark.slow
 def test_objects_lying_on_their_side_are_found_in_a_close_frame_without_a_pose(cam_id: str) -> None:
     """The demo's objects each laid on a side (a quarter turn about its x axis), seen from 0.8 m in
     the camera's own frame with colour: tried lying on the level plane on each side
@@ -1133,7 +1327,10 @@ def test_sides_alike_are_tried_once() -> None:
     assert len(distinct_rests(surface(box + block), tol)) == 4
 
 
-def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(tmp_path: Path, milk: np.ndarray) -> None:
+@pytest.mark.slow
+def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(
+    tmp_path: Path, milk: np.ndarray
+) -> None:
     """``cellsight recognize --picture`` on PCL's real milk scene: what it draws over the scene's colour
     covers the carton's true silhouette (the model was cut from the scene: its pose is the identity)
     and little else (the label above it); an annotated pose alone is outlined in white round it; a
@@ -1146,10 +1343,15 @@ def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(t
     from recognition.verify import VIRTUAL_K, VIRTUAL_SIZE
 
     db = tmp_path / "db"
-    assert CliRunner().invoke(app, ["model", "build", "--out", str(db), "--cloud", f"milk={PCL / 'milk.pcd'}"]).exit_code == 0
+    assert (
+        CliRunner().invoke(app, ["model", "build", "--out", str(db), "--cloud", f"milk={PCL / 'milk.pcd'}"]).exit_code
+        == 0
+    )
     scene = PCL / "milk_cartoon_all_small_clorox.pcd"
     picture = tmp_path / "found.png"
-    result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(scene), "--picture", str(picture), "--json"])
+    result = CliRunner().invoke(
+        app, ["recognize", "--models", str(db), "--scene", str(scene), "--picture", str(picture), "--json"]
+    )
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["picture"] == str(picture)
     cloud, rgb = read_coloured_cloud(scene, organised=True)
@@ -1178,9 +1380,13 @@ def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(t
     assert np.all((drawn_on >= v_uv.min(axis=0) - 8) & (drawn_on <= v_uv.max(axis=0) + 8))
     empty = tmp_path / "nothing.png"
     office = PCL / "office1.pcd"
-    result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(office), "--picture", str(empty)])
+    result = CliRunner().invoke(
+        app, ["recognize", "--models", str(db), "--scene", str(office), "--picture", str(empty)]
+    )
     assert result.exit_code == 1  # nothing found
     _, office_rgb = read_coloured_cloud(office, organised=True)
     np.testing.assert_array_equal(cv2.imread(str(empty)), office_rgb[..., ::-1])
-    result = CliRunner().invoke(app, ["recognize", "--models", str(db), "--scene", str(scene), "--picture", str(tmp_path / "p.txt")])
+    result = CliRunner().invoke(
+        app, ["recognize", "--models", str(db), "--scene", str(scene), "--picture", str(tmp_path / "p.txt")]
+    )
     assert result.exit_code == 1 and "p.txt: give a file ending in .png or .jpg" in " ".join(result.output.split())

@@ -19,10 +19,12 @@ OBS_COV = np.diag([2e-3**2] * 3 + [np.radians(0.3) ** 2] * 3)
 def scene(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """world_T_camera (4, 4) 2 m from n markers (n, 4, 4) spread over a 1.5 m wall, facing it."""
     world_T_camera = make_pose(look_at_matrix(np.array([0.2, -2.0, 1.1]), np.array([0.0, 0.0, 1.0])), [0.2, -2.0, 1.1])
-    markers = np.stack([
-        make_pose(rpy_matrix(np.pi / 2 + rng.normal() * 0.1, rng.normal() * 0.1, rng.normal() * 0.1), [x, 0.0, z])
-        for x, z in rng.uniform([-0.75, 0.3], [0.75, 1.7], size=(n, 2))
-    ])  # fmt: skip
+    markers = np.stack(
+        [
+            make_pose(rpy_matrix(np.pi / 2 + rng.normal() * 0.1, rng.normal() * 0.1, rng.normal() * 0.1), [x, 0.0, z])
+            for x, z in rng.uniform([-0.75, 0.3], [0.75, 1.7], size=(n, 2))
+        ]
+    )
     return world_T_camera, markers
 
 
@@ -52,7 +54,9 @@ def test_resection_agrees_with_the_batch_solve_and_its_covariance_bounds_it() ->
     observation_noise = gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(OBS_COV))
     for i, (M, z) in enumerate(zip(mapped, Z)):
         m = gtsam.symbol("m", i)
-        graph.add(gtsam.PriorFactorPose3(m, gtsam.Pose3(M), gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(MAP_COV))))
+        graph.add(
+            gtsam.PriorFactorPose3(m, gtsam.Pose3(M), gtsam.noiseModel.Gaussian.Covariance(cov_ros_to_gtsam(MAP_COV)))
+        )
         graph.add(gtsam.BetweenFactorPose3(c, m, gtsam.Pose3(z), observation_noise))
         values.insert(m, gtsam.Pose3(M))
     values.insert(c, gtsam.Pose3(mapped[0] @ invert_pose(Z[0])))

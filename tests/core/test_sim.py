@@ -40,7 +40,7 @@ def test_scenario_errors_name_the_field(tmp_path: Path) -> None:
     bad.write_text(MINIMAL.replace('id = "c"', 'id = "c"\nrate_hz = -1'))
     with pytest.raises(ScenarioError, match=r"cameras\.0\.rate_hz"):
         load_scenario(bad)
-    bad.write_text(MINIMAL + '[[markers]]\nid = 0\npose = { position = [1.0, 0.0, 0.0] }\n')
+    bad.write_text(MINIMAL + "[[markers]]\nid = 0\npose = { position = [1.0, 0.0, 0.0] }\n")
     with pytest.raises(ScenarioError, match="duplicate marker ids"):
         load_scenario(bad)
     with pytest.raises(ScenarioError, match="no such scenario"):
@@ -61,7 +61,12 @@ def test_rendering_is_deterministic_and_frames_differ_by_noise(tmp_path: Path) -
 def test_noise_free_depth_matches_geometry(tmp_path: Path) -> None:
     """Camera 1.5 m above a floor, looking straight down: noise-free depth is 1500 mm everywhere."""
     f = tmp_path / "s.toml"
-    f.write_text(MINIMAL.replace("[0.0, -1.0, 1.5]", "[0.0, 0.0, 1.5]").replace('name = "mini"', 'name = "mini"\nfloor_size = [5.0, 5.0]') + "[noise]\nenabled = false\n")
+    f.write_text(
+        MINIMAL.replace("[0.0, -1.0, 1.5]", "[0.0, 0.0, 1.5]").replace(
+            'name = "mini"', 'name = "mini"\nfloor_size = [5.0, 5.0]'
+        )
+        + "[noise]\nenabled = false\n"
+    )
     frame = SimCell(load_scenario(f)).render("c", 0.0, 0)
     centre = frame.depth_mm[200:280, 280:360]
     assert np.all(np.abs(centre.astype(int) - 1500) <= 1)
@@ -88,9 +93,15 @@ def test_flying_pixels_lie_between_the_surfaces_of_a_jump() -> None:
     it; with flying pixels those pixels return a depth between the two surfaces (within the noise
     at 2 m), and every other pixel is the same."""
     info = CameraInfo.kinect_v1()
-    z = np.where(np.arange(info.width) < info.width // 2, 1.0, 2.0)[None, :].repeat(info.height, axis=0).astype(np.float32)
-    kinect, flying = (kinect_depth(z.reshape(-1), np.ones(z.size), info, NoiseSpec(flying_pixels=f), np.random.default_rng(3))
-                      for f in (False, True))  # fmt: skip
+    z = (
+        np.where(np.arange(info.width) < info.width // 2, 1.0, 2.0)[None, :]
+        .repeat(info.height, axis=0)
+        .astype(np.float32)
+    )
+    kinect, flying = (
+        kinect_depth(z.reshape(-1), np.ones(z.size), info, NoiseSpec(flying_pixels=f), np.random.default_rng(3))
+        for f in (False, True)
+    )
     edge = kinect == 0
     assert edge[:, info.width // 2 - 1 : info.width // 2 + 1].all() and edge.sum() == 2 * info.height
     assert np.array_equal(kinect[~edge], flying[~edge])
@@ -102,7 +113,9 @@ def test_white_balance_and_registration_shift_the_colour() -> None:
     """The same frame with a warm white balance and colour 3 px off: red up and blue down by their
     gains, the image moved 3 px to the right, depth untouched."""
     s = load_scenario()
-    warm = s.model_copy(update={"noise": s.noise.model_copy(update={"white_balance": (1.15, 1.0, 0.85), "rgb_shift_px": (3, 0)})})
+    warm = s.model_copy(
+        update={"noise": s.noise.model_copy(update={"white_balance": (1.15, 1.0, 0.85), "rgb_shift_px": (3, 0)})}
+    )
     a, b = (SimCell(x).render("cam1", 0.0, 0) for x in (s, warm))
     assert np.array_equal(a.depth_mm, b.depth_mm)
     inner = a.rgb[:, 40:-40].astype(float)
@@ -110,7 +123,9 @@ def test_white_balance_and_registration_shift_the_colour() -> None:
     unsaturated = np.all(inner < 200, axis=2)
     gains = [np.median(moved[..., c][unsaturated] / np.maximum(inner[..., c][unsaturated], 1.0)) for c in range(3)]
     assert np.allclose(gains, (1.15, 1.0, 0.85), atol=0.03)
-    green_off = [np.abs(b.rgb[:, 40 + dx : b.rgb.shape[1] - 40 + dx, 1].astype(float) - inner[..., 1]).mean() for dx in (0, 3)]
+    green_off = [
+        np.abs(b.rgb[:, 40 + dx : b.rgb.shape[1] - 40 + dx, 1].astype(float) - inner[..., 1]).mean() for dx in (0, 3)
+    ]
     assert green_off[1] < 0.7 * green_off[0]  # aligned only 3 px to the right
 
 
@@ -155,11 +170,12 @@ def test_a_marker_close_to_the_camera_renders_and_its_corners_are_true() -> None
     from schemas.spec import PoseSpec
 
     s = Scenario(
-        floor_size=(0.01, 0.01), noise={"enabled": False},
+        floor_size=(0.01, 0.01),
+        noise={"enabled": False},
         boxes=[BoxSpec(size=(3, 0.02, 3), pose=PoseSpec(position=(0, 0.011, 1.0)))],
         markers=[MarkerSpec(id=5, side_m=0.2, pose=PoseSpec(position=(0, 0, 1.0), normal=(0, -1, 0), up=(0, 0, 1)))],
         cameras=[CameraSpec(id="c", pose=PoseSpec(position=(0.05, -0.45, 1.02), look_at=(0, 0, 1.0)))],
-    )  # fmt: skip
+    )
     frame = SimCell(s).render("c", 0.0, 0)
     ids, corners = MarkerDetector(MarkerConfig(dictionary=s.dictionary, side_m=0.2)).find(frame.rgb)
     assert ids.tolist() == [5]
@@ -207,7 +223,9 @@ def test_mesh_objects_from_files_are_rendered(tmp_path: Path, suffix: str) -> No
 
 def test_missing_mesh_file_is_named(tmp_path: Path) -> None:
     scen = tmp_path / "s.toml"
-    scen.write_text('[[objects]]\nid = "x"\nshape = "mesh"\nmesh = "nope.ply"\n[[cameras]]\nid = "c"\npose = { position = [0.0, 0.0, 1.4], look_at = [0.0, 0.0, 0.0] }\n')
+    scen.write_text(
+        '[[objects]]\nid = "x"\nshape = "mesh"\nmesh = "nope.ply"\n[[cameras]]\nid = "c"\npose = { position = [0.0, 0.0, 1.4], look_at = [0.0, 0.0, 0.0] }\n'
+    )
     with pytest.raises(ScenarioError, match="nope.ply"):
         load_scenario(scen)
 
@@ -226,7 +244,9 @@ def test_prerendered_truth_is_the_looped_frames_with_live_stamps() -> None:
     """A camera sliding 1 m a second, two frames prerendered: each frame's truth is the pose its
     looped image was rendered at, stamped like the frame."""
     scenario = load_scenario()
-    cam = scenario.cameras[0].model_copy(update={"motion": [CameraMotion(kind="slide", offset=(1.0, 0.0, 0.0), end_s=10.0)]})
+    cam = scenario.cameras[0].model_copy(
+        update={"motion": [CameraMotion(kind="slide", offset=(1.0, 0.0, 0.0), end_s=10.0)]}
+    )
     scenario = scenario.model_copy(update={"cameras": [cam]})
     looped = SimSource(scenario, cam.id, epoch_ns=0, realtime=False, prerender=2)
     for k in range(6):
@@ -237,6 +257,7 @@ def test_prerendered_truth_is_the_looped_frames_with_live_stamps() -> None:
         assert abs(cams[0].T[0, 3] - shown_x) < 1e-12, (k, cams[0].T[0, 3], shown_x)
 
 
+@pytest.mark.slow
 def test_footprints_said_apart_are_apart_and_overlapping_ones_never() -> None:
     """``apart`` against the distance between the objects' true outlines on the table (a box's
     rectangle, the can's circle, sampled every millimetre), for random placements of the demo objects."""
@@ -247,8 +268,10 @@ def test_footprints_said_apart_are_apart_and_overlapping_ones_never() -> None:
         if obj.shape == "box":
             hx, hy = 0.5 * obj.size[0], 0.5 * obj.size[1]
             tx, ty = np.arange(-hx, hx, 0.001)[:, None], np.arange(-hy, hy, 0.001)[:, None]
-            edge = np.concatenate([np.hstack([tx, np.full_like(tx, s_ * hy)]) for s_ in (-1, 1)]
-                                  + [np.hstack([np.full_like(ty, s_ * hx), ty]) for s_ in (-1, 1)])  # fmt: skip
+            edge = np.concatenate(
+                [np.hstack([tx, np.full_like(tx, s_ * hy)]) for s_ in (-1, 1)]
+                + [np.hstack([np.full_like(ty, s_ * hx), ty]) for s_ in (-1, 1)]
+            )
         else:
             a = np.arange(0, 2 * np.pi, 0.001 / obj.size[0])
             edge = obj.size[0] * np.column_stack([np.cos(a), np.sin(a)])
@@ -258,7 +281,11 @@ def test_footprints_said_apart_are_apart_and_overlapping_ones_never() -> None:
     def inside(obj, xy: np.ndarray, yaw: float, p: np.ndarray) -> bool:  # p (2,) within the true outline
         c, s_ = np.cos(yaw), np.sin(yaw)
         local = np.array([[c, -s_], [s_, c]]) @ (p - xy)
-        return bool(np.all(np.abs(local) <= 0.5 * np.array(obj.size[:2]))) if obj.shape == "box" else bool(np.linalg.norm(local) <= obj.size[0])
+        return (
+            bool(np.all(np.abs(local) <= 0.5 * np.array(obj.size[:2])))
+            if obj.shape == "box"
+            else bool(np.linalg.norm(local) <= obj.size[0])
+        )
 
     said_apart = overlapping = 0
     for _ in range(100):
@@ -266,7 +293,9 @@ def test_footprints_said_apart_are_apart_and_overlapping_ones_never() -> None:
         (xa, xb), (ya, yb) = rng.uniform(-0.25, 0.25, (2, 2)), rng.uniform(0, 2 * np.pi, 2)
         ea, eb = outline(a, xa, ya), outline(b, xb, yb)
         gap = np.sqrt(((ea[:, None] - eb[None]) ** 2).sum(-1).min())
-        if inside(a, xa, ya, xb) or inside(b, xb, yb, xa) or gap < 0.0015:  # convex: edges cross, or one holds the other
+        if (
+            inside(a, xa, ya, xb) or inside(b, xb, yb, xa) or gap < 0.0015
+        ):  # convex: edges cross, or one holds the other
             overlapping += 1
             assert not apart(footprint(a, xa, ya), footprint(b, xb, yb), 0.0)
         elif apart(footprint(a, xa, ya), footprint(b, xb, yb), 0.015):

@@ -18,7 +18,7 @@ STEPS = (0.1, 0.3, 0.7, 0.9)  # grid positions as shares of the side: none on a 
 def write_texture(path: Path) -> None:
     image = np.zeros((64, 64, 3), np.uint8)
     for (row, col), rgb in QUADRANTS.items():
-        image[32 * row:32 * (row + 1), 32 * col:32 * (col + 1)] = rgb
+        image[32 * row : 32 * (row + 1), 32 * col : 32 * (col + 1)] = rgb
     cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
 
 
@@ -42,16 +42,22 @@ def write_ply(path: Path, fmt: str, uv_on: str = "vertex") -> None:
     vertices, uv, triangles = grid()
     vertex_uv = "property float texture_u\nproperty float texture_v\n" if uv_on == "vertex" else ""
     face_uv = "property list uchar float texcoord\n" if uv_on == "face" else ""
-    header = (f"ply\nformat {fmt} 1.0\ncomment TextureFile tex.png\nelement vertex {len(vertices)}\n"
-              "property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\n"
-              f"{vertex_uv}element face {len(triangles)}\nproperty list uchar int vertex_indices\n{face_uv}end_header\n")  # fmt: skip
+    header = (
+        f"ply\nformat {fmt} 1.0\ncomment TextureFile tex.png\nelement vertex {len(vertices)}\n"
+        "property float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\n"
+        f"{vertex_uv}element face {len(triangles)}\nproperty list uchar int vertex_indices\n{face_uv}end_header\n"
+    )
     rows = np.c_[vertices, np.tile([0.0, 0.0, 1.0], (len(vertices), 1))]
     rows = np.c_[rows, uv] if uv_on == "vertex" else rows
     corners = uv[triangles].reshape(len(triangles), 6)
     if fmt == "ascii":
         body = "".join(" ".join(f"{x:.6f}" for x in row) + "\n" for row in rows)
         for tri, c in zip(triangles, corners):
-            body += f"3 {tri[0]} {tri[1]} {tri[2]}" + ("" if uv_on == "vertex" else " 6 " + " ".join(f"{x:.6f}" for x in c)) + "\n"
+            body += (
+                f"3 {tri[0]} {tri[1]} {tri[2]}"
+                + ("" if uv_on == "vertex" else " 6 " + " ".join(f"{x:.6f}" for x in c))
+                + "\n"
+            )
         path.write_text(header + body)
         return
     order = "<" if fmt == "binary_little_endian" else ">"
@@ -65,6 +71,7 @@ def write_ply(path: Path, fmt: str, uv_on: str = "vertex") -> None:
 
 @pytest.mark.parametrize("uv_on", ["vertex", "face"])
 @pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+@pytest.mark.slow
 def test_a_ply_with_texture_coordinates_is_coloured_from_its_texture(tmp_path: Path, fmt: str, uv_on: str) -> None:
     """A PLY laid out as BOP's YCB-V models are (vertex x, y, z, normal, texture_u, texture_v and a
     TextureFile comment), or with each face's corners' UVs instead: each vertex takes the colour of
@@ -80,7 +87,12 @@ def test_an_obj_with_a_textured_material_is_coloured_from_its_texture(tmp_path: 
     """An OBJ with per-corner texture coordinates and a material's image: the same colours as the PLY."""
     write_texture(tmp_path / "tex.png")
     vertices, uv, triangles = grid()
-    lines = ["mtllib box.mtl", *(f"v {x} {y} {z}" for x, y, z in vertices), *(f"vt {u} {v}" for u, v in uv), "usemtl painted"]
+    lines = [
+        "mtllib box.mtl",
+        *(f"v {x} {y} {z}" for x, y, z in vertices),
+        *(f"vt {u} {v}" for u, v in uv),
+        "usemtl painted",
+    ]
     lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in triangles]
     (tmp_path / "box.obj").write_text("\n".join(lines) + "\n")
     (tmp_path / "box.mtl").write_text("newmtl painted\nmap_Kd tex.png\n")

@@ -12,8 +12,14 @@ from schemas.geometry import make_pose, rpy_matrix
 
 @pytest.mark.parametrize(
     "dof, z, table",
-    [(3, 1.6449, 7.815), (10, 1.6449, 18.307), (10, -1.6449, 3.940), (30, -1.6449, 18.493), (100, 1.6449, 124.342),
-     (100, -1.6449, 77.929)],  # fmt: skip
+    [
+        (3, 1.6449, 7.815),
+        (10, 1.6449, 18.307),
+        (10, -1.6449, 3.940),
+        (30, -1.6449, 18.493),
+        (100, 1.6449, 124.342),
+        (100, -1.6449, 77.929),
+    ],
 )
 def test_chi2_quantiles_match_the_table(dof: int, z: float, table: float) -> None:
     assert chi2_quantile(dof, z) == pytest.approx(table, rel=0.01)

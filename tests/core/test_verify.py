@@ -12,11 +12,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from drivers.sim.render import object_mesh
+from drivers.sim.scenario import ObjectSpec
 from recognition.align import model_to_scene_rmse
 from recognition.cloud import depth_to_cloud, finite_points, read_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
-from drivers.sim.render import object_mesh
-from drivers.sim.scenario import ObjectSpec
 from recognition.models import ModelDatabase, model_from_cloud, model_from_mesh
 from recognition.pipeline import Recognizer
 from recognition.verify import GREY, DepthView, Explained, chroma_ranges, colour_agrees, inliers_and_violations, verdict
@@ -130,6 +130,7 @@ def recognizer(demo_models: dict) -> Recognizer:
     return Recognizer(db, cfg)
 
 
+@pytest.mark.slow
 def test_the_milk_is_found_in_its_real_scene_and_nothing_else_is(recognizer: Recognizer) -> None:
     """Without verification a ``can`` was reported beside it (the frame saw through 1/3 of it)."""
     scene = read_cloud(PCL / "milk_cartoon_all_small_clorox.pcd", organised=True)
@@ -139,6 +140,7 @@ def test_the_milk_is_found_in_its_real_scene_and_nothing_else_is(recognizer: Rec
     assert model_to_scene_rmse(milk, found[0].camera_T_object, finite_points(scene)) < 0.01  # PCL's acceptance
 
 
+@pytest.mark.slow
 def test_the_milk_in_its_colour_is_found_on_the_real_frames_colour_and_in_another_is_not(demo_models: dict) -> None:
     """PCL's coloured milk carton (``milk_color.pcd``: the same points as ``milk.pcd``, with the
     Kinect's colour) in its real scene with the frame's colour: found, nearly every judged pixel in
@@ -149,7 +151,9 @@ def test_the_milk_in_its_colour_is_found_on_the_real_frames_colour_and_in_anothe
     scene, scene_rgb = read_coloured_cloud(PCL / "milk_cartoon_all_small_clorox.pcd", organised=True)
     view = DepthView.of(scene, scene_rgb)
     milk = model_from_cloud("milk", points, cfg.descriptor, colours=rgb)
-    judged = verdict(view, milk.points, milk.normals, np.eye(4), TOL, NOISE, chroma_range=milk.chroma_range)  # its true pose
+    judged = verdict(
+        view, milk.points, milk.normals, np.eye(4), TOL, NOISE, chroma_range=milk.chroma_range
+    )  # its true pose
     assert judged.colour_judged > 500 and judged.colour_agreement > 0.8
     red = replace(milk, colours=np.broadcast_to(np.float32([0.8, 0.15, 0.1]), milk.colours.shape))
     for model, found in ((milk, ["milk"]), (red, [])):
@@ -158,11 +162,17 @@ def test_the_milk_in_its_colour_is_found_on_the_real_frames_colour_and_in_anothe
 
 
 #: PCL's real scenes that hold none of the demo objects nor the milk carton.
-SCENES_WITHOUT_THE_OBJECTS = ["sac_plane_test.pcd", "table_scene_mug_stereo_textured.pcd", "office1.pcd", "five_people.pcd",
-                              *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL / "grabber_sequences" / "pcd").glob("*.pcd")))]  # fmt: skip
+SCENES_WITHOUT_THE_OBJECTS = [
+    "sac_plane_test.pcd",
+    "table_scene_mug_stereo_textured.pcd",
+    "office1.pcd",
+    "five_people.pcd",
+    *(f"grabber_sequences/pcd/{p.name}" for p in sorted((PCL / "grabber_sequences" / "pcd").glob("*.pcd"))),
+]
 
 
 @pytest.mark.parametrize("scene", SCENES_WITHOUT_THE_OBJECTS)
+@pytest.mark.slow
 def test_real_scenes_without_the_objects_give_no_detection(recognizer: Recognizer, scene: str) -> None:
     """Planes, a mug, an office, people, a laptop and a box on a carpet: none of the models, each
     recognised as `cellsight recognize` does, with the colour the file carries, and on depth alone.
@@ -177,6 +187,7 @@ def test_real_scenes_without_the_objects_give_no_detection(recognizer: Recognize
 
 
 @pytest.mark.parametrize(("seed", "colour"), [(2, True), (5, True), (5, False)])
+@pytest.mark.slow
 def test_people_are_no_objects_when_the_floor_under_them_is_removed(demo_models: dict, seed: int, colour: bool) -> None:
     """PCL's five_people.pcd loses its floor or not by the plane RANSAC's draw: with these seeds
     it goes (2 of the first 8), and the people come apart into pieces a can, a tote or the milk
@@ -207,6 +218,7 @@ def coloured_milk_recognizer(demo_models: dict) -> Recognizer:
 
 
 @pytest.mark.parametrize("scene", SCENES_WITHOUT_THE_OBJECTS)
+@pytest.mark.slow
 def test_the_coloured_milk_carton_is_not_taken_for_pale_surfaces_it_agrees_with(
     coloured_milk_recognizer: Recognizer, scene: str
 ) -> None:
@@ -263,7 +275,10 @@ def test_a_surface_of_another_shape_inside_the_tolerance_is_a_shape_error() -> N
 
 def half_can(step_m: float, radius_m: float = 0.05, height_m: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
     """The half of a can's side a camera on -z captures: points and outward normals (N, 3), an open surface."""
-    angle, y = np.meshgrid(np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step_m / radius_m), np.arange(-height_m / 2, height_m / 2 + 1e-9, step_m))
+    angle, y = np.meshgrid(
+        np.arange(-np.pi / 2, np.pi / 2 + 1e-9, step_m / radius_m),
+        np.arange(-height_m / 2, height_m / 2 + 1e-9, step_m),
+    )
     normals = np.stack([np.sin(angle), np.zeros_like(angle), -np.cos(angle)], -1).reshape(-1, 3)
     return normals * radius_m + np.c_[np.zeros(angle.size), y.reshape(-1), np.zeros(angle.size)], normals
 
@@ -320,6 +335,7 @@ def test_a_captured_view_seen_from_behind_is_not_judged_on_its_rim(turn_deg: flo
     assert v.visible > 20 and v.fitness == 1.0 and v.support == 1.0 and v.facing_share < 0.5 * limit
 
 
+@pytest.mark.slow
 def test_a_grey_can_laid_along_a_real_boxs_edge_is_not_reported(demo_models: dict) -> None:
     """PCL's first grabber frame (a laptop and a white box on a carpet) with a grey can in the
     database as well as the demo objects: laid along the box's near edge, the can fits the box's
@@ -331,7 +347,9 @@ def test_a_grey_can_laid_along_a_real_boxs_edge_is_not_reported(demo_models: dic
     grey = ObjectSpec(id="grey_can", shape="cylinder", size=(0.06, 0.06, 0.2), color=(0.5, 0.5, 0.5))
     db = ModelDatabase(cfg.descriptor, dict(demo_models))
     db.add(model_from_mesh(grey.id, object_mesh(grey).paint_uniform_color(grey.color), cfg.descriptor))
-    cloud, rgb = read_coloured_cloud(PCL / "grabber_sequences" / "pcd" / "frame_20121214T142255.814212.pcd", organised=True)
+    cloud, rgb = read_coloured_cloud(
+        PCL / "grabber_sequences" / "pcd" / "frame_20121214T142255.814212.pcd", organised=True
+    )
     assert Recognizer(db, cfg.model_copy(update={"max_shape_error": 1e9})).recognize(cloud, rgb=rgb) == []
     assert Recognizer(db, cfg).recognize(cloud, rgb=rgb) == []
 
@@ -361,7 +379,9 @@ def test_colour_agrees_on_the_models_colour_and_not_on_another() -> None:
     view = DepthView.of(wall(), rgb)
 
     def agreement(colour: np.ndarray, v: DepthView = view) -> tuple[int, float]:
-        out = verdict(v, points, normals, on, TOL, NOISE, chroma_range=chroma_ranges(points, np.tile(colour, (len(points), 1))))
+        out = verdict(
+            v, points, normals, on, TOL, NOISE, chroma_range=chroma_ranges(points, np.tile(colour, (len(points), 1)))
+        )
         return out.colour_judged, out.colour_agreement
 
     judged, agree = agreement(red)
@@ -379,8 +399,12 @@ def test_only_a_models_colour_a_grey_surface_disagrees_with_is_distinct() -> Non
     points, normals = patch()
     on = make_pose(t=[0.0, 0.0, 1.0])
     view = DepthView.of(wall(), np.full((480, 640, 3), 128, np.uint8))
-    for colour, distinct in (((0.2, 0.45, 0.7), True), ((0.8, 0.2, 0.15), True), ((0.9, 0.9, 0.9), False),
-                             ((0.5, 0.5, 0.5), False)):  # fmt: skip
+    for colour, distinct in (
+        ((0.2, 0.45, 0.7), True),
+        ((0.8, 0.2, 0.15), True),
+        ((0.9, 0.9, 0.9), False),
+        ((0.5, 0.5, 0.5), False),
+    ):
         chroma = chroma_ranges(points, np.tile(colour, (len(points), 1)))
         out = verdict(view, points, normals, on, TOL, NOISE, chroma_range=chroma)
         assert out.colour_judged > 100
@@ -400,7 +424,9 @@ def test_a_printed_surface_agrees_with_its_model_a_few_millimetres_off() -> None
     the model has within 1 cm of that point. The same patch printed blue and yellow agrees nowhere."""
     stripes = lambda x, a, b: np.where(np.floor(x / 0.02) % 2 == 0, a, b)  # noqa: E731
     cloud = wall()
-    red, green, blue, yellow = (np.array(c) for c in ([0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8], [0.8, 0.8, 0.1]))
+    red, green, blue, yellow = (
+        np.array(c) for c in ([0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8], [0.8, 0.8, 0.1])
+    )
     rgb = (255 * stripes(cloud[..., :1], red, green)).astype(np.uint8)
     view = DepthView.of(cloud, rgb)
     points, normals = patch()
@@ -408,7 +434,9 @@ def test_a_printed_surface_agrees_with_its_model_a_few_millimetres_off() -> None
     for a, b, agrees in ((red, green, True), (blue, yellow, False)):
         colours = stripes(points[:, :1], a, b)  # the print on the object; the wall is it at the true pose
         v = verdict(view, points, normals, off, TOL, NOISE, chroma_range=chroma_ranges(points, colours))
-        pointwise = verdict(view, points, normals, off, TOL, NOISE, chroma_range=chroma_ranges(points, colours, radius_m=1e-4))
+        pointwise = verdict(
+            view, points, normals, off, TOL, NOISE, chroma_range=chroma_ranges(points, colours, radius_m=1e-4)
+        )
         assert v.colour_judged > 100
         if agrees:
             assert v.colour_agreement > 0.95 and pointwise.colour_agreement < 0.8
@@ -421,7 +449,9 @@ def test_an_unorganised_cloud_takes_each_pixels_colour_from_its_nearest_point() 
     view's colour is the red layer's, as its depth is."""
     near = wall(1.0).reshape(-1, 3)
     cloud = np.concatenate([near * 1.5, near])
-    rgb = np.concatenate([np.tile(np.uint8([0, 200, 0]), (len(near), 1)), np.tile(np.uint8([200, 0, 0]), (len(near), 1))])
+    rgb = np.concatenate(
+        [np.tile(np.uint8([0, 200, 0]), (len(near), 1)), np.tile(np.uint8([200, 0, 0]), (len(near), 1))]
+    )
     view = DepthView.of(cloud, rgb)
     seen = np.isfinite(view.z)
     assert seen.mean() > 0.9 and np.allclose(view.z[seen], 1.0, atol=1e-3)
@@ -437,7 +467,7 @@ def test_up_close_the_ring_starts_beyond_the_gaps_between_model_points() -> None
     falls in the gaps between them, on the square itself, and most of it reads as continuing."""
     depth = np.full((480, 640), 2000, np.uint16)
     half = int(round(0.095 / 0.5 * 525))  # the square's half side in pixels at 0.5 m
-    depth[240 - half:240 + half, 320 - half:320 + half] = 500
+    depth[240 - half : 240 + half, 320 - half : 320 + half] = 500
     view = DepthView.of(depth_to_cloud(depth, K))
     points, normals = patch(0.19, 0.01)
     pose = make_pose(np.eye(3), (0.0, 0.0, 0.5))
@@ -448,6 +478,7 @@ def test_up_close_the_ring_starts_beyond_the_gaps_between_model_points() -> None
 
 
 @pytest.mark.parametrize("scene", ["office1.pcd", "grabber_sequences/pcd/frame_20121214T142255.814212.pcd"])
+@pytest.mark.slow
 def test_on_depth_alone_no_object_is_tried_lying(recognizer: Recognizer, scene: str) -> None:
     """Tried lying on each of its sides, five times the poses, the demo objects fitted boxes and cans
     in these real rooms on depth alone (a crate and a tote in the office, a can by the laptop);
@@ -464,12 +495,20 @@ def test_a_paler_colour_agrees_but_never_grey_nor_another_hue() -> None:
     chroma = lambda rgb: np.asarray(rgb[:2]) / sum(rgb)  # noqa: E731
     red, orange = chroma((0.8, 0.2, 0.15)), chroma((0.85, 0.65, 0.15))
     paled = lambda c, k: GREY + k * (c - GREY)  # noqa: E731
-    scenes = {"red at 0.6": paled(red, 0.6), "red at 0.2": paled(red, 0.2), "grey": np.array([GREY, GREY]),
-              "warm white": np.array([0.37, 0.33]), "red turned to magenta": np.array([0.45, 0.10])}
+    scenes = {
+        "red at 0.6": paled(red, 0.6),
+        "red at 0.2": paled(red, 0.2),
+        "grey": np.array([GREY, GREY]),
+        "warm white": np.array([0.37, 0.33]),
+        "red turned to magenta": np.array([0.45, 0.10]),
+    }
     for model, expect in ((red, {"red at 0.6": (False, True)}), (orange, {})):
         lo = hi = np.tile(model, (len(scenes), 1))
         as_is, pale = (colour_agrees(np.array(list(scenes.values())), lo, hi, 0.1, k) for k in (1.0, 0.5))
         got = {name: (bool(a), bool(b)) for name, a, b in zip(scenes, as_is, pale)}
         assert got == {name: expect.get(name, (False, False)) for name in scenes}, got
     tote = np.tile(orange, (2, 1))
-    assert colour_agrees(np.array([paled(orange, 0.5), paled(orange, 0.4)]), tote, tote, 0.1, 0.5).tolist() == [True, False]
+    assert colour_agrees(np.array([paled(orange, 0.5), paled(orange, 0.4)]), tote, tote, 0.1, 0.5).tolist() == [
+        True,
+        False,
+    ]

@@ -25,8 +25,10 @@ def demo_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("demo")
     proc = subprocess.run(
         [sys.executable, "-m", "cellsight.cli", "demo", "--duration", "12", "--out", str(out), "--max-image-hz", "0.5"],
-        capture_output=True, text=True, timeout=240,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out
 

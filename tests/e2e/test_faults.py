@@ -67,17 +67,26 @@ pose = { position = [0.4, 0.0, 1.2], look_at = [0.0, 2.0, 1.1] }
 def cell(tmp_path: Path):
     port = free_port()
     (tmp_path / "scenario.toml").write_text(SCENARIO)
-    (tmp_path / "cell.toml").write_text(f'[cell]\nname = "faults"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
+    (tmp_path / "cell.toml").write_text(
+        f'[cell]\nname = "faults"\nscenario = "scenario.toml"\n[transport]\nconnect = ["tcp/127.0.0.1:{port}"]\n'
+    )
     run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(run_dir), "--record"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(run_dir), "--record"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     states: list[tuple[float, dict[str, int]]] = []
     bus = None
     try:
         wait_until(lambda: (run_dir / "processes.json").exists(), 30, "the launcher to start the cell")
         bus = Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), "faults")
-        bus.subscribe(keys.estimate_status("faults"), m.EstimatorStatus,
-                      callback=lambda r: states.append((time.monotonic(), {c.camera_id: c.state for c in r.msg.cameras})))  # fmt: skip
+        bus.subscribe(
+            keys.estimate_status("faults"),
+            m.EstimatorStatus,
+            callback=lambda r: states.append((time.monotonic(), {c.camera_id: c.state for c in r.msg.cameras})),
+        )
         yield run_dir, states, proc, bus
     finally:
         stop_launcher(proc, run_dir)
@@ -124,9 +133,16 @@ def test_killed_driver_goes_stale_and_recovers_after_restart(cell) -> None:
     new = zenoh_segments(pid_of(run_dir, "router")) - router_before
     # Another process's first large message (recognition's cloud) may come late on a slow machine:
     # its pool is that process's own, not one the restart made.
-    others = set().union(*(zenoh_segments(p["pid"]) for p in json.loads((run_dir / "processes.json").read_text())
-                           if p["name"] not in ("router", "driver/a")))  # fmt: skip
-    assert not new - others, f"the router mapped {len(new - others)} new segments after the restart: {sorted(new - others)}"
+    others = set().union(
+        *(
+            zenoh_segments(p["pid"])
+            for p in json.loads((run_dir / "processes.json").read_text())
+            if p["name"] not in ("router", "driver/a")
+        )
+    )
+    assert not new - others, (
+        f"the router mapped {len(new - others)} new segments after the restart: {sorted(new - others)}"
+    )
 
 
 def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(cell) -> None:
@@ -137,7 +153,11 @@ def test_killed_estimator_restarts_with_its_map_and_localizes_within_a_second(ce
     wait_until(lambda: any(t > killed + 0.3 for t, _ in states), 30, "status from the restarted estimator")
     first = next(t for t, _ in states if t > killed + 0.3)
     wait_until(lambda: localized(states, "a") and localized(states, "b"), 10, "cameras localized after the restart")
-    back = next(t for t, s in states if t >= first and s.get("a") == m.CameraState.LOCALIZED and s.get("b") == m.CameraState.LOCALIZED)
+    back = next(
+        t
+        for t, s in states
+        if t >= first and s.get("a") == m.CameraState.LOCALIZED and s.get("b") == m.CameraState.LOCALIZED
+    )
     assert back - first < 1.0, f"localized {back - first:.2f} s after the restarted estimator's first status"
     log = (run_dir / "logs" / "estimator.log").read_text()
     assert "restored" in log, "the restarted estimator did not restore its map"
@@ -147,12 +167,17 @@ def test_killed_router_restarts_and_every_process_reconnects(cell) -> None:
     run_dir, states, _, bus = cell
     # Every process must have joined before the router goes: one that never connected exits and is
     # restarted (its first session cannot open), which is not what this test is about.
-    wait_until(lambda: {"estimator", "recognition", "recorder", "driver"} <= {k.split("/")[3] for k in bus.alive()}, 60,
-               "every process's liveliness token")  # fmt: skip
+    wait_until(
+        lambda: {"estimator", "recognition", "recorder", "driver"} <= {k.split("/")[3] for k in bus.alive()},
+        60,
+        "every process's liveliness token",
+    )
     old, killed = kill_once_localized(run_dir, states, "router")
     wait_until(lambda: pid_of(run_dir, "router") != old, 10, "the supervisor to restart the router")
     wait_until(lambda: any(t > killed + 1.0 for t, _ in states), 30, "status over the restarted router")
-    wait_until(lambda: localized(states, "a") and localized(states, "b"), 10, "both cameras localized after the restart")
+    wait_until(
+        lambda: localized(states, "a") and localized(states, "b"), 10, "both cameras localized after the restart"
+    )
     restarted = {p["name"]: p["restarts"] for p in json.loads((run_dir / "processes.json").read_text())}
     assert restarted.pop("router") == 1
     assert not any(restarted.values()), f"processes restarted instead of reconnecting: {restarted}"
@@ -168,7 +193,9 @@ def _stamps(path: Path) -> tuple[list[int], ReadReport]:
     return [x.publish_time_ns - 1 for x in read_log(path, None, report)], report
 
 
-def test_recorder_on_a_full_disk_keeps_its_chunks_and_resumes_in_a_new_part(router_endpoint: str, small_disk: Path) -> None:
+def test_recorder_on_a_full_disk_keeps_its_chunks_and_resumes_in_a_new_part(
+    router_endpoint: str, small_disk: Path
+) -> None:
     """16 MiB disk, 4 MiB taken: two 4 MiB chunks fit, the third fails. Freeing the 4 MiB lets the
     recorder start a second part; the first keeps every frame up to its last complete chunk."""
     filler = small_disk / "filler"

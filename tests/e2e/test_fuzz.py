@@ -31,7 +31,9 @@ CELL = "fuzz"  # the benchmark's cell: its keys
 
 
 def scene() -> Scenario:
-    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.15, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    wall = lambda i, x, role="static": MarkerSpec(  # noqa: E731
+        id=i, role=role, side_m=0.15, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0))
+    )
     return Scenario(
         markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")],
         cameras=[CameraSpec(id="cam1", pose=PoseSpec(position=(0.0, 0.0, 1.2), look_at=(0.3, 2.0, 1.0)))],
@@ -43,7 +45,9 @@ def fuzzed() -> list[tuple[str, bytes]]:
     return generate(400, seed=7)
 
 
-def run_cell(transport: TransportConfig, tmp_path: Path, messages: list[tuple[str, bytes]]) -> tuple[np.ndarray, EstimatorService, Path]:
+def run_cell(
+    transport: TransportConfig, tmp_path: Path, messages: list[tuple[str, bytes]]
+) -> tuple[np.ndarray, EstimatorService, Path]:
     """cam1's frames at 30 Hz with ``messages`` spread between them, into a running estimator, a
     recorder and a status board; returns cam1's final pose, the service and the recording."""
     s = scene()
@@ -72,7 +76,11 @@ def run_cell(transport: TransportConfig, tmp_path: Path, messages: list[tuple[st
             for k in range(30 + len(messages) // 10):
                 time.sleep(max(t0 + k / 30 - time.monotonic(), 0.0))  # a driver's pace, stamped as sent
                 stamp = start + int(k * 1e9 / 30)
-                pub.put(observations_msg("cam1", stamp, frame_observations(s, "cam1", 0.0, stamp, rng, NoiseSettings()), side_m=0.15))
+                pub.put(
+                    observations_msg(
+                        "cam1", stamp, frame_observations(s, "cam1", 0.0, stamp, rng, NoiseSettings()), side_m=0.15
+                    )
+                )
                 for key, payload in messages[max(k - 30, 0) * 10 : max(k - 29, 0) * 10]:
                     raw.setdefault(key, driver.session.declare_publisher(key)).put(payload)
             wait_until(lambda: rec.messages >= 30, 5.0, "the recorder")
@@ -89,8 +97,9 @@ def run_cell(transport: TransportConfig, tmp_path: Path, messages: list[tuple[st
 
 
 @pytest.mark.slow
-def test_fuzzed_messages_stop_nothing_and_leave_the_estimate_as_it_was(client_transport: TransportConfig, tmp_path: Path,
-                                                                       fuzzed: list[tuple[str, bytes]]) -> None:  # fmt: skip
+def test_fuzzed_messages_stop_nothing_and_leave_the_estimate_as_it_was(
+    client_transport: TransportConfig, tmp_path: Path, fuzzed: list[tuple[str, bytes]]
+) -> None:
     """The same frames of cam1 with the fuzz between them, and with as many undecodable payloads on
     the same keys (the control): cam1 ends where the control does, within its noise."""
     truth = scene().camera("cam1").world_T_camera(0.0)[:3, 3]
@@ -106,8 +115,9 @@ def test_fuzzed_messages_stop_nothing_and_leave_the_estimate_as_it_was(client_tr
 
 
 @pytest.mark.slow
-def test_resolve_of_a_log_holding_every_fuzzed_message_ends_without_an_exception(tmp_path: Path,
-                                                                                 fuzzed: list[tuple[str, bytes]]) -> None:  # fmt: skip
+def test_resolve_of_a_log_holding_every_fuzzed_message_ends_without_an_exception(
+    tmp_path: Path, fuzzed: list[tuple[str, bytes]]
+) -> None:
     s = scene()
     cfg = cell_config_of(s, base=CellConfig.model_validate({"cell": {"name": CELL}}))
     log = tmp_path / "log.mcap"
@@ -116,7 +126,11 @@ def test_resolve_of_a_log_holding_every_fuzzed_message_ends_without_an_exception
     now = time.time_ns()
     for k in range(60):
         stamp = now + int(k * 1e9 / 30)
-        w.write(keys.markers(CELL, "cam1"), observations_msg("cam1", stamp, frame_observations(s, "cam1", 0.0, stamp, rng, NoiseSettings()), 0.15), stamp)
+        w.write(
+            keys.markers(CELL, "cam1"),
+            observations_msg("cam1", stamp, frame_observations(s, "cam1", 0.0, stamp, rng, NoiseSettings()), 0.15),
+            stamp,
+        )
     for k, (key, payload) in enumerate(fuzzed):
         w.write_raw(key, keys.message_type(key), payload, now + k, now + k)
     w.close()

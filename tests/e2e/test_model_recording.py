@@ -25,8 +25,7 @@ from recognition.config import BoardConfig, BoardMarker
 from recognition.models import ModelDatabase
 from recognition.pipeline import Recognizer
 from recognition.recording import model_from_recording, read_board_views
-from schemas import codec, keys
-from schemas import geometry
+from schemas import codec, geometry, keys
 from schemas.log import LogWriter
 from schemas.spec import PoseSpec
 from tests.helpers import assert_pose_close
@@ -52,13 +51,22 @@ def capture(tmp_path_factory) -> tuple[Path, BoardConfig, dict[int, np.ndarray]]
         w.write(keys.depth(s.name, cam.id), codec.image_to_msg(f.depth_mm, f.stamp_ns, cam.id, "16UC1"), f.stamp_ns)
         w.write(keys.camera_info(s.name, cam.id), f.info.to_msg(f.stamp_ns, cam.id), f.stamp_ns)
         found = detector.detect(f.rgb, f.info, f.depth_mm)
-        w.write(keys.markers(s.name, cam.id), observations_to_msg(cam.id, f.stamp_ns, f.info, found, s.dictionary), f.stamp_ns)
+        w.write(
+            keys.markers(s.name, cam.id),
+            observations_to_msg(cam.id, f.stamp_ns, f.info, found, s.dictionary),
+            f.stamp_ns,
+        )
         truth[f.stamp_ns] = geometry.invert_pose(f.world_T_camera) @ world_T_object
     w.close()
-    board = BoardConfig(min_view_angle_deg=8.0, markers=[  # frames are 10 deg apart: keep them all
-        BoardMarker(marker_id=mk.id, board_T_marker=PoseSpec(position=tuple(np.subtract(mk.pose.position, TABLE_TOP))))
-        for mk in s.markers
-    ])  # fmt: skip
+    board = BoardConfig(
+        min_view_angle_deg=8.0,
+        markers=[  # frames are 10 deg apart: keep them all
+            BoardMarker(
+                marker_id=mk.id, board_T_marker=PoseSpec(position=tuple(np.subtract(mk.pose.position, TABLE_TOP)))
+            )
+            for mk in s.markers
+        ],
+    )
     return path, board, truth
 
 
@@ -68,7 +76,9 @@ def test_each_frame_is_posed_by_the_board(capture) -> None:
     assert len(views) >= 30, f"only {len(views)} of 36 frames saw three board markers"
     for v in views:
         # Four 10 cm markers at ~1 m, Kabsch on their centres: a few mm, well under a degree.
-        assert_pose_close(v.camera_T_object, truth[v.stamp_ns], pos_tol_m=0.01, rot_tol_deg=1.0, what=f"view at {v.stamp_ns}")
+        assert_pose_close(
+            v.camera_T_object, truth[v.stamp_ns], pos_tol_m=0.01, rot_tol_deg=1.0, what=f"view at {v.stamp_ns}"
+        )
         assert len(v.points) > 500
     # A frame's colour colours its points: the crate's blue (chromaticity (0.15, 0.33), shading aside).
     coloured = [v for v in views if v.colours is not None]
@@ -112,7 +122,17 @@ def test_recorded_model_has_the_crates_shape_and_finds_it_in_the_demo_cell(captu
 def test_model_build_command_reads_a_recording_and_names_a_bad_board(capture, tmp_path: Path) -> None:
     path, _, _ = capture
     example = Path(__file__).resolve().parents[2] / "examples" / "capture_board.toml"
-    cli = [sys.executable, "-m", "cellsight.cli", "model", "build", "--recording", f"crate={path}", "--out", str(tmp_path / "db")]
+    cli = [
+        sys.executable,
+        "-m",
+        "cellsight.cli",
+        "model",
+        "build",
+        "--recording",
+        f"crate={path}",
+        "--out",
+        str(tmp_path / "db"),
+    ]
     out = subprocess.run(cli + ["--board", str(example)], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     db = ModelDatabase.load(tmp_path / "db")

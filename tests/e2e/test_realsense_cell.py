@@ -38,15 +38,35 @@ def test_two_realsense_cameras_localize_under_cellsight_run(tmp_path: Path) -> N
     cfg.recognition.enabled = False
     (tmp_path / "cell.toml").write_text(cfg.to_toml())
     states: dict[str, int] = {}
-    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(tmp_path / "cell.toml"), "--out", str(tmp_path / "run"),
-                             "--duration", str(SECONDS + 20)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cellsight.cli",
+            "run",
+            str(tmp_path / "cell.toml"),
+            "--out",
+            str(tmp_path / "run"),
+            "--duration",
+            str(SECONDS + 20),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_until(lambda: (tmp_path / "run" / "processes.json").exists(), 30, "the launcher to start the cell")
         with Bus(TransportConfig(connect=[f"tcp/127.0.0.1:{port}"]), CELL) as bus:
-            bus.subscribe(keys.estimate_status(CELL), m.EstimatorStatus,
-                          callback=lambda r: states.update({c.camera_id: c.state for c in r.msg.cameras}))  # fmt: skip
-            wait_until(lambda: states.get("cam1") == m.CameraState.LOCALIZED and states.get("cam2") == m.CameraState.LOCALIZED,
-                       SECONDS + 15, f"both RealSense cameras localized (states: {states})")  # fmt: skip
+            bus.subscribe(
+                keys.estimate_status(CELL),
+                m.EstimatorStatus,
+                callback=lambda r: states.update({c.camera_id: c.state for c in r.msg.cameras}),
+            )
+            wait_until(
+                lambda: states.get("cam1") == m.CameraState.LOCALIZED and states.get("cam2") == m.CameraState.LOCALIZED,
+                SECONDS + 15,
+                f"both RealSense cameras localized (states: {states})",
+            )
     finally:
         stop_launcher(proc, tmp_path / "run")
     manifest = (tmp_path / "run" / "processes.json").read_text()

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cellsight.synthetic import NoiseSettings, ViewBiases, frame_observations, observations_msg
 from cellsight.config import CellConfig
 from cellsight.record import Recorder
 from cellsight.resolve_report import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
+from cellsight.synthetic import NoiseSettings, ViewBiases, frame_observations, observations_msg
 from drivers.replay import replay
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
 from estimator.config import KeyframeConfig
@@ -30,7 +30,9 @@ CELL = "res"
 
 
 def scene() -> Scenario:
-    wall = lambda i, x, role="static": MarkerSpec(id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0)))  # noqa: E731
+    wall = lambda i, x, role="static": MarkerSpec(  # noqa: E731
+        id=i, role=role, side_m=0.25, pose=PoseSpec(position=(x, 2.0, 1.0), normal=(0.0, -1.0, 0.0))
+    )
     return Scenario(
         markers=[wall(0, -0.6, "anchor"), wall(1, 0.0), wall(2, 0.6), wall(3, 1.2, "anchor")],
         cameras=[
@@ -40,7 +42,9 @@ def scene() -> Scenario:
     )
 
 
-def write_log(path: Path, s: Scenario, seconds: float, flip_rate: float = 0.05, view_biases: bool = False) -> CellConfig:
+def write_log(
+    path: Path, s: Scenario, seconds: float, flip_rate: float = 0.05, view_biases: bool = False
+) -> CellConfig:
     """A log of ``s`` seen by its cameras at 30 Hz, with ground truth at 10 Hz; ``view_biases``:
     each view carries a bias as the estimator's factor model allows for (``ViewBiases``)."""
     cfg = cell_config_of(s, base=CellConfig.model_validate({"cell": {"name": CELL}}))
@@ -62,7 +66,11 @@ def write_log(path: Path, s: Scenario, seconds: float, flip_rate: float = 0.05, 
                 truth = [codec.StampedPose("world", cam.id, stamp, cam.world_T_camera(t))]
                 w.write(keys.truth(CELL, "cameras"), codec.poses_to_msg(stamp, truth), stamp)
         if k % 3 == 0 and s.objects:
-            moving = [codec.StampedPose("world", f"marker_{mk.id}", stamp, s.world_T_marker(mk, t)) for mk in s.markers if mk.role == "object"]
+            moving = [
+                codec.StampedPose("world", f"marker_{mk.id}", stamp, s.world_T_marker(mk, t))
+                for mk in s.markers
+                if mk.role == "object"
+            ]
             w.write(keys.truth(CELL, "marker_poses"), codec.poses_to_msg(stamp, moving), stamp)
     w.close()
     return cfg
@@ -79,8 +87,17 @@ def test_resolve_recovers_the_cameras_and_writes_the_report(tmp_path: Path) -> N
     assert set(segs) == {"a", "b"} and run.result.unanchored == []
     for cid, seg in segs.items():
         assert_pose_close(seg.world_T_camera, s.camera(cid).world_T_camera(0.0), 0.005, 0.1, cid)
-    for name in ("resolved.mcap", "report.html", "top_view.png", "residuals.png", "outliers.png", "online_vs_offline.png",
-                 "errors_vs_truth.png", "resolve.json", "config.toml"):  # fmt: skip
+    for name in (
+        "resolved.mcap",
+        "report.html",
+        "top_view.png",
+        "residuals.png",
+        "outliers.png",
+        "online_vs_offline.png",
+        "errors_vs_truth.png",
+        "resolve.json",
+        "config.toml",
+    ):
         assert (tmp_path / "out" / name).stat().st_size > 0, name
     assert 'src="errors_vs_truth.png"' in (tmp_path / "out" / "report.html").read_text()  # the log has ground truth
     tum = (tmp_path / "out" / "trajectories" / "a.tum").read_text().splitlines()
@@ -111,18 +128,39 @@ def test_object_markers_are_placed_over_time_through_the_solved_cameras(tmp_path
     uncertainty, within a few mm of the truth at its stamp (single frames at ~2 m: a depth-refined
     observation is good to ~1 mm; the camera adds its own few mm), inside its reported covariance."""
     s = scene()
-    s.objects = [ObjectSpec(id="box", pose=PoseSpec(position=(0.3, 1.7, 0.9)), motion=ObjectMotion(kind="slide", offset=(0.3, 0.0, 0.0), period_s=4.0))]
-    s.markers.append(MarkerSpec(id=7, role="object", object="box", side_m=0.15, pose=PoseSpec(position=(0.0, -0.05, 0.1), normal=(0.0, -1.0, 0.0))))
+    s.objects = [
+        ObjectSpec(
+            id="box",
+            pose=PoseSpec(position=(0.3, 1.7, 0.9)),
+            motion=ObjectMotion(kind="slide", offset=(0.3, 0.0, 0.0), period_s=4.0),
+        )
+    ]
+    s.markers.append(
+        MarkerSpec(
+            id=7,
+            role="object",
+            object="box",
+            side_m=0.15,
+            pose=PoseSpec(position=(0.0, -0.05, 0.1), normal=(0.0, -1.0, 0.0)),
+        )
+    )
     log = tmp_path / "log.mcap"
     write_log(log, s, 5.0, flip_rate=0.0)
     run = run_resolve(log, tmp_path / "out", peek_config(log))
     assert 7 not in run.result.markers  # an object marker never joins the map
-    poses = [p for lm in read_log(tmp_path / "out" / "resolved.mcap") if lm.key == keys.estimate_markers(CELL)
-             for p in codec.poses_from_msg(lm.msg).values() if p.child == "marker_7"]  # fmt: skip
+    poses = [
+        p
+        for lm in read_log(tmp_path / "out" / "resolved.mcap")
+        if lm.key == keys.estimate_markers(CELL)
+        for p in codec.poses_from_msg(lm.msg).values()
+        if p.child == "marker_7"
+    ]
     stamps = np.array([p.stamp_ns for p in poses])
     assert 40 <= len(poses) <= 51 and np.diff(stamps).min() > 0  # ~10 Hz over 5 s, in time order
     t0 = 1_700_000_000_000_000_000
-    errors = [np.linalg.norm(p.T[:3, 3] - s.world_T_marker(s.markers[-1], (p.stamp_ns - t0) / 1e9)[:3, 3]) for p in poses]
+    errors = [
+        np.linalg.norm(p.T[:3, 3] - s.world_T_marker(s.markers[-1], (p.stamp_ns - t0) / 1e9)[:3, 3]) for p in poses
+    ]
     assert np.median(errors) < 0.004 and max(errors) < 0.012, (np.median(errors), max(errors))
     # The covariance tells the truth about the error (camera's uncertainty carried through the lever
     # arm): most positions inside their 95 % ellipsoid (chi-square, 3 dof), none absurdly wide.
@@ -177,7 +215,9 @@ def test_corrupt_chunk_stops_reading_with_a_warning(tmp_path: Path) -> None:
 def test_log_without_config_is_refused_with_a_clear_error(tmp_path: Path) -> None:
     log = tmp_path / "plain.mcap"
     LogWriter(log).close()
-    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(log)], capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "cellsight.cli", "resolve", str(log)], capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 2 and "--config" in out.stderr
 
 
@@ -197,7 +237,6 @@ def test_compare_finds_the_camera_that_moved_between_two_days(tmp_path: Path) ->
     assert all(verdicts[f"marker_{i}"].verdict == "unchanged" for i in (0, 1, 2, 3)), verdicts
 
 
-
 def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -> None:
     """Camera b slides 0.3 m between 2 and 3 s. Its frames in between join no segment; offline each
     kept one (>= 0.1 s apart, a new view) is a pose of its own, on estimate/cameras and in b's TUM
@@ -215,34 +254,49 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     run = run_resolve(log, tmp_path / "out", cfg)
     frames = run.result.keyframes
     t0 = 1_700_000_000_000_000_000
-    assert 5 <= len(frames) <= 12 and {k.camera_id for k in frames} == {"b"}, [(k.camera_id, k.stamp_ns) for k in frames]
+    assert 5 <= len(frames) <= 12 and {k.camera_id for k in frames} == {"b"}, [
+        (k.camera_id, k.stamp_ns) for k in frames
+    ]
     errors, sigmas = [], []
     for k in frames:
         t = (k.stamp_ns - t0) / 1e9
         assert 2.0 <= t <= 3.5, t
         e = s.camera("b").world_T_camera(t)[:3, 3] - k.world_T_camera[:3, 3]
         R = k.world_T_camera[:3, :3]  # the covariance is in the camera (body) frame
-        assert float(e @ R @ np.linalg.solve(k.covariance[:3, :3], R.T @ e)) < 16.27, f"frame at {t:.2f} s off by {np.linalg.norm(e) * 1e3:.1f} mm"
+        assert float(e @ R @ np.linalg.solve(k.covariance[:3, :3], R.T @ e)) < 16.27, (
+            f"frame at {t:.2f} s off by {np.linalg.norm(e) * 1e3:.1f} mm"
+        )
         errors.append(np.linalg.norm(e))
         sigmas.append(np.sqrt(np.trace(k.covariance[:3, :3])))
     assert np.median(errors) < np.median(sigmas), (np.median(errors), np.median(sigmas))
     assert np.diff([k.stamp_ns for k in frames]).min() >= 100_000_000
     tum = {float(line.split()[0]) for line in (tmp_path / "out" / "trajectories" / "b.tum").read_text().splitlines()}
     assert {round(k.stamp_ns / 1e9, 9) for k in frames} <= {round(x, 9) for x in tum}
-    published = {p.stamp_ns for lm in read_log(tmp_path / "out" / "resolved.mcap") if lm.key == keys.estimate_cameras(CELL) for p in codec.poses_from_msg(lm.msg).values()}
+    published = {
+        p.stamp_ns
+        for lm in read_log(tmp_path / "out" / "resolved.mcap")
+        if lm.key == keys.estimate_cameras(CELL)
+        for p in codec.poses_from_msg(lm.msg).values()
+    }
     assert {k.stamp_ns for k in frames} <= published
     figures = json.loads((tmp_path / "out" / "resolve.json").read_text())["cameras"]["b"]
     assert figures["moving_frames"] == len(frames)
     # The log's truth is thinned to 10 Hz; interpolated along the straight slide it is exact.
     assert abs(figures["moving_frames_vs_truth_mm_deg"][0] - 1e3 * np.median(errors)) < 0.01
-    few = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(max_frames=3, min_frames=1)})})
+    few = cfg.model_copy(
+        update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(max_frames=3, min_frames=1)})}
+    )
     kept = sorted((k.stamp_ns - t0) / 1e9 for k in run_resolve(log, tmp_path / "few", few).result.keyframes)
     assert kept, "no moving frame survived the thinning"
     assert len(kept) <= 3 < len(frames), (kept, len(frames))  # bounded: fewer than without the bound
     assert kept[-1] - kept[0] >= 0.4, kept  # and still spread over the 1 s move, not its first frames
-    off = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(enabled=False)})})
+    off = cfg.model_copy(
+        update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(enabled=False)})}
+    )
     assert run_resolve(log, tmp_path / "off", off).result.keyframes == []
-    sparse = cfg.model_copy(update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(min_frames=len(frames) + 1)})})
+    sparse = cfg.model_copy(
+        update={"estimator": cfg.estimator.model_copy(update={"keyframes": KeyframeConfig(min_frames=len(frames) + 1)})}
+    )
     assert run_resolve(log, tmp_path / "sparse", sparse).result.keyframes == []  # a move with too few frames adds none
     assert run.figures.moving_frames_left_out == 0 and run.figures.moving_frames_covariance_scale == 1.0
     unbiased = tmp_path / "unbiased.mcap"
@@ -254,8 +308,9 @@ def test_moving_camera_frames_are_solved_as_poses_of_their_own(tmp_path: Path) -
     assert f"{n_left} moving frames left out" in (tmp_path / "unbiased" / "report.html").read_text()
 
 
-
-def test_a_log_recorded_from_cellsight_replay_resolves_like_the_original(client_transport: TransportConfig, tmp_path: Path) -> None:
+def test_a_log_recorded_from_cellsight_replay_resolves_like_the_original(
+    client_transport: TransportConfig, tmp_path: Path
+) -> None:
     """Replay a log over zenoh (loopback router) into the recorder, then resolve the recording:
     every marker message survives the trip with its stamps, so the solve is the original's."""
     s = scene()
@@ -275,18 +330,39 @@ def test_a_log_recorded_from_cellsight_replay_resolves_like_the_original(client_
     segs = {(x.camera_id, x.segment): x for x in a.segments}
     assert sorted(segs) == sorted((x.camera_id, x.segment) for x in b.segments)
     for x in b.segments:
-        assert_pose_close(x.world_T_camera, segs[(x.camera_id, x.segment)].world_T_camera, 1e-5, 1e-4, f"{x.camera_id}.{x.segment}")
+        assert_pose_close(
+            x.world_T_camera, segs[(x.camera_id, x.segment)].world_T_camera, 1e-5, 1e-4, f"{x.camera_id}.{x.segment}"
+        )
 
 
-def test_a_log_from_the_openni2_driver_resolves_to_an_unanchored_camera(router_endpoint: str, client_transport: TransportConfig, tmp_path: Path) -> None:
+def test_a_log_from_the_openni2_driver_resolves_to_an_unanchored_camera(
+    router_endpoint: str, client_transport: TransportConfig, tmp_path: Path
+) -> None:
     """The real OpenNI2 runtime's Dummy device (blank images: frames but no markers) through the
     driver process and the recorder: resolve reads its frames and reports the camera unanchored,
     with the report written, instead of failing on a log with nothing to solve."""
     from cellsight.scenario_config import demo_config
 
     log = tmp_path / "openni2.mcap"
-    proc = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "driver", "openni2", "--camera", "kinect", "--uri", "Dummy",
-                             "--duration", "30", "-e", router_endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cellsight.cli",
+            "driver",
+            "openni2",
+            "--camera",
+            "kinect",
+            "--uri",
+            "Dummy",
+            "--duration",
+            "30",
+            "-e",
+            router_endpoint,
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         with Bus(client_transport, "demo") as bus:
             rec = Recorder(bus, log)
@@ -323,14 +399,23 @@ def test_absurd_but_finite_observations_in_a_log_are_skipped_and_counted(tmp_pat
             w.write(lm.key, bad, lm.log_time_ns, bad.stamp_ns)
             n += 1
     w.close()
-    a, b = run_resolve(clean, tmp_path / "a", peek_config(clean)), run_resolve(dirty, tmp_path / "b", peek_config(dirty))
+    a, b = (
+        run_resolve(clean, tmp_path / "a", peek_config(clean)),
+        run_resolve(dirty, tmp_path / "b", peek_config(dirty)),
+    )
     assert b.read.refused == {(keys.markers(CELL, "a"), "out_of_bounds"): 20}
     assert b.result.frames == a.result.frames
     for sa, sb in zip(a.result.segments, b.result.segments):
         np.testing.assert_allclose(sb.world_T_camera, sa.world_T_camera, atol=1e-9)
-    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(dirty), "--out", str(tmp_path / "c")],
-                         capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert out.returncode == 0 and "20 messages on cellsight/res/a/markers (out_of_bounds)" in out.stderr.replace("\n", " "), out.stderr
+    out = subprocess.run(
+        [sys.executable, "-m", "cellsight.cli", "resolve", str(dirty), "--out", str(tmp_path / "c")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0 and "20 messages on cellsight/res/a/markers (out_of_bounds)" in out.stderr.replace(
+        "\n", " "
+    ), out.stderr
 
 
 def test_a_log_cut_before_its_config_is_called_cut_and_an_empty_solve_exits_1(tmp_path: Path) -> None:
@@ -341,10 +426,18 @@ def test_a_log_cut_before_its_config_is_called_cut_and_an_empty_solve_exits_1(tm
     cfg = write_log(log, s, 1.0)
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(log.read_bytes()[:40])
-    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(cut)], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2 and "cut or damaged at byte" in out.stderr and "no embedded" not in out.stderr, out.stderr
+    out = subprocess.run(
+        [sys.executable, "-m", "cellsight.cli", "resolve", str(cut)], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 2 and "cut or damaged at byte" in out.stderr and "no embedded" not in out.stderr, (
+        out.stderr
+    )
     empty = tmp_path / "empty.mcap"
     LogWriter(empty, metadata={"config": cfg.to_toml()}).close()
-    out = subprocess.run([sys.executable, "-m", "cellsight.cli", "resolve", str(empty), "--out", str(tmp_path / "o")],
-                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-m", "cellsight.cli", "resolve", str(empty), "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 1 and "no marker frames" in out.stderr, (out.returncode, out.stderr)

@@ -14,9 +14,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-
-from typing import Iterator
 
 import numpy as np
 import pytest
@@ -42,10 +41,24 @@ def test_readme_shows_the_example_verbatim() -> None:
 def demo_cell(ros2_router: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """The demo cell running as peers on ``ros2_router``, ROS 2 on; yields the router's endpoint."""
     out = tmp_path_factory.mktemp("cell")
-    (out / "cell.toml").write_text(f'[cell]\nname = "demo"\n[transport]\nmode = "peer"\nconnect = ["{ros2_router}"]\n'
-                                   "[ros2]\nenabled = true\n")  # fmt: skip
-    cell = subprocess.Popen([sys.executable, "-m", "cellsight.cli", "run", str(out / "cell.toml"), "--out", str(out / "run"),
-                             "--duration", "400"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    (out / "cell.toml").write_text(
+        f'[cell]\nname = "demo"\n[transport]\nmode = "peer"\nconnect = ["{ros2_router}"]\n[ros2]\nenabled = true\n'
+    )
+    cell = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cellsight.cli",
+            "run",
+            str(out / "cell.toml"),
+            "--out",
+            str(out / "run"),
+            "--duration",
+            "400",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         yield ros2_router
     finally:
@@ -53,7 +66,9 @@ def demo_cell(ros2_router: str, tmp_path_factory: pytest.TempPathFactory) -> Ite
 
 
 def test_robot_subscriber_prints_world_poses_of_the_demo_objects(demo_cell: str) -> None:
-    robot = subprocess.Popen([sys.executable, str(EXAMPLE), demo_cell, "demo"], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    robot = subprocess.Popen(
+        [sys.executable, str(EXAMPLE), demo_cell, "demo"], stdout=subprocess.PIPE, text=True, cwd=ROOT
+    )
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(iter(robot.stdout.readline, "")), daemon=True)
     reader.start()
@@ -89,14 +104,21 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
         # as its camera's pose refines, and a version sent before we listened is not in ours.
         tf_from, objects_from = len(tf), len(objects)
         try:
-            wait_until(lambda: {d.id for o in objects[objects_from:] for d in o.detections} == {"crate", "can", "tote"}, 240.0,
-                       "the ROS 2 node to get all three objects")  # fmt: skip
+            wait_until(
+                lambda: {d.id for o in objects[objects_from:] for d in o.detections} == {"crate", "can", "tote"},
+                240.0,
+                "the ROS 2 node to get all three objects",
+            )
             time.sleep(3.0)
             tokens = [str(r.ok.key_expr) for r in bus.session.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
         finally:
             for sub in (tf_sub, objects_sub):
                 sub.close()
-        ours = {(tr.child_frame_id, codec.timestamp_to_stamp(tr.timestamp)): tr for item in ours_tf.drain() for tr in item.msg.transforms}
+        ours = {
+            (tr.child_frame_id, codec.timestamp_to_stamp(tr.timestamp)): tr
+            for item in ours_tf.drain()
+            for tr in item.msg.transforms
+        }
         ours_obj: dict[tuple[str, int], list[np.ndarray]] = {}  # a detection is re-posed as its camera's pose refines
         for item in ours_objects.drain():
             for o in item.msg.objects:
@@ -110,7 +132,11 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
             cam = t.child_frame_id.removesuffix("_color_optical_frame")
             key = (cam, stamp_ns(t.header.stamp))
             if cam != t.child_frame_id and key in ours:
-                np.testing.assert_allclose(ros_matrix(t.transform.translation, t.transform.rotation), ros_matrix(ours[key].translation, ours[key].rotation), atol=1e-9)
+                np.testing.assert_allclose(
+                    ros_matrix(t.transform.translation, t.transform.rotation),
+                    ros_matrix(ours[key].translation, ours[key].rotation),
+                    atol=1e-9,
+                )
                 compared[cam] = compared.get(cam, 0) + 1
     assert set(compared) == {c.id for c in load_scenario().cameras}, compared
     matched = 0
@@ -120,6 +146,8 @@ def test_a_ros2_node_reads_the_cells_tf_and_objects(demo_cell: str, ros2_message
             if candidates:
                 pose = d.results[0].pose.pose
                 got = ros_matrix(pose.position, pose.orientation)
-                assert min(np.abs(got - T).max() for T in candidates) < 1e-9, f"{d.id}: no pose of ours at its stamp equals it"
+                assert min(np.abs(got - T).max() for T in candidates) < 1e-9, (
+                    f"{d.id}: no pose of ours at its stamp equals it"
+                )
                 matched += 1
     assert matched >= 3, f"{matched} objects matched ours by id and stamp"
