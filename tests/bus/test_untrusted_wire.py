@@ -56,8 +56,10 @@ def test_absurd_positions_and_a_ghost_camera_are_refused_and_the_estimator_runs_
     s = scene()
     now = time.time_ns()
     frames = good_frames(s, 60, now - 2_000_000_000)
-    far, very_far, ghost = (good_frames(s, 1, now - 1_000_000_000)[0] for _ in range(3))
-    far.markers[0].camera_T_marker.z = 1e300
+    far = good_frames(s, 1, now - 3_000_000_000)[0]  # the camera's first frame: iSAM2 met it (ill-posed)
+    for o in far.markers:
+        o.camera_T_marker.z = 1e300
+    very_far, ghost = (good_frames(s, 1, now - 1_000_000_000)[0] for _ in range(2))
     very_far.markers[1].camera_T_marker.z = 1e6
     ghost.camera_id = "ghost_cam"
     with (
@@ -69,10 +71,11 @@ def test_absurd_positions_and_a_ghost_camera_are_refused_and_the_estimator_runs_
         board = StatusBoard(viewer)
         pub = driver.publisher(keys.markers(CELL, "cam1"))
         time.sleep(0.5)  # routes
+        driver.session.put(keys.markers(CELL, "cam1"), far.SerializeToString())
         for k, msg in enumerate(frames):
             pub.put(msg)
             if k == 30:
-                for bad in (far, very_far, ghost):
+                for bad in (very_far, ghost):
                     driver.session.put(keys.markers(CELL, "cam1"), bad.SerializeToString())
         wait_until(lambda: svc._sub.received + sum(svc._sub.bad.values()) >= 63, 5.0, "every frame at the estimator")
         svc.step()
@@ -106,11 +109,11 @@ def test_a_negative_stamp_is_refused_by_the_recorder_and_the_log_reads_to_its_en
             pub.put(msg)
         wait_until(lambda: rec.messages + sum(rec.refused.values()) >= 40, 5.0, "every message at the recorder")
         rec.close()
-    assert rec.refused == {(keys.markers(CELL, "cam1"), "stamp"): 2}
     report = ReadReport()
     stamps = [lm.msg.stamp_ns for lm in read_log(path, None, report)]
     assert report.stopped_early is None, "a cleanly stopped recording has its footer"
     assert stamps == [f.stamp_ns for k, f in enumerate(frames) if k not in (20, 25)]
+    assert rec.refused == {(keys.markers(CELL, "cam1"), "stamp"): 2}
 
 
 @pytest.mark.slow

@@ -381,23 +381,25 @@ def test_a_log_from_the_openni2_driver_resolves_to_an_unanchored_camera(
 
 
 def test_absurd_but_finite_observations_in_a_log_are_skipped_and_counted(tmp_path: Path) -> None:
-    """Twenty observations at z = 1e6 m (or one at 1e300) made ``resolve`` die in iSAM2
-    (IndeterminateSystemException). They are what a running cell refuses, so the offline solve skips
-    them too, says how many and why, and solves the rest as if they were not there."""
+    """Twenty observations at z = 1e6 m (the first at 1e300) among a camera's first frames made
+    ``resolve`` die in iSAM2 (IndeterminateSystemException). They are what a running cell refuses,
+    so the offline solve skips them too, says how many and why, and solves the rest as if they
+    were not there."""
     s = scene()
     clean, dirty = tmp_path / "clean.mcap", tmp_path / "dirty.mcap"
     write_log(clean, s, 3.0)
     w = LogWriter(dirty, chunk_size=64 * 1024, metadata={"config": peek_config(clean).to_toml()})
     n = 0
     for lm in read_log(clean):
-        w.write(lm.key, lm.msg, lm.log_time_ns, lm.publish_time_ns)
         if lm.key == keys.markers(CELL, "a") and n < 20:
             bad = m.MarkerObservations()
             bad.CopyFrom(lm.msg)
-            bad.stamp_ns += 1  # after the good frame: the camera's stamps keep going forward
-            bad.markers[0].camera_T_marker.z = 1e300 if n == 0 else 1e6
+            bad.stamp_ns -= 1  # before the good frame: the camera's stamps keep going forward
+            for o in bad.markers:
+                o.camera_T_marker.z = 1e300 if n == 0 else 1e6
             w.write(lm.key, bad, lm.log_time_ns, bad.stamp_ns)
             n += 1
+        w.write(lm.key, lm.msg, lm.log_time_ns, lm.publish_time_ns)
     w.close()
     a, b = (
         run_resolve(clean, tmp_path / "a", peek_config(clean)),
