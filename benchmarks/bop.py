@@ -1,7 +1,7 @@
 """Recognition on annotated frames in the BOP format: ADD-S recall and false detections, with point-pair voting in the same run.
 
 ``--dataset DIR`` measures any dataset in the format public pose datasets ship in (BOP: LM-O,
-YCB-V, T-LESS, ...; ``cellsight.bop``): the database is built from its models (``--models``: their
+YCB-V, T-LESS, ...; ``cellsight.evaluation.bop``): the database is built from its models (``--models``: their
 folder, by default the first of ``models``, ``models_cad``, ``models_reconst``, ``models_eval`` it
 has; mm; meshes rendered from 42 viewpoints at each ``--distance``, point models by hidden-point
 removal, their colours where the files carry them, vertex colours or texture) and every frame of
@@ -81,11 +81,19 @@ from benchmarks.recognition import (  # pins this process to one core first
     visibility_class,
     visible_share,
 )
-from cellsight.bop import MODEL_FOLDERS, BopDataset, BopFrame, BopWriter, depth_of_organised, level_world_pose, score  # noqa: E402
 from cellsight.config import load_config  # noqa: E402
 from cellsight.errors import ConfigError  # noqa: E402
+from cellsight.evaluation.bop import (  # noqa: E402
+    MODEL_FOLDERS,
+    BopDataset,
+    BopFrame,
+    BopWriter,
+    depth_of_organised,
+    level_world_pose,
+    score,
+)
+from cellsight.evaluation.pictures import draw_recognition  # noqa: E402
 from cellsight.model_build import build_database  # noqa: E402
-from cellsight.pictures import draw_recognition  # noqa: E402
 from drivers.sim.render import SimCell, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, load_scenario  # noqa: E402
 from drivers.sim.shapes import shapes  # noqa: E402

@@ -1,6 +1,6 @@
 """Estimator accuracy on the demo cell: online iSAM2 vs the batch optimum vs the paper's chain method.
 
-Observations: ``cellsight.synthetic`` (true poses, noise drawn from the front-end's depth-refined
+Observations: ``cellsight.evaluation.synthetic`` (true poses, noise drawn from the front-end's depth-refined
 covariance model, 5 % planar-PnP flips), every camera at 30 Hz. The same observations feed:
 - online: ``estimator.graph.Estimator`` updated at 10 Hz (the daemon's rate);
 - batch: Levenberg-Marquardt over one robust factor per raw observation, same noise model;
@@ -47,7 +47,7 @@ import numpy as np
 
 from benchmarks.chain import chain_solve
 from benchmarks.common import main
-from cellsight.synthetic import NoiseSettings, ViewBiases, estimator_config, frame_observations
+from cellsight.evaluation.synthetic import NoiseSettings, ViewBiases, estimator_config, frame_observations
 from drivers.sim.scenario import (
     BoxSpec,
     CameraMotion,
@@ -296,7 +296,7 @@ def surveyed_off(s: Scenario, seed: int) -> Scenario:
 
 def biased_frames(s: Scenario, seconds: float, seed: int, max_fused: int, floor_rad: float) -> list[list]:
     """As ``simulate``, with each (camera, marker) view's bias drawn from the factor model
-    (``cellsight.synthetic.ViewBiases``): one view, one bias."""
+    (``cellsight.evaluation.synthetic.ViewBiases``): one view, one bias."""
     rng = np.random.default_rng(seed)
     biases = ViewBiases(max_fused, floor_rad, NEW_VIEW_M, NEW_VIEW_DEG)
     specs = {mk.id: mk for mk in s.markers}

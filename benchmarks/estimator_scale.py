@@ -50,7 +50,7 @@ import numpy as np
 from rich.progress import Progress
 
 from benchmarks.common import main
-from cellsight.synthetic import perturb
+from cellsight.evaluation.synthetic import perturb
 from drivers.markers import PlaneFit, covariance_model
 from estimator.config import AnchorConfig, EstimatorConfig
 from estimator.graph import Estimator

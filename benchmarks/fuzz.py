@@ -433,7 +433,7 @@ def log_figures(run_dir: Path, messages: list[tuple[str, bytes]]) -> dict[str, f
             pass
         unreadable += report.stopped_early is not None
     every = run_dir / "every_fuzzed.mcap"
-    from cellsight.resolve_report import peek_config
+    from cellsight.evaluation.resolve_report import peek_config
 
     cfg = peek_config(parts[0]) if parts else None
     w = LogWriter(every, metadata={"config": cfg.to_toml()} if cfg is not None else None)

@@ -31,7 +31,7 @@ import numpy as np
 
 from benchmarks.common import main
 from cellsight.config import CellConfig
-from cellsight.resolve_report import ResolveRun, peek_config, run_resolve
+from cellsight.evaluation.resolve_report import ResolveRun, peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
 from drivers.config import MarkerConfig
 from drivers.frames import observations_to_msg

@@ -17,7 +17,7 @@ the milk found in its scene (true pose the identity) with its model-to-scene RMS
 detection counted false (``false_positives_real_scenes``; none of the other scenes holds any of the
 objects).
 
-Baseline: point-pair-feature voting (Drost et al. 2010, ``recognition.ppf``) on the same frames,
+Baseline: point-pair-feature voting (Drost et al. 2010, ``benchmarks.ppf``) on the same frames,
 after the same preparation (range, workspace, voxels, planes off, normals): each model's three
 best-voted pose clusters refined by the same ICP, the best-fitting one reported, scored the same
 way (``ppf_*``). Its time per frame includes the preparation, as ours does.
@@ -97,12 +97,12 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import open3d as o3d  # noqa: E402
 
+from benchmarks import ppf  # noqa: E402
 from benchmarks.common import PCL_DATA, main  # noqa: E402
-from cellsight.bop import adds_m  # noqa: E402
+from cellsight.evaluation.bop import adds_m  # noqa: E402
 from cellsight.model_build import database_from_scenario  # noqa: E402
 from drivers.sim.render import SimCell, SimFrame, object_mesh  # noqa: E402
 from drivers.sim.scenario import ObjectSpec, Scenario, apart, footprint, load_scenario  # noqa: E402
-from recognition import ppf  # noqa: E402
 from recognition.align import Surface, model_to_scene_rmse, refine_icp, rot_z  # noqa: E402
 from recognition.cloud import (  # noqa: E402
     camera_rays,
@@ -206,7 +206,7 @@ def shape_of(obj: ObjectSpec) -> Shape:
 
 
 def adds(shape: Shape, est: np.ndarray, gt: np.ndarray) -> float:
-    """ADD-S (m) of an estimated pose against the true one (``cellsight.bop.adds_m``)."""
+    """ADD-S (m) of an estimated pose against the true one (``cellsight.evaluation.bop.adds_m``)."""
     return adds_m(shape.points, est, gt)
 
 

@@ -21,9 +21,9 @@ import numpy as np
 from benchmarks.common import main
 from benchmarks.estimator_scale import rss_mb
 from cellsight.config import CellConfig
-from cellsight.resolve_report import run_resolve
+from cellsight.evaluation.resolve_report import run_resolve
+from cellsight.evaluation.synthetic import NoiseSettings, frame_observations, observations_msg
 from cellsight.scenario_config import cell_config_of
-from cellsight.synthetic import NoiseSettings, frame_observations, observations_msg
 from drivers.sim.scenario import load_scenario
 from estimator.offline.solve import ResolveResult
 from schemas import keys

@@ -50,7 +50,7 @@ def newest_poses(path: Path) -> tuple[dict[str, StampedPose], ReadReport]:
 def object_markers_of(report: ReadReport) -> list[int]:
     """Object-marker ids a log's metadata names: resolve's list, or the recorder's embedded config."""
     from cellsight.errors import ConfigError
-    from cellsight.resolve_report import config_of_log
+    from cellsight.evaluation.resolve_report import config_of_log
 
     meta = report.metadata.get("cellsight", {})
     if "object_markers" in meta:

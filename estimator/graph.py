@@ -25,6 +25,9 @@ relative pose (fused per marker where both saw it); the previous history's varia
 camera the graph holds its live segment and one history star, however often it moved: sparse, so
 iSAM2's Bayes tree stays shallow (a marginal on the star's markers would be one dense clique of
 all of them). ``keep_history=True`` (the offline solve, which reports every segment) keeps them.
+
+Two concerns of the class live beside it, mixed in: when each pair's factor is rebuilt
+(``estimator/schedule.py``) and how the answer is read out (``estimator/readout.py``).
 """
 
 from __future__ import annotations
@@ -39,35 +42,28 @@ import gtsam
 import numpy as np
 
 from estimator.config import EstimatorConfig
-from estimator.estimate import BestView, CameraEstimate, CameraState, Estimate, PoseEstimate, through_camera
 from estimator.history import History, HistoryFactor, carried
 from estimator.init import CameraKey, place
-from estimator.keyframes import LiveKeyframes, MovingFrame, place_frame
+from estimator.keyframes import LiveKeyframes, moving_frame, place_frame
 from estimator.links import LinkFactor, LiveInstant, LiveLinks, Sighting, block_sightings, instant_factors, instant_gain
 from estimator.motion import MOVE_CHI2, RigidScreen, any_frame_moved, frame_moved
 from estimator.observation import Observation, ObservationRows, observations_of
-from estimator.pairs import YOUNG_PAIR, Pair, factors_current, fold_rows, pair_means
+from estimator.pairs import YOUNG_PAIR, Pair, fold_rows, pair_means
+from estimator.readout import ANCHOR_CHECK_NS, Readout
 from estimator.resect import resect
+from estimator.schedule import PairSchedule
 from estimator.symbols import camera_symbol, marker_symbol
 from estimator.variance import Fit, pose_fit
-from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, invert_poses, mahalanobis_sq
+from schemas.geometry import cov_ros_to_gtsam, invert_pose, invert_poses, mahalanobis_sq
 
 log = logging.getLogger(__name__)
 
-MAX_MATURE_PER_UPDATE = 24  # settled pair factors rebuilt per update at most (see Estimator._due_pairs)
-#: Covariances recomputed per ``estimate`` beyond new variables' (the rest are the cached ones): in
-#: a 64-camera ring one costs 0.1-3 ms after an update (iSAM2 recomputes the Bayes tree's shortcuts
-#: to the root), all 1,064 up to 300 ms, and a settled variable's covariance barely changes.
-COVARIANCES_PER_ESTIMATE = 8
 MIN_RESECT_MARKERS = 3  # mapped markers a held segment needs for its pose (see Estimator._young_segments)
 HOLD_MAX_NS = 2_000_000_000  # a segment whose pairs do not settle (markers seen now and then) enters anyway
-#: How often the anchors are checked against their observations (ns): ~15 ms at 64 cameras.
-ANCHOR_CHECK_NS = 1_000_000_000
 STATIC_FIT_NS = 30_000_000_000  # how often the static pairs' fit is recomputed while moving frames enter (ns)
 UNKNOWN_IDS_LOGGED = 10  # unknown marker ids named in the log; the rest are counted
-RELINEARIZE_SKIP = (
-    10  # iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same)
-)
+#: iSAM2 checks for relinearisation every this many updates (1: a large cell's p99 doubled; accuracy the same).
+RELINEARIZE_SKIP = 10
 
 
 @dataclass
@@ -106,20 +102,7 @@ class Counters:
     reorders: int = 0  # updates in which iSAM2 re-ordered every variable (``reorder_fill``)
 
 
-def moving_frame(camera_id: str, stamp_ns: int, static: list[Observation], move: int) -> MovingFrame:
-    """A moving camera's frame of static-marker observations, as ``LiveKeyframes`` holds it."""
-    return MovingFrame(
-        camera_id,
-        stamp_ns,
-        np.array([o.marker_id for o in static], dtype=np.int64),
-        np.array([o.camera_T_marker for o in static]).reshape(-1, 4, 4),
-        np.array([o.alternative if o.alternative is not None else o.camera_T_marker for o in static]).reshape(-1, 4, 4),
-        np.array([o.covariance for o in static]).reshape(-1, 6, 6),
-        move,
-    )
-
-
-class Estimator:
+class Estimator(Readout, PairSchedule):
     """Incremental joint estimate of camera and marker poses. Pure: no I/O, no clocks but stamps."""
 
     def __init__(self, config: EstimatorConfig, keep_history: bool = False) -> None:
@@ -809,60 +792,6 @@ class Estimator:
             self.config.huber_k,
         )
 
-    def _young_again(self, key: tuple[CameraKey, int], pair: Pair) -> None:
-        """Schedule a pair with fewer than YOUNG_PAIR observations (new or restarted) as young."""
-        if key not in self._young:
-            self._settled.pop(key, None)
-            self._young[key] = pair
-
-    def _due_pairs(self, now_ns: int) -> list[tuple[tuple[CameraKey, int], Pair]]:
-        """Pairs whose factor should be (re)built now.
-
-        New pairs always; young ones (fewer than ``YOUNG_PAIR`` observations) every refresh_s / 10
-        so a new segment converges within a fraction of a second; settled ones once per refresh_s,
-        the longest unlooked-at first and at most their fair share per update, so refreshes spread
-        over the updates instead of all landing in one (that was the p99 latency), and only if the
-        rebuilt factor would differ (``Pair.factor_is_current``). Costs the young pairs plus the
-        few settled ones looked at, not a pass over every pair (at 2,000 pairs that pass was most
-        of an update).
-        """
-        refresh_ns = int(self.config.refresh_s * 1e9)
-        urgent = []
-        for key, pair in list(self._young.items()):
-            if pair.slot is not None and pair.n >= YOUNG_PAIR:
-                del self._young[key]  # settled: its last refresh counts as a look
-                self._settled[key] = pair
-            elif pair.dirty and (pair.slot is None or now_ns - pair.refreshed_ns >= refresh_ns // 10):
-                urgent.append((key, pair))
-        # A large cell does not rebuild its share of every pair each update: each rebuilt factor costs
-        # iSAM2 a re-elimination, and settled pairs change slowly. Past MAX_MATURE_PER_UPDATE they are
-        # looked at less often than refresh_s (64 cameras x 32 markers: every ~4 s).
-        share = min(
-            max(4, math.ceil(len(self.pairs) / max(self.config.refresh_s * self.config.update_hz, 1.0))),
-            MAX_MATURE_PER_UPDATE,
-        )
-        # At most 2 x share looked at per update (a look costs a Mahalanobis test): the rest wait
-        # at the front, so looks spread over the updates too. A pair with nothing new since its
-        # last refresh counts as looked at.
-        looked, idle = [], []
-        for key, pair in self._settled.items():
-            if now_ns - pair.refreshed_ns < refresh_ns or len(looked) == 2 * share:
-                break
-            (looked if pair.dirty else idle).append((key, pair))
-        current = factors_current(
-            [p for _, p in looked], self.config.max_fused, self.config.refresh_sigma, self.rotation_floor_rad
-        )
-        mature: list[tuple[tuple[CameraKey, int], Pair]] = []
-        for (key, pair), ok in zip(looked, current):
-            if ok:
-                idle.append((key, pair))
-            elif len(mature) < share:
-                mature.append((key, pair))  # moves to the back when rebuilt (update)
-        for key, pair in idle:
-            pair.refreshed_ns = now_ns
-            self._settled.move_to_end(key)
-        return urgent + mature
-
     def relax(self, iterations: int) -> None:
         """Extra iSAM2 iterations without new factors (relinearise and re-solve)."""
         for _ in range(iterations):
@@ -919,144 +848,6 @@ class Estimator:
             for mk in self.seeded
             if new_values.exists(marker_symbol(mk))
         }
-
-    def _pose(self, key: int) -> np.ndarray:
-        return self.values.atPose3(key).matrix()
-
-    def _covariance(self, key: int) -> np.ndarray:
-        return cov_gtsam_to_ros(self.isam.marginalCovariance(key))
-
-    # ------------------------------------------------------------ output
-
-    def estimate(self, now_ns: int, with_covariance: bool = True) -> Estimate:
-        """Current poses and states. ``now_ns`` decides staleness (same clock as the stamps)."""
-        stale_ns = int(self.config.stale_after_s * 1e9)
-        cams: dict[str, CameraEstimate] = {}
-        posed: dict[str, int] = {}  # camera id -> its variable, for those posed by the graph
-        for cid, track in self.tracks.items():
-            key = self._camera_key((cid, track.segment)) if (cid, track.segment) in self.camera_index else None
-            pose = None
-            if track.moving or track.suspect > 0:  # suspect frames are held back: report it at once
-                state = CameraState.MOVING
-                T = self._track_pose(track)
-                pose = None if T is None else PoseEstimate(T, None)
-            elif (cid, track.segment) in self._held:
-                state = CameraState.LOCALIZED
-                pose = PoseEstimate(*self._resect(self._mapped_pairs((cid, track.segment))))
-                self._resected[(cid, track.segment)] = pose.T
-            elif key is not None and key in self.in_graph:
-                state = CameraState.LOCALIZED
-                pose = PoseEstimate(self._pose(key), None)  # its covariance below, with the markers'
-                posed[cid] = key
-            else:
-                state = CameraState.UNANCHORED
-            if now_ns - track.last_stamp_ns > stale_ns:
-                state = CameraState.STALE
-            cams[cid] = CameraEstimate(cid, state, track.segment, track.last_stamp_ns, track.markers_seen, pose)
-        marker_keys = [key for key in sorted(self.in_graph) if gtsam.Symbol(key).chr() == ord("m")]
-        if with_covariance:
-            covs = self._covariances(list(posed.values()) + marker_keys)
-            for cid, key in posed.items():
-                cams[cid] = replace(cams[cid], pose=PoseEstimate(cams[cid].pose.T, covs[key]))
-        else:
-            covs = {}
-        markers = {gtsam.Symbol(key).index(): PoseEstimate(self._pose(key), covs.get(key)) for key in marker_keys}
-        if now_ns - self._flagged[0] >= ANCHOR_CHECK_NS or now_ns < self._flagged[0]:
-            self._flagged = (now_ns, self._flagged_anchors())
-        return Estimate(cams, markers, self._object_markers(cams), self._flagged[1])
-
-    def _covariances(self, keys: list[int]) -> dict[int, np.ndarray]:
-        """Covariances (6x6, ROS order) of the variables ``keys``: new ones computed now, and the next
-        COVARIANCES_PER_ESTIMATE of the rest in turn; the others as last computed (at most
-        len(keys) / COVARIANCES_PER_ESTIMATE estimates old: a camera that moved is a new variable)."""
-        cache = self._cov
-        for key in [k for k in cache if k not in self.in_graph]:
-            del cache[key]
-        due = [k for k in keys if k not in cache]
-        if len(keys) > len(due):
-            start = self._cov_next % len(keys)
-            turn = (keys[start:] + keys[:start])[:COVARIANCES_PER_ESTIMATE]
-            self._cov_next = start + len(turn)
-            due += [k for k in turn if k in cache]
-        for key in due:
-            cache[key] = self._covariance(key)
-        return {k: cache[k] for k in keys}
-
-    def _track_pose(self, track: CameraTrack) -> np.ndarray | None:
-        """Pose of a moving camera from its newest frame against the mapped markers (not in the
-        graph), placed as a moving frame is (``place_frame``: full marker poses, not a fit of their
-        centres, which markers along a line or a shallow arc, a ring's seen from inside, leave free
-        to turn about it, metres off at the camera); one marker, or none agreeing: all of them."""
-        mapped = [o for k, o in track.latest.items() if marker_symbol(k) in self.in_graph]
-        frame = moving_frame(track.camera_id, track.last_stamp_ns, mapped, 0)
-        if not len(frame.ids):
-            return None
-        world = self._mapped(frame.ids)
-        placed = place_frame(frame, world, self.rotation_floor_rad)
-        if placed is not None:
-            return placed.world_T_camera
-        return resect(
-            np.stack(list(world.values())),
-            np.zeros_like(frame.covariances),
-            frame.poses,
-            frame.covariances,
-            self.config.huber_k,
-        )[0]
-
-    def _mapped(self, ids: np.ndarray) -> dict[int, np.ndarray]:
-        """world_T_marker of those of ``ids`` in the graph."""
-        return {int(mk): self._pose(marker_symbol(int(mk))) for mk in ids if marker_symbol(int(mk)) in self.in_graph}
-
-    def _object_markers(self, cams: dict[str, CameraEstimate]) -> dict[int, PoseEstimate]:
-        """Newest pose of each object marker, through the camera that sees it best."""
-        best: BestView[int, PoseEstimate] = BestView()
-        for cid, track in self.tracks.items():
-            cam = cams.get(cid)
-            if cam is None or cam.state is not CameraState.LOCALIZED or cam.pose is None:
-                continue
-            for mk, obs in track.latest.items():
-                if mk not in self.object_markers:
-                    continue
-                cam_cov = cam.pose.covariance if cam.pose.covariance is not None else np.zeros((6, 6))
-                T, cov = through_camera(cam.pose.T, cam_cov, obs.camera_T_marker, obs.covariance)
-                best.offer(mk, cov, PoseEstimate(T, cov))
-        return {mk: best.pop(mk) for mk in best.keys()}
-
-    def _flagged_anchors(self) -> list[int]:
-        """Anchors whose observations disagree with their surveyed pose (moved since the survey).
-
-        Per camera, every reference it sees (an anchor's surveyed pose, a mapped marker's
-        estimate) implies a camera pose through its observation: reference @ inv(camera_T_marker).
-        The largest group of references that agree (within ``anchor_check_m``) is the consensus;
-        an anchor outside it is flagged. Full poses, not marker centres: markers on one line would
-        leave a point fit free to rotate about it and blame the wrong anchor.
-        """
-        flagged: set[int] = set()
-        by_cam: dict[CameraKey, dict[int, Pair]] = {}
-        for (cam, mk), pair in self.pairs.items():
-            if pair.n > 0 and mk not in self.object_markers:
-                by_cam.setdefault(cam, {})[mk] = pair
-        tol = self.config.anchor_check_m
-        for seen in by_cam.values():
-            if not any(mk in self.anchors for mk in seen):
-                continue
-            ids, implied = [], []
-            for mk, pair in seen.items():
-                ref = self.anchors.get(mk)
-                if ref is None and marker_symbol(mk) in self.in_graph:
-                    ref = self._pose(marker_symbol(mk))
-                if ref is not None:
-                    ids.append(mk)
-                    implied.append((ref @ invert_pose(pair.mean()))[:3, 3])
-            if len(ids) < 3:
-                continue
-            P = np.array(implied)  # (k, 3) camera positions, one per reference; all pairs at once
-            agree = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2) <= tol
-            consensus = agree[int(np.argmax(agree.sum(axis=1)))]  # the first largest group, as before
-            if consensus.sum() * 2 <= len(ids):
-                continue  # no majority: cannot tell which anchor moved
-            flagged |= {mk for mk, ok in zip(ids, consensus) if mk in self.anchors and not ok}
-        return sorted(flagged)
 
     # ------------------------------------------------------------ for tests and the offline solver
 

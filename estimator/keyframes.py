@@ -36,6 +36,7 @@ import gtsam
 import numpy as np
 
 from estimator.config import KeyframeConfig
+from estimator.observation import Observation
 from estimator.resect import implied_d2, resect
 from estimator.symbols import keyframe_symbol, marker_symbol
 from estimator.variance import Fit, inflation
@@ -370,3 +371,16 @@ class LiveKeyframes:
             remove.extend(f.slot for f in frame.factors)
             dropped.append(frame.key)
         return dropped
+
+
+def moving_frame(camera_id: str, stamp_ns: int, static: list[Observation], move: int) -> MovingFrame:
+    """A moving camera's frame of static-marker observations, as ``LiveKeyframes`` holds it."""
+    return MovingFrame(
+        camera_id,
+        stamp_ns,
+        np.array([o.marker_id for o in static], dtype=np.int64),
+        np.array([o.camera_T_marker for o in static]).reshape(-1, 4, 4),
+        np.array([o.alternative if o.alternative is not None else o.camera_T_marker for o in static]).reshape(-1, 4, 4),
+        np.array([o.covariance for o in static]).reshape(-1, 6, 6),
+        move,
+    )

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
+from cellsight.evaluation.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
 from estimator.service import ClockJumps, EstimatorService
 from schemas import codec, keys

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
+from cellsight.evaluation.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from estimator.service import EstimatorService
 from schemas import keys
 from schemas.bus import Bus, TransportConfig

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cellsight.evaluation.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from cellsight.record import Recorder
 from cellsight.status import StatusBoard
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
 from estimator.service import EstimatorService
 from schemas import keys

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from cellsight.config import CellConfig, load_config
 from cellsight.errors import ConfigError
 from cellsight.model_build import build_database
-from cellsight.recognize_cmd import load_scene
+from cellsight.scene_files import load_scene
 from drivers.errors import ScenarioError
 from drivers.sim.scenario import DEMO_CELL, Scenario, load_scenario
 from estimator.errors import StateFileError
@@ -358,7 +358,7 @@ def test_cli_arguments_give_an_exit_code_never_a_traceback(junk_files: tuple[str
 @functools.cache
 def _bus_payloads() -> dict[str, tuple[type, bytes]]:
     """One valid payload of each message the services subscribe to, by name."""
-    from cellsight.synthetic import observations_msg
+    from cellsight.evaluation.synthetic import observations_msg
     from estimator.observation import Observation
     from schemas import codec
 

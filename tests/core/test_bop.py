@@ -1,4 +1,4 @@
-"""BOP-format datasets (``cellsight.bop``): written and read back, recognised from their files in
+"""BOP-format datasets (``cellsight.evaluation.bop``): written and read back, recognised from their files in
 millimetres, scored, and refused with a clear error when malformed."""
 
 from __future__ import annotations
@@ -11,8 +11,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellsight.bop import ADDS_SHARE, BopDataset, BopInstance, BopWriter, adds_m, depth_of_organised, object_id, score
 from cellsight.errors import DatasetError
+from cellsight.evaluation.bop import (
+    ADDS_SHARE,
+    BopDataset,
+    BopInstance,
+    BopWriter,
+    adds_m,
+    depth_of_organised,
+    object_id,
+    score,
+)
 from recognition.cloud import depth_to_cloud, read_coloured_cloud
 from recognition.config import RecognitionConfig
 from recognition.models import ModelDatabase
@@ -309,7 +318,7 @@ def test_a_world_pose_whose_z_is_not_up_is_set_aside(demo_dataset) -> None:
     pose stands every object on a horizontal axis and finds none; ``level_world_pose`` keeps the true
     pose (the table is level in it) and sets the turned one aside, and without it every object is
     found (ADD-S under 0.1 d)."""
-    from cellsight.bop import level_world_pose
+    from cellsight.evaluation.bop import level_world_pose
     from cellsight.model_build import build_database
 
     root, _, _ = demo_dataset

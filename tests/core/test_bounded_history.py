@@ -12,7 +12,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from cellsight.synthetic import ViewBiases
+from cellsight.evaluation.synthetic import ViewBiases
 from estimator.config import AnchorConfig, EstimatorConfig
 from estimator.estimate import CameraState
 from estimator.graph import Estimator, marker_symbol

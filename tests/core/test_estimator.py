@@ -1,6 +1,6 @@
 """The estimator core on small synthetic scenes with known answers (gtsam test style).
 
-Observations come from ``cellsight.synthetic``: true poses plus noise drawn from the marker
+Observations come from ``cellsight.evaluation.synthetic``: true poses plus noise drawn from the marker
 front-end's covariance model. Tolerances are a few sigma of the expected accuracy.
 """
 
@@ -12,7 +12,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from cellsight.synthetic import NoiseSettings, estimator_config, flip, frame_observations
+from cellsight.evaluation.synthetic import NoiseSettings, estimator_config, flip, frame_observations
 from drivers.markers import covariance_model
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
 from estimator.estimate import CameraState, through_camera

@@ -12,7 +12,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from cellsight.synthetic import ViewBiases
+from cellsight.evaluation.synthetic import ViewBiases
 from estimator.config import KeyframeConfig
 from estimator.graph import Estimator, marker_symbol
 from schemas.geometry import cov_ros_to_gtsam, make_pose, rpy_matrix

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from benchmarks.offline_vs_online import upper_bound_95
-from cellsight.synthetic import NoiseSettings, demo, estimator_config, flip, frame_observations, observations_msg
+from cellsight.evaluation.synthetic import (
+    NoiseSettings,
+    demo,
+    estimator_config,
+    flip,
+    frame_observations,
+    observations_msg,
+)
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, Scenario
 from estimator.config import LinkConfig
 from estimator.graph import Estimator, camera_symbol

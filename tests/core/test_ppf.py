@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recognition import ppf
+from benchmarks import ppf
 from schemas.geometry import rpy_matrix
 
 

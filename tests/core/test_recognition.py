@@ -955,7 +955,7 @@ def test_a_mug_whose_handle_the_frame_hides_is_taken_turned_to_hide_it(tmp_path:
     ``min_visible_fitness``); the resolution judges it turned about its upright axis, each turn
     fitted to the frame's depth, and takes the one the sensor sees through least, its red judged:
     the handle back behind the body (within 30 deg of the true one), ADD-S under 0.1 d."""
-    from cellsight.bop import adds_m
+    from cellsight.evaluation.bop import adds_m
     from drivers.sim.render import SimCell, object_mesh
     from drivers.sim.scenario import load_scenario
     from drivers.sim.shapes import shapes
@@ -1014,7 +1014,7 @@ def test_a_curved_object_open3ds_steps_run_off_is_found_by_damped_ones_and_its_c
     from cam3 ~2 m away: Open3D's steps lose it (nothing they screen passes). The start with the
     most overlap is screened again with damped steps, and with the frame's colour judged on it the
     duck is found within ADD-S 0.1 d (of the four shapes' database)."""
-    from cellsight.bop import adds_m
+    from cellsight.evaluation.bop import adds_m
     from drivers.sim.render import SimCell, object_mesh
     from drivers.sim.scenario import load_scenario
     from drivers.sim.shapes import shapes
@@ -1046,7 +1046,7 @@ def test_on_depth_alone_a_shape_another_fits_as_well_is_not_reported_as_that_oth
     colour, the four shapes in the database: at that range the cone's fit, ranked first, verifies
     on the duck's pixels too. Of two objects that verification accepts on the same pixels, one is
     taken only if it explains half as many again: the duck, or nothing, never the cone."""
-    from cellsight.bop import adds_m
+    from cellsight.evaluation.bop import adds_m
     from drivers.sim.render import SimCell, object_mesh
     from drivers.sim.scenario import load_scenario
     from drivers.sim.shapes import shapes
@@ -1083,7 +1083,7 @@ def found_packed(
     (shape, size m, x, y, yaw: grey boxes, grey-green cylinders, as ``benchmarks.recognition``'s
     distractors), rendered from ``camera`` with noise ``seed`` and recognised with colour: whether
     ``object_id`` was found, and its ADD-S over its diameter (inf if not)."""
-    from cellsight.bop import adds_m
+    from cellsight.evaluation.bop import adds_m
     from cellsight.model_build import database_from_scenario
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import ObjectSpec, load_scenario
@@ -1190,7 +1190,7 @@ def test_with_free_with_pose_an_object_not_standing_on_its_base_is_found_in_a_po
     whose world pose is known, as a dataset's frame may be: the cell's reading (every object stands
     on its +z) finds nothing; with ``free_with_pose`` it is also tried any way up, resting on the
     table, and found within ADD-S 0.1 d."""
-    from cellsight.bop import adds_m
+    from cellsight.evaluation.bop import adds_m
     from drivers.sim.render import SimCell, object_mesh
     from drivers.sim.scenario import load_scenario
     from drivers.sim.shapes import shapes
@@ -1255,7 +1255,7 @@ def test_an_object_cut_in_half_by_the_frame_border_is_found(cam: str, object_id:
     """The demo frame cut at the object's centre column, the left part kept: half of the object's
     facing surface lies beyond the border, where no camera could see it. Looked for only inside the
     image, the half in it is enough (counted over the whole object, it explained too little)."""
-    from cellsight.bop import ADDS_SHARE, adds_m
+    from cellsight.evaluation.bop import ADDS_SHARE, adds_m
     from cellsight.model_build import database_from_scenario
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
@@ -1286,7 +1286,7 @@ def test_objects_lying_on_their_side_are_found_in_a_close_frame_without_a_pose(c
     the camera's own frame with colour: tried lying on the level plane on each side
     (`rest_on_sides`), every one is found within ADD-S 0.1 d (tried only free and standing, cam2's
     tote and cam4's can were not)."""
-    from cellsight.bop import ADDS_SHARE, adds_m
+    from cellsight.evaluation.bop import ADDS_SHARE, adds_m
     from cellsight.model_build import database_from_scenario
     from drivers.sim.render import SimCell
     from drivers.sim.scenario import load_scenario
@@ -1339,7 +1339,7 @@ def test_a_recognition_picture_draws_the_found_object_where_the_scene_shows_it(
     from typer.testing import CliRunner
 
     from cellsight.cli import app
-    from cellsight.pictures import draw_recognition
+    from cellsight.evaluation.pictures import draw_recognition
     from recognition.verify import VIRTUAL_K, VIRTUAL_SIZE
 
     db = tmp_path / "db"

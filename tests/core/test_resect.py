@@ -6,7 +6,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from cellsight.synthetic import perturb
+from cellsight.evaluation.synthetic import perturb
 from estimator.resect import resect
 from schemas.geometry import cov_gtsam_to_ros, cov_ros_to_gtsam, invert_pose, look_at_matrix, make_pose, rpy_matrix
 from tests.helpers import assert_pose_close

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cellsight.synthetic import perturb
+from cellsight.evaluation.synthetic import perturb
 from estimator.variance import Fit, chi2_quantile, inflation, pose_fit
 from schemas.geometry import make_pose, rpy_matrix
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellsight.evaluation import STATE_NAMES, load_run
+from cellsight.evaluation.truth import STATE_NAMES, load_run
 from tests.helpers import logged_messages
 
 pytestmark = pytest.mark.slow

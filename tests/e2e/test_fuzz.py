@@ -14,11 +14,11 @@ import pytest
 
 from benchmarks.fuzz import generate
 from cellsight.config import CellConfig
+from cellsight.evaluation.resolve_report import run_resolve
+from cellsight.evaluation.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from cellsight.record import Recorder
-from cellsight.resolve_report import run_resolve
 from cellsight.scenario_config import cell_config_of
 from cellsight.status import StatusBoard
-from cellsight.synthetic import NoiseSettings, estimator_config, frame_observations, observations_msg
 from drivers.sim.scenario import CameraSpec, MarkerSpec, Scenario
 from estimator.service import EstimatorService
 from schemas import keys

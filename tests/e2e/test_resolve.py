@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from cellsight.config import CellConfig
+from cellsight.evaluation.resolve_report import peek_config, run_resolve
+from cellsight.evaluation.synthetic import NoiseSettings, ViewBiases, frame_observations, observations_msg
 from cellsight.record import Recorder
-from cellsight.resolve_report import peek_config, run_resolve
 from cellsight.scenario_config import cell_config_of
-from cellsight.synthetic import NoiseSettings, ViewBiases, frame_observations, observations_msg
 from drivers.replay import replay
 from drivers.sim.scenario import CameraMotion, CameraSpec, MarkerSpec, ObjectMotion, ObjectSpec, Scenario
 from estimator.config import KeyframeConfig

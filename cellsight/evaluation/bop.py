@@ -24,7 +24,7 @@ import numpy as np
 import open3d as o3d
 
 from cellsight.errors import DatasetError
-from cellsight.recognize_cmd import read_depth_image, read_registered_rgb
+from cellsight.scene_files import read_depth_image, read_registered_rgb
 from recognition.cloud import depth_to_cloud
 from recognition.errors import CloudError
 from recognition.pipeline import Recognizer, support_plane

@@ -1,5 +1,5 @@
 """The demo's summary (``summary.json``, ``summary.md``, pictures) from a run's log, through
-``cellsight.evaluation``."""
+``cellsight.evaluation.truth``."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cellsight.evaluation import (
+from cellsight.evaluation.truth import (
     CameraSummary,
     MarkerSummary,
     ObjectSummary,

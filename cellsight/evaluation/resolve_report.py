@@ -6,7 +6,7 @@
     DIR/resolve.json          the figures behind the report
     DIR/config.toml           the configuration used
 
-Ground truth (``truth/`` keys, present in simulator logs) is read only by ``cellsight.evaluation``,
+Ground truth (``truth/`` keys, present in simulator logs) is read only by ``cellsight.evaluation.truth``,
 from the same single pass; the solve never sees it.
 """
 
@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from cellsight.config import CellConfig, parse_config, save_used
-from cellsight.evaluation import (
+from cellsight.evaluation.report import draw_ellipse
+from cellsight.evaluation.truth import (
     MATCH_GAP_NS,
     CameraFigures,
     LogEvidence,
@@ -34,7 +35,6 @@ from cellsight.evaluation import (
     marker_error_p50,
     moving_vs_truth,
 )
-from cellsight.report import draw_ellipse
 from estimator.offline.outputs import segment_at
 from estimator.offline.pipeline import resolve_log
 from estimator.offline.solve import ResolveResult
