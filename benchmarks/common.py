@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
@@ -124,6 +125,12 @@ def main(
     parser = argparse.ArgumentParser(prog=f"python -m benchmarks.{name}", description=description)
     parser.add_argument("--quick", action="store_true", help="a smaller run that finishes within a minute")
     parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
+    parser.add_argument(
+        "--record",
+        action="store_true",
+        help=f"keep the run in {RESULTS.relative_to(RESULTS.parents[1])}/ (figures, machine, date, commit, command): "
+        "docs/performance.md is generated from there (python -m benchmarks.report)",
+    )
     if extra_args:
         extra_args(parser)
     args = parser.parse_args()
@@ -143,3 +150,49 @@ def main(
     console.print(f"machine: {machine()}")
     if args.json:
         args.json.write_text(json.dumps({**figures, "machine": machine(), "quick": args.quick}, indent=2))
+    if args.record:
+        path = record(name, figures, quick=args.quick, argv=[a for a in sys.argv[1:] if a != "--record"])
+        console.print(f"recorded in {path}")
+
+
+@dataclass(frozen=True)
+class Row:
+    """One figure as ``docs/performance.md`` shows it: what it measures (``{name}`` placeholders take
+    other figures of the same run), what it is judged against, and whether it met that (None: no
+    target, the row informs)."""
+
+    figure: str
+    what: str
+    target: str = "-"
+    met: Callable[[float], bool] | None = None
+
+
+#: Where recorded runs are kept; ``docs/performance.md`` is generated from them.
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
+
+
+def record(name: str, figures: dict[str, float], quick: bool, argv: list[str]) -> Path:
+    """Keep one run's figures in ``RESULTS/NAME.json`` (``NAME-quick.json`` for ``--quick``) with
+    what is needed to judge them: the machine, the date (UTC), the commit (``+dirty`` when the tree
+    had changes) and the command."""
+    import datetime as dt
+
+    def git(*cmd: str) -> str:
+        out = subprocess.run(["git", *cmd], cwd=RESULTS.parents[1], capture_output=True, text=True)
+        return out.stdout.strip() if out.returncode == 0 else ""
+
+    commit = (git("rev-parse", "--short", "HEAD") or "unknown") + (
+        "+dirty" if git("status", "--porcelain", "-uno") else ""
+    )
+    run = {
+        "benchmark": name,
+        "command": " ".join([f"python -m benchmarks.{name}", *argv]),
+        "commit": commit,
+        "date": dt.datetime.now(dt.UTC).date().isoformat(),
+        "machine": machine(),
+        "figures": figures,
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}{'-quick' if quick else ''}.json"
+    path.write_text(json.dumps(run, indent=1) + "\n")
+    return path

@@ -127,3 +127,24 @@ def test_no_page_under_docs_runs_past_400_lines() -> None:
         if (n := len(p.read_text().splitlines())) > 400
     }
     assert not long, long
+
+
+def test_the_performance_page_is_what_the_recorded_runs_give() -> None:
+    """docs/performance.md is generated from docs/results/ (python -m benchmarks.report); a figure
+    typed into it, or a recorded run not yet written out, fails here."""
+    from benchmarks.report import PAGE, generate
+
+    assert PAGE.read_text() == generate(), "docs/performance.md is stale: run python -m benchmarks.report"
+
+
+def test_every_recorded_figure_is_one_its_benchmark_prints() -> None:
+    import json
+
+    from benchmarks.common import RESULTS
+
+    for path in RESULTS.glob("*.json"):
+        run = json.loads(path.read_text())
+        assert {"benchmark", "command", "commit", "date", "machine", "figures"} <= run.keys(), path
+        source = (ROOT / "benchmarks" / f"{run['benchmark']}.py").read_text()
+        for key in run["figures"]:
+            assert any(p.fullmatch(key) for p in printed_keys(source)), f"{path.name}: {key} is not printed"
