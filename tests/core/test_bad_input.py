@@ -32,9 +32,10 @@ from recognition.cloud import read_cloud, read_coloured_cloud
 from recognition.config import DescriptorConfig
 from recognition.errors import CloudError, ModelError
 from recognition.models import model_from_cloud, model_from_mesh, model_from_points, read_mesh
+from tests.conftest import REAL_DATA
 from tests.core.test_config import EXAMPLE
 
-PCL = Path(__file__).resolve().parents[3] / "shared" / "data" / "pcl"
+PCL = REAL_DATA / "pcl"
 HERE = Path(__file__).resolve().parent
 
 

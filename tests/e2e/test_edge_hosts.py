@@ -145,6 +145,9 @@ def test_an_edge_hosts_camera_localises_across_the_link_and_survives_it_dropping
             tmp_path / "recorder.log",
         )
         procs.append(recorder)
+        # Heard before the link drops, or there is no silence to mark: the recorder's file appears once
+        # it has started (its imports took over 3 s on a loaded machine), then a few statuses come.
+        wait_until(lambda: (tmp_path / "cell.mcap").exists(), 60.0, "the recorder to start")
         time.sleep(3.0)
         ip("-n", edge, "link", "set", EDGE_DEV, "down")
         down_at = time.monotonic()
