@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import demo_cell_text, main
+from benchmarks.common import Row, demo_cell_text, main
 from schemas import codec, keys
 from schemas.bus import Bus, TransportConfig, open_session
 
@@ -234,6 +234,31 @@ def _role(argv: list[str]) -> None:
         reader(endpoint, shm, secs)
     else:
         router(endpoint, shm, secs)
+
+
+#: The rows of ``docs/performance.md`` this benchmark's recorded runs give.
+ROWS = (
+    Row(
+        "shm_cpu_s_per_s_total",
+        "4 cameras x 30 Hz of VGA RGB-D through the router to 2 decoding readers, CPU seconds "
+        "per second of every process, shared memory (plain bytes in the same run: {plain_cpu_s_per_s_total})",
+    ),
+    Row("plain_over_shm_cpu_ratio", "plain bytes over shared memory, CPU", ">= 1", lambda v: v >= 1),
+    Row("shm_images_received_pct", "images the readers received, shared memory", "100", lambda v: v >= 100),
+    Row(
+        "cross_host_bytes_per_s_per_camera",
+        "an edge host's simulated camera at 30 Hz, bytes a second crossing the "
+        "link to the cell host with images kept on the edge (markers, camera info, status); everything sent, same run: "
+        "{cross_host_everything_bytes_per_s_per_camera}",
+        "< 1 MB/s",
+        lambda v: v < 1e6,
+    ),
+    Row(
+        "cross_host_recorded_bytes_per_s_per_camera",
+        "the same with the cell host's recorder keeping 2 images a second "
+        "(`run --record`'s default): it subscribes to a camera's images only while one is due",
+    ),
+)
 
 
 if __name__ == "__main__":
