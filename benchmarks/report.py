@@ -34,12 +34,12 @@ recognition reads it.
 
 
 def value(v: float) -> str:
-    """A figure as the table prints it: integers whole, other numbers to four significant digits."""
+    """A figure as the table prints it: integers and numbers from 1,000 on whole, others to four significant digits."""
     if isinstance(v, str):
         return v
     if isinstance(v, bool) or (isinstance(v, (int, float)) and float(v).is_integer() and abs(v) < 1e15):
         return f"{int(v):,}"
-    return f"{v:.4g}"
+    return f"{v:,.0f}" if abs(v) >= 1000 else f"{v:.4g}"
 
 
 def section(run: dict, rows: tuple[Row, ...]) -> str:
