@@ -158,13 +158,16 @@ def main(
 @dataclass(frozen=True)
 class Row:
     """One figure as ``docs/performance.md`` shows it: what it measures (``{name}`` placeholders take
-    other figures of the same run), what it is judged against, and whether it met that (None: no
-    target, the row informs)."""
+    other figures of the same run), what it is judged against, whether it met that (None: no
+    target, the row informs), and which figures say the option it judges acted at all."""
 
     figure: str
     what: str
     target: str = "-"
     met: Callable[[float], bool] | None = None
+    #: Figures counting what the option under test did in the run (instants, frames entered): a row
+    #: none of them counts is "not exercised", neither met nor missed.
+    exercised: tuple[str, ...] = ()
 
 
 #: Where recorded runs are kept; ``docs/performance.md`` is generated from them.

@@ -59,7 +59,10 @@ def section(run: dict, rows: tuple[Row, ...]) -> str:
     for row in rows:
         if row.figure not in figures:
             raise KeyError(f"{name}: ROWS names {row.figure!r}, which the recorded run does not hold")
-        met = "-" if row.met is None else ("yes" if row.met(figures[row.figure]) else "**no**")
+        if row.exercised and not any(figures.get(k, 0) > 0 for k in row.exercised):
+            met = "not exercised"
+        else:
+            met = "-" if row.met is None else ("yes" if row.met(figures[row.figure]) else "**no**")
         what = row.what.format_map(shown)
         lines.append(f"| `{row.figure}` | {what} | **{shown[row.figure]}** | {row.target} | {met} |")
     return "\n".join(lines) + "\n"
