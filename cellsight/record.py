@@ -31,7 +31,7 @@ from cellsight.errors import RunError
 from schemas import codec, keys
 from schemas import messages as m
 from schemas.bus import Bus
-from schemas.errors import DecodeError, SchemaError
+from schemas.errors import SchemaError
 from schemas.log import Gap, LogWriter, stamp_of
 
 log = logging.getLogger(__name__)
@@ -156,10 +156,9 @@ class Recorder:
                 )
 
     def _refuse(self, key: str, exc: SchemaError) -> None:
-        reason = exc.reason if isinstance(exc, DecodeError) else "malformed"
         with self._refuse_lock:
             self.bad[key] += 1
-            self.refused[key, reason] += 1
+            self.refused[key, exc.reason] += 1
             first = self.bad[key] == 1
         if first:  # once per key: a flood must not flood the log
             log.warning("not recording a message on %s: %s (further ones on this key are only counted)", key, exc)

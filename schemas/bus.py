@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import keys
 from schemas.codec import check_on_key, decode
-from schemas.errors import BusError, DecodeError, KeyError_, SchemaError
+from schemas.errors import BusError, KeyError_, SchemaError
 from schemas.limits import DEFAULT_LIMITS, WireLimits
 
 log = logging.getLogger(__name__)
@@ -257,7 +257,7 @@ class Subscription(Generic[Msg]):
             check_on_key(msg, parsed.camera, now_ns, self._limits)
             item = Received(key, msg, now_ns)
         except SchemaError as exc:
-            self._count_bad(key, str(exc), exc.reason if isinstance(exc, DecodeError) else "malformed")
+            self._count_bad(key, str(exc), exc.reason)
             return
         with self._lock:
             self.received += 1

@@ -100,50 +100,39 @@ def check_covariance(cov: np.ndarray, what: str = "covariance", limits: WireLimi
     return _checked_covariances(cov.reshape(1, 36), [what], limits)[0]
 
 
-def covariance_problems(rows: np.ndarray, limits: WireLimits | None = DEFAULT_LIMITS) -> list[tuple[int, str]]:
-    """(row, what is wrong) for each bad covariance of ``rows`` (N, 36), in row order: non-finite,
-    not symmetric, not positive definite, then (with ``limits``) a standard deviation outside
-    ``[min_sigma, max_sigma]`` (the first of these per row). Empty when all are good."""
+def covariance_problems(rows: np.ndarray, limits: WireLimits | None = DEFAULT_LIMITS) -> list[tuple[int, str, str]]:
+    """(row, what is wrong, reason) for each bad covariance of ``rows`` (N, 36), in row order:
+    non-finite, not symmetric, not positive definite, then (with ``limits``) a standard deviation
+    outside ``[min_sigma, max_sigma]`` (the first of these per row; the reason one of
+    ``schemas.limits.REASONS``). Empty when all are good."""
     cov = rows.reshape(-1, 6, 6)
     finite = np.all(np.isfinite(rows), axis=1)
     c = np.where(finite[:, None, None], cov, np.eye(6))  # rows already flagged are checked as identity
     asym = np.abs(c - c.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-6 * np.abs(c).max(axis=(1, 2)) + 1e-12
     c = np.where(asym[:, None, None], np.eye(6), c)
-    not_pd = np.zeros(len(c), bool)
-    try:
-        np.linalg.cholesky(c)  # one batched factorisation; only on failure a per-row look
-    except np.linalg.LinAlgError:
+    floor = 0.0 if limits is None else limits.min_sigma**2
+    not_pd = too_sharp = np.zeros(len(c), bool)
+    try:  # one batched factorisation: positive definite, and (with limits) no direction sharper than min_sigma
+        np.linalg.cholesky(c - floor * np.eye(6))
+    except np.linalg.LinAlgError:  # only then a per-row look
         smallest = np.linalg.eigvalsh(c).min(axis=1)
-        not_pd = smallest <= 0
-        not_pd[int(np.argmin(smallest))] = True  # Cholesky failed: at least the least definite one
-    why = [(~finite, "contains NaN or inf"), (asym, "not symmetric"), (not_pd, "not positive definite")]
-    bad = ~finite | asym | not_pd
+        not_pd, too_sharp = smallest <= 0, (smallest <= floor) & (smallest > 0)
+        if not (not_pd | too_sharp).any():  # Cholesky failed: at least the least definite one
+            (too_sharp if floor else not_pd)[int(np.argmin(smallest))] = True
+    why = [
+        (~finite, "contains NaN or inf", "not_finite"),
+        (asym, "not symmetric", "covariance"),
+        (not_pd, "not positive definite", "covariance"),
+    ]
     if limits is not None:
-        c = np.where(bad[:, None, None], np.eye(6) * limits.min_sigma, c)
-        out = _sigma_out_of_bounds(c, limits)
-        why.append(
-            (
-                out,
-                f"a standard deviation outside [{limits.min_sigma:g}, {limits.max_sigma_m:g} m / {limits.max_sigma_rad:g} rad]",
-            )
+        diag = np.einsum("nii->ni", c)
+        too_wide = (diag[:, :3] > limits.max_sigma_m**2).any(axis=1) | (diag[:, 3:] > limits.max_sigma_rad**2).any(
+            axis=1
         )
-        bad |= out
-    return [(i, next(say for mask, say in why if mask[i])) for i in np.flatnonzero(bad).tolist()]
-
-
-def _sigma_out_of_bounds(c: np.ndarray, limits: WireLimits) -> np.ndarray:
-    """Which of the symmetric positive-definite covariances ``c`` (N, 6, 6; ROS order) claim a
-    standard deviation below ``min_sigma`` along any direction (their smallest eigenvalue, by one
-    batched Cholesky of ``c - min_sigma^2 I``) or above the largest allowed on the diagonal."""
-    diag = np.einsum("nii->ni", c)
-    too_wide = (diag[:, :3] > limits.max_sigma_m**2).any(axis=1) | (diag[:, 3:] > limits.max_sigma_rad**2).any(axis=1)
-    floor = limits.min_sigma**2 * np.eye(6)
-    too_sharp = np.zeros(len(c), bool)
-    try:
-        np.linalg.cholesky(c - floor)
-    except np.linalg.LinAlgError:
-        too_sharp = np.linalg.eigvalsh(c).min(axis=1) <= limits.min_sigma**2
-    return too_wide | too_sharp
+        bounds = f"[{limits.min_sigma:g}, {limits.max_sigma_m:g} m / {limits.max_sigma_rad:g} rad]"
+        why.append((too_sharp | too_wide, f"a standard deviation outside {bounds}", "covariance"))
+    bad = np.logical_or.reduce([mask for mask, _, _ in why])
+    return [next((i, say, reason) for mask, say, reason in why if mask[i]) for i in np.flatnonzero(bad).tolist()]
 
 
 def _checked_covariances(
@@ -152,8 +141,8 @@ def _checked_covariances(
     """Covariances (N, 6, 6) from ``rows`` (N, 36); the first bad one raises ``DecodeError`` named by ``what``."""
     problems = covariance_problems(rows, limits)
     if problems:
-        i, why = problems[0]
-        raise DecodeError(f"{what[i]}: {why}", "not_finite" if "NaN" in why else "covariance")
+        i, why, reason = problems[0]
+        raise DecodeError(f"{what[i]}: {why}", reason)
     return rows.reshape(-1, 6, 6)
 
 
@@ -611,8 +600,8 @@ def marker_problems(f: MarkerFields, limits: WireLimits = DEFAULT_LIMITS) -> lis
         "out_of_bounds",
         lambda i: f"marker {ids[i]} camera_T_marker: position {r[i, 6:9].tolist()} beyond {limits.max_position_m:g} m",
     )
-    for i, why in covariance_problems(f.covariances, limits):
-        found.setdefault(i, (f"marker {ids[i]} covariance: {why}", "not_finite" if "NaN" in why else "covariance"))
+    for i, why, reason in covariance_problems(f.covariances, limits):
+        found.setdefault(i, (f"marker {ids[i]} covariance: {why}", reason))
     return [(i, why, reason) for i, (why, reason) in sorted(found.items())]
 
 

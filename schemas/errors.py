@@ -2,7 +2,10 @@
 
 
 class SchemaError(Exception):
-    """Root of every error raised by ``schemas`` (bad keys, undecodable payloads, bad arrays)."""
+    """Root of every error raised by ``schemas`` (bad keys, undecodable payloads, bad arrays).
+    ``reason``: what receivers count a refusal by (``schemas.limits.REASONS``)."""
+
+    reason = "malformed"
 
 
 class KeyError_(SchemaError, ValueError):

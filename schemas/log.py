@@ -12,6 +12,7 @@ import io
 import logging
 import struct
 import zlib
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,9 +164,8 @@ class ReadReport:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # MCAP metadata records by name
     unknown_keys: set[str] = field(default_factory=set)
     stopped_early: str | None = None  # where and why the log could not be read further
-    refused: dict[tuple[str, str], int] = field(
-        default_factory=dict
-    )  # (key, reason) -> messages skipped as implausible
+    #: (key, reason) -> messages skipped as a live receiver would have refused them
+    refused: Counter[tuple[str, str]] = field(default_factory=Counter)
 
     def gaps(self) -> list[Gap]:
         """The silences the recorder marked (metadata records ``gap/<camera>/<from_ns>``), oldest first."""
@@ -310,7 +310,7 @@ def read_log(
                         codec.check_on_key(msg, parsed.camera, record.log_time, limits)
                     except DecodeError as exc:
                         report.undecodable += 1
-                        report.refused[ch.topic, exc.reason] = report.refused.get((ch.topic, exc.reason), 0) + 1
+                        report.refused[ch.topic, exc.reason] += 1
                         continue
                     except SchemaError:
                         report.undecodable += 1

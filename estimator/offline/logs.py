@@ -100,7 +100,7 @@ def checked(raw: FrameFields, report: ReadReport) -> Iterator[FrameBlock]:
         report.messages -= 1
         report.undecodable += 1
         where = (keys.markers(raw.cell, raw.camera_id), reason)
-        report.refused[where] = report.refused.get(where, 0) + 1
+        report.refused[where] += 1
         if report.refused[where] == 1:
             log.warning(
                 "%s frame at %d ns skipped: %s (further ones only counted)", raw.camera_id[:40], int(raw.stamps[i]), why
@@ -154,8 +154,7 @@ def background_frame_blocks(
                     setattr(report, f.name, getattr(rest[0], f.name))
                 report.messages += dropped.messages
                 report.undecodable += dropped.undecodable
-                for where, n in dropped.refused.items():
-                    report.refused[where] = report.refused.get(where, 0) + n
+                report.refused.update(dropped.refused)
                 if cells is not None:
                     cells |= rest[1]
                 return
